@@ -1,0 +1,74 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""Reduced Hamiltonian H~ (5.36) and the shape-space terms its equations need.
+
+``H~ = 1/2 pi^T I^-1 pi + 1/2 pbar^T S^-1 pbar + V`` (REDUCED_MODEL.md 6): the
+amended potential of the locked body plus the shape kinetic energy. Its shape
+gradient and the curvature term ``C[i, j] = d_i (A^T pi)_j - d_j (A^T pi)_i``
+come from two RNEA-derivative calls (REDUCED_MODEL.md 8): with
+``u~ = [I^-1 pi; 0]`` and ``w = [-A qbar_dot; qbar_dot]``,
+``d_i(1/2 pi^T I^-1 pi) = -1/2 u~^T d_iM u~``, ``d_i(1/2 pbar^T S^-1 pbar) =
+-1/2 w^T d_iM w`` and ``pi^T d_i A_j = [-A; 1]_j^T d_iM u~``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+
+from reduced_dynamics.robot.model import MetricBlocks, RobotModel
+
+
+@dataclass
+class ShapeTerms:
+    """H~ and its shape derivatives at (pi, qbar, pbar), pi held fixed."""
+
+    blocks: MetricBlocks
+    pi: np.ndarray
+    locked_velocity: np.ndarray
+    qbar_dot: np.ndarray
+    xi: np.ndarray
+    energy: float
+    dH_dqbar: np.ndarray
+    curvature: np.ndarray
+
+
+def reduced_hamiltonian(robot: RobotModel, pi: np.ndarray, qbar: np.ndarray,
+                        pbar: np.ndarray) -> float:
+    """H~ (5.36) from the body momentum pi = pi(q~1), the shape and pbar."""
+    blocks = robot.metric_blocks(qbar)
+    qbar_dot = np.linalg.solve(blocks.reduced_metric, pbar)
+    return 0.5 * float(pi @ blocks.solve_locked(pi)) + 0.5 * float(pbar @ qbar_dot) \
+        + robot.potential_energy(qbar)
+
+
+def shape_terms(robot: RobotModel, pi: np.ndarray, qbar: np.ndarray,
+                pbar: np.ndarray) -> ShapeTerms:
+    """Evaluate H~, dH~/dqbar (pi, pbar fixed), qbar_dot = S^-1 pbar, xi and C."""
+    blocks = robot.metric_blocks(qbar)
+    u = blocks.solve_locked(pi)
+    qbar_dot = cho_solve(cho_factor(blocks.reduced_metric), pbar)
+    a_qdot = blocks.connection @ qbar_dot
+    u_full = np.concatenate([u, np.zeros(robot.m)])
+    w_full = np.concatenate([-a_qdot, qbar_dot])
+    d_mu, d_mw = robot.mass_matrix_derivative_action(qbar, (u_full, w_full))
+    horizontal = np.vstack([-blocks.connection, np.eye(robot.m)])
+    # p_mat[j, i] = pi^T d_i A_j
+    p_mat = horizontal.T @ d_mu
+    dH = -0.5 * (u_full @ d_mu) - 0.5 * (w_full @ d_mw) + robot.potential_gradient(qbar)
+    energy = 0.5 * float(pi @ u) + 0.5 * float(pbar @ qbar_dot) + robot.potential_energy(qbar)
+    return ShapeTerms(blocks, pi, u, qbar_dot, u - a_qdot, energy, dH, p_mat.T - p_mat)
