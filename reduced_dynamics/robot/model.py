@@ -88,6 +88,10 @@ class RobotModel:
         self._check_invariant_potential()
         self.model.gravity = pin.Motion(np.r_[self.gravity, 0.0, 0.0, 0.0])
         self.data = self.model.createData()
+        # RNEA derivatives of M w need zero gravity; a copy avoids toggling the shared model.
+        self._kinetic_model = pin.Model(self.model)
+        self._kinetic_model.gravity = pin.Motion.Zero()
+        self._kinetic_data = self._kinetic_model.createData()
         self.n = self.group.dim
         self.m = self.model.nv - self.n
         self.nq_base = self.model.joints[1].nq
@@ -193,15 +197,11 @@ class RobotModel:
         """
         q = self.identity_configuration(qbar)
         zero = np.zeros(self.model.nv)
-        saved = self.model.gravity
-        self.model.gravity = pin.Motion.Zero()
-        try:
-            out = np.empty((len(vectors), self.model.nv, self.m))
-            for index, w in enumerate(vectors):
-                dtau_dq, _, _ = pin.computeRNEADerivatives(self.model, self.data, q, zero, w)
-                out[index] = dtau_dq[:, self.n:]
-        finally:
-            self.model.gravity = saved
+        out = np.empty((len(vectors), self.model.nv, self.m))
+        for index, w in enumerate(vectors):
+            dtau_dq, _, _ = pin.computeRNEADerivatives(self._kinetic_model, self._kinetic_data,
+                                                       q, zero, w)
+            out[index] = dtau_dq[:, self.n:]
         return out
 
 
