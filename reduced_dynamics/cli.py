@@ -36,7 +36,7 @@ def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def load_robot_from_args(args: argparse.Namespace):
-    """The robot model the arguments describe."""
+    """Return the robot model the arguments describe."""
     from reduced_dynamics.robot.model import load_robot
     gravity = None if args.gravity is None else np.array(args.gravity)
     return load_robot(args.urdf, args.base_joint, gravity)
@@ -59,7 +59,7 @@ def _validate(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of every subcommand."""
+    """Return the argument parser of every subcommand."""
     parser = argparse.ArgumentParser(
         prog='reduced-dynamics',
         description='Symplectically reduced dynamics of free-floating robots '

@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Ground truth: full free-floating dynamics with Pinocchio ``aba`` (REDUCED_MODEL.md 9).
+"""
+Ground truth: full free-floating dynamics with Pinocchio ``aba`` (REDUCED_MODEL.md 9).
 
 State ``y = (eta, qbar, xi, qbar_dot)`` with base pose ``g = g_seg exp(eta)``
 (a chart re-centred by the integrator), body twist ``xi`` and shape rates.
@@ -53,7 +54,7 @@ class FullDynamics:
                         slice(2 * n + m, 2 * n + 2 * m))
 
     def pose(self, y: np.ndarray) -> pin.SE3:
-        """Base pose g of state y."""
+        """Return base pose g of state y."""
         return self.g_seg * self.robot.group.exp(y[self._slices[0]])
 
     def pack(self, state: FreeFloatingState) -> np.ndarray:
@@ -108,7 +109,7 @@ class FullDynamics:
                                state.qbar_dot, mu])
 
     def world_wrench(self, t: float, g: pin.SE3) -> np.ndarray:
-        """The external wrench in the world frame about the origin (= d mu / dt)."""
+        """Return the external wrench in the world frame about the origin (= d mu / dt)."""
         if self.base_wrench is None:
             return np.zeros(self.robot.n)
         wrench6 = np.asarray(self.base_wrench(t), dtype=float)
@@ -138,7 +139,7 @@ class FullTrajectory:
         self.mu = records[:, 16 + n + 2 * m:]
 
     def pose(self, index: int) -> pin.SE3:
-        """Base pose at sample ``index``."""
+        """Return base pose at sample ``index``."""
         return pin.SE3(self.poses[index])
 
     def state(self, index: int) -> FreeFloatingState:

@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Integrators for systems that live partly on Lie groups through re-centred charts.
+"""
+Integrators for systems that live partly on Lie groups through re-centred charts.
 
 * :func:`integrate_adaptive`: an adaptive high-order Runge-Kutta (DOP853 by
   default, scipy) run in segments; a segment ends when the chart coordinates
@@ -48,7 +49,7 @@ class ChartedSystem(Protocol):
         """Re-centre the charts at y; return y in the new charts."""
 
     def observe(self, t: float, y: np.ndarray) -> np.ndarray:
-        """A chart-independent record of the state (what callers compare)."""
+        """Return a chart-independent record of the state (what callers compare)."""
 
 
 def integrate_adaptive(system: ChartedSystem, y0: np.ndarray, t_eval: Sequence[float],
@@ -95,7 +96,8 @@ class DiscreteGradientStats:
 
 
 class DiscreteGradient:
-    """Energy-preserving fixed-step integrator (Gonzalez discrete gradient).
+    """
+    Energy-preserving fixed-step integrator (Gonzalez discrete gradient).
 
     ``evaluate(z)`` must return ``(H, grad H, Omega)`` with Omega skew and
     ``z_dot = Omega^-1 (grad H - f)``; ``forcing(t, z)`` returns f (zero for a

@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""The reduced model checked against full dynamics (REDUCED_MODEL.md section 9).
+"""
+The reduced model checked against full dynamics (REDUCED_MODEL.md section 9).
 
 A scenario is an initial full state chosen so that mu falls in a given class of
 Table 2, plus smooth joint torques. Both models start from the same state
@@ -65,7 +66,8 @@ def _momentum_of_class(robot: RobotModel, cls: MomentumClass,
 def random_scenario(robot: RobotModel, cls: MomentumClass, seed: int,
                     drift_speed: float = 0.05, shape_speed: float = 0.1,
                     shape_accel: float = 0.1) -> Scenario:
-    """A gentle random scenario whose momentum mu lies in class ``cls``.
+    """
+    Return a gentle random scenario whose momentum mu lies in class ``cls``.
 
     The shape starts within +-0.5 of zero (away from the gimbal lock of a
     spherical joint written as three revolutes), moving at about
@@ -158,7 +160,7 @@ def validation_table(robot: RobotModel, duration: float = 10.0, seed: int = 0,
 
 
 def format_table(rows: list[Comparison]) -> str:
-    """A plain-text table of comparisons."""
+    """Return a plain-text table of comparisons."""
     header = (f'{"momentum":<14}{"dim G_mu":>9}{"k":>3}{"mu drift":>11}{"shape err":>11}'
               f'{"pose err":>11}{"pi err":>11}{"full s":>8}{"red s":>8}')
     lines = [header, '-' * len(header)]

@@ -25,19 +25,19 @@ from reduced_dynamics.robot.random_tree import random_tree_urdf
 
 @functools.lru_cache(maxsize=None)
 def paper_robot():
-    """The paper's case study (section 6) on a floating base."""
+    """Return the paper's case study (section 6) on a floating base."""
     return load_robot()
 
 
 @functools.lru_cache(maxsize=None)
 def tree_robot():
-    """A random 7-joint tree with a prismatic joint on a floating base."""
+    """Return a random 7-joint tree with a prismatic joint on a floating base."""
     return load_robot(random_tree_urdf(7, seed=3))
 
 
 @functools.lru_cache(maxsize=None)
 def planar_robot():
-    """The air-bearing testbed: planar base, gravity normal to the plane."""
+    """Return the air-bearing testbed: planar base, gravity normal to the plane."""
     return load_robot(config_path('robots/planar_testbed.urdf'), 'planar',
                       np.array([0.0, 0.0, -9.81]))
 

@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Local chart chi of the coset space Q1/G_mu (REDUCED_MODEL.md section 5).
+"""
+Local chart chi of the coset space Q1/G_mu (REDUCED_MODEL.md section 5).
 
 ``chi(q1) = exp(C q1) g_ref`` with C a complement of Lie(G_mu): the classes
 G_mu chi(q1) are distinct near q1 = 0 because exp(C q1) moves transversally to
@@ -39,7 +40,7 @@ class CosetChart:
 
     @property
     def dim(self) -> int:
-        """Number k of chart coordinates."""
+        """Return the number k of chart coordinates."""
         return self.complement.shape[1]
 
     def point(self, q1: np.ndarray) -> pin.SE3:
@@ -53,5 +54,5 @@ class CosetChart:
             @ self.complement
 
     def recentred(self, q1: np.ndarray) -> 'CosetChart':
-        """The same chart re-centred at chi(q1) (whose coordinate is then 0)."""
+        """Return the same chart re-centred at chi(q1) (whose coordinate is then 0)."""
         return CosetChart(self.group, self.complement, self.point(q1))

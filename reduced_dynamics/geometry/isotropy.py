@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Isotropy algebra Lie(G_mu) of a momentum and its complement (Table 2, 5.31).
+"""
+Isotropy algebra Lie(G_mu) of a momentum and its complement (Table 2, 5.31).
 
 ``Lie(G_mu) = {eta : ad_eta^T mu = 0}``: the null space of the linear map
 eta -> ad_eta^T mu, computed by SVD. A singular value at or below
@@ -64,7 +65,7 @@ class IsotropyAlgebra:
 
     @property
     def orbit_dim(self) -> int:
-        """k = dim G - dim G_mu: the dimension of Q1/G_mu (and the coadjoint orbit)."""
+        """Compute k = dim G - dim G_mu: the dimension of Q1/G_mu (and the coadjoint orbit)."""
         return self.complement.shape[1]
 
 
@@ -84,7 +85,8 @@ def momentum_class(group: BaseGroup, mu: np.ndarray, rtol: float = RANK_RTOL,
 
 def isotropy_algebra(group: BaseGroup, mu: np.ndarray, rank_rtol: float = RANK_RTOL,
                      zero_atol: float = ZERO_ATOL) -> IsotropyAlgebra:
-    """Lie(G_mu) for the coadjoint action of the base group (5.31, Table 2).
+    """
+    Lie(G_mu) for the coadjoint action of the base group (5.31, Table 2).
 
     Returns orthonormal bases of the isotropy algebra and of its orthogonal
     complement, which spans the chart directions of Q1/G_mu.

@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Displacement subgroups of SE(3) (paper section 3.2.1, Table 1) as base groups.
+"""
+Displacement subgroups of SE(3) (paper section 3.2.1, Table 1) as base groups.
 
 A base group G is a subgroup of SE(3) given by its motion subspace ``S`` (6 x n):
 its Lie algebra is span(S). Twists are ordered (v, omega), linear first, as in
@@ -36,7 +37,8 @@ def _unit(*indices: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class BaseGroup:
-    """A Lie subgroup of SE(3) described by its motion subspace.
+    """
+    A Lie subgroup of SE(3) described by its motion subspace.
 
     ``algebra_basis`` is S (6 x n) with orthonormal-or-not columns spanning the
     subalgebra; coordinates eta in R^n stand for the twist S @ eta.

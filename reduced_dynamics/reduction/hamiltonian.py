@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Reduced Hamiltonian H~ (5.36) and the shape-space terms its equations need.
+"""
+Reduced Hamiltonian H~ (5.36) and the shape-space terms its equations need.
 
 ``H~ = 1/2 pi^T I^-1 pi + 1/2 pbar^T S^-1 pbar + V`` (REDUCED_MODEL.md 6): the
 amended potential of the locked body plus the shape kinetic energy. Its shape

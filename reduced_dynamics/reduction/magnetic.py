@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""The magnetic term Xi_mu = d(sigma* alpha_mu) in chart coordinates (5.37, 5.40).
+"""
+The magnetic term Xi_mu = d(sigma* alpha_mu) in chart coordinates (5.37, 5.40).
 
 On the section sigma(q~1, qbar) = (chi(q~1), qbar) the connection one-form
 alpha_mu = A* mu (5.34) pulls back to ``a = [L_chi^T pi; A^T pi]`` with
@@ -50,7 +51,8 @@ def magnetic_form(group: BaseGroup, pi: np.ndarray, chart_jacobian: np.ndarray,
 
 def magnetic_form_corollary55(group: BaseGroup, mu: np.ndarray, connection: np.ndarray,
                               connection_derivative: np.ndarray) -> np.ndarray:
-    """Xi_mu by the explicit formula (5.40), valid when G_mu = G.
+    """
+    Xi_mu by the explicit formula (5.40), valid when G_mu = G.
 
     ``Xi(u, w) = <mu, -[A u, A w] - (dA w) u + (dA u) w>`` with
     ``connection_derivative[i]`` = dA/dqbar_i (n x m); returns the m x m matrix.

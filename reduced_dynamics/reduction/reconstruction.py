@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Propagation of the reduced system with reconstruction of the base pose.
+"""
+Propagation of the reduced system with reconstruction of the base pose.
 
 The reduced state z evolves by Theorem 54; the base pose follows
 ``g_dot = g xi`` with ``xi = I^-1 pi - A qbar_dot`` (REDUCED_MODEL.md 4), carried
@@ -36,7 +37,8 @@ INTEGRATORS = ('dop853', 'discrete_gradient')
 
 
 class ReducedPropagator:
-    """Reduced model plus base-pose reconstruction, as one integrable system.
+    """
+    Reduced model plus base-pose reconstruction, as one integrable system.
 
     y = (q~1, qbar, pbar, eta): the reduced state and the base-pose chart.
     """
@@ -95,7 +97,8 @@ class ReducedPropagator:
     def propagate(self, y0: np.ndarray, times: Sequence[float], integrator: str = 'dop853',
                   rtol: float = 1e-11, atol: float = 1e-12,
                   step: float = 1e-3) -> 'ReducedTrajectory':
-        """Integrate from times[0] and sample at ``times``.
+        """
+        Integrate from times[0] and sample at ``times``.
 
         ``dop853``: adaptive with tolerances rtol/atol. ``discrete_gradient``:
         fixed ``step`` (the sample times should be multiples of it).
@@ -110,7 +113,7 @@ class ReducedPropagator:
         return ReducedTrajectory(self.system, times, records)
 
     def fixed_step_integrator(self) -> DiscreteGradient:
-        """The discrete-gradient integrator for this system's z (time set per step)."""
+        """Return the discrete-gradient integrator for this system's z (time set per step)."""
         system = self.system
 
         def evaluate(z: np.ndarray):

@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Reduced Hamilton equations at fixed momentum mu (Theorem 54, Corollary 55).
+"""
+Reduced Hamilton equations at fixed momentum mu (Theorem 54, Corollary 55).
 
 State ``z = (q~1, qbar, pbar)``: chart coordinates of Q1/G_mu, shape, reduced
 shape momentum. With ``U`` the magnetic form (:mod:`.magnetic`) and torques
@@ -62,7 +63,8 @@ class ReducedEvaluation:
 
 
 class ReducedSystem:
-    """The reduced Hamiltonian system of a robot at a fixed momentum mu (Thm 54).
+    """
+    The reduced Hamiltonian system of a robot at a fixed momentum mu (Thm 54).
 
     The chart of Q1/G_mu is centred at ``g_ref`` and re-centred by
     :meth:`recentre`; ``mu`` is in world-frame coordinates of the base group's dual.
@@ -82,7 +84,7 @@ class ReducedSystem:
     @classmethod
     def from_full_state(cls, robot: RobotModel, state: FreeFloatingState,
                         rank_rtol: float = RANK_RTOL) -> tuple['ReducedSystem', np.ndarray]:
-        """The reduced system through a full state, and its z (q~1 = 0 at g)."""
+        """Return the reduced system through a full state, and its z (q~1 = 0 at g)."""
         blocks = robot.metric_blocks(state.qbar)
         pi = body_momentum(blocks, state.xi, state.qbar_dot)
         system = cls(robot, momentum_map(robot.group, state.g, pi), state.g, rank_rtol)
@@ -109,7 +111,8 @@ class ReducedSystem:
             + self.robot.potential_energy(qbar)
 
     def evaluate(self, z: np.ndarray, tau: Torque) -> ReducedEvaluation:
-        """The vector field of Theorem 54 at z with shape torques tau.
+        """
+        Return the vector field of Theorem 54 at z with shape torques tau.
 
         ``tau`` is an array or a function tau(qbar, qbar_dot) (for feedback laws).
         """
@@ -148,7 +151,7 @@ class ReducedSystem:
         return out
 
     def full_state(self, z: np.ndarray, g: pin.SE3) -> FreeFloatingState:
-        """The full state with base pose g (reconstructed separately) at z."""
+        """Return the full state with base pose g (reconstructed separately) at z."""
         q1, qbar, pbar = self.split(z)
         terms = shape_terms(self.robot, self.body_momentum(q1), qbar, pbar)
         return FreeFloatingState(pin.SE3(g), terms.xi, qbar.copy(), terms.qbar_dot)
@@ -156,7 +159,8 @@ class ReducedSystem:
 
 def bundle_vector_field(robot: RobotModel, pi: np.ndarray, qbar: np.ndarray,
                         pbar: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, ...]:
-    """The chart-free "bundle" form (REDUCED_MODEL.md 7): (pi_dot, qbar_dot, pbar_dot, xi).
+    """
+    Return the chart-free "bundle" form (REDUCED_MODEL.md 7): (pi_dot, qbar_dot, pbar_dot, xi).
 
     ``pi_dot = ad_xi^T pi``, ``pbar_dot = -dH~/dqbar|pi + C qbar_dot - A^T pi_dot + tau``.
     """

@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""The free-floating robot: Pinocchio model, base group, shape space and metric blocks.
+"""
+The free-floating robot: Pinocchio model, base group, shape space and metric blocks.
 
 Theorem 51 / Lemma 52: the kinetic energy is left-invariant in the base pose, so
 the joint-space inertia evaluated with the base at identity,
@@ -41,7 +42,8 @@ class ModelError(ValueError):
 
 @dataclass
 class MetricBlocks:
-    """Blocks of M(qbar) and what follows from them (5.28, 5.29, Corollary 55).
+    """
+    Blocks of M(qbar) and what follows from them (5.28, 5.29, Corollary 55).
 
     ``locked_inertia`` I (n x n, base frame), ``coupling`` B (n x m),
     ``shape_inertia`` Mr (m x m), ``connection`` A = I^-1 B (5.29) and
@@ -66,7 +68,8 @@ class RobotModel:
 
     def __init__(self, urdf: str = '', base_joint: Optional[str] = None,
                  gravity: Optional[np.ndarray] = None) -> None:
-        """Load a URDF (path or XML text; default: the paper robot).
+        """
+        Load a URDF (path or XML text; default: the paper robot).
 
         ``gravity`` (world frame, m/s^2) defaults to zero. It must leave the
         potential invariant under the base group: zero for a floating base,
@@ -135,20 +138,20 @@ class RobotModel:
         return np.array([g.translation[0], g.translation[1], np.cos(yaw), np.sin(yaw)])
 
     def base_pose(self, q: np.ndarray) -> pin.SE3:
-        """Base pose g from Pinocchio q."""
+        """Return base pose g from Pinocchio q."""
         if self.base_joint_type == 'floating':
             return pin.XYZQUATToSE3(q[:7])
         yaw = float(np.arctan2(q[3], q[2]))
         return pin.SE3(pin.utils.rotate('z', yaw), np.array([q[0], q[1], 0.0]))
 
     def project_pose(self, g: pin.SE3) -> pin.SE3:
-        """The closest element of the base group (x, y, yaw for a planar base)."""
+        """Return the closest element of the base group (x, y, yaw for a planar base)."""
         if self.base_joint_type == 'floating':
             return g
         return self.base_pose(self.base_configuration(g))
 
     def identity_configuration(self, qbar: np.ndarray) -> np.ndarray:
-        """q with the base at identity (a shared work buffer: copy if you keep it)."""
+        """Compute q with the base at identity (a shared work buffer: copy if you keep it)."""
         self._q_work[:self.nq_base] = self._base_identity_q
         self._q_work[self.nq_base:] = qbar
         return self._q_work
@@ -189,7 +192,8 @@ class RobotModel:
 
     def mass_matrix_derivative_action(self, qbar: np.ndarray,
                                       vectors: np.ndarray) -> np.ndarray:
-        """d(M(qbar) w)/dqbar for each column w of ``vectors`` (REDUCED_MODEL.md 8).
+        """
+        d(M(qbar) w)/dqbar for each column w of ``vectors`` (REDUCED_MODEL.md 8).
 
         Returns an array (len(vectors), nv, m): RNEA derivatives with zero velocity,
         acceleration w and zero gravity. Base columns are dropped: M does not

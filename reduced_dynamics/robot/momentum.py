@@ -26,27 +26,27 @@ from reduced_dynamics.robot.model import MetricBlocks
 
 
 def body_momentum(blocks: MetricBlocks, xi: np.ndarray, qbar_dot: np.ndarray) -> np.ndarray:
-    """pi = I xi + B qbar_dot: momentum of the whole system in the base frame."""
+    """Compute pi = I xi + B qbar_dot: momentum of the whole system in the base frame."""
     return blocks.locked_inertia @ xi + blocks.coupling @ qbar_dot
 
 
 def momentum_map(group: BaseGroup, g: pin.SE3, pi: np.ndarray) -> np.ndarray:
-    """mu = Ad_{g^-1}^T pi (5.27): spatial momentum, world frame, about the world origin."""
+    """Compute mu = Ad_{g^-1}^T pi (5.27): spatial momentum about the world origin."""
     return group.Ad(g.inverse()).T @ pi
 
 
 def body_momentum_from_spatial(group: BaseGroup, g: pin.SE3, mu: np.ndarray) -> np.ndarray:
-    """pi = Ad_g^T mu, the inverse of :func:`momentum_map`."""
+    """Compute pi = Ad_g^T mu, the inverse of :func:`momentum_map`."""
     return group.Ad(g).T @ mu
 
 
 def shape_momentum(blocks: MetricBlocks, xi: np.ndarray, qbar_dot: np.ndarray) -> np.ndarray:
-    """p = B^T xi + Mr qbar_dot: momentum conjugate to the shape."""
+    """Compute p = B^T xi + Mr qbar_dot: momentum conjugate to the shape."""
     return blocks.coupling.T @ xi + blocks.shape_inertia @ qbar_dot
 
 
 def reduced_momentum(blocks: MetricBlocks, qbar_dot: np.ndarray) -> np.ndarray:
-    """pbar = p - A^T pi = S qbar_dot (5.35, Lemma 53)."""
+    """Compute pbar = p - A^T pi = S qbar_dot (5.35, Lemma 53)."""
     return blocks.reduced_metric @ qbar_dot
 
 
@@ -56,7 +56,7 @@ def drift_twist(blocks: MetricBlocks, pi: np.ndarray) -> np.ndarray:
 
 
 def geometric_phase(blocks: MetricBlocks, qbar_dot: np.ndarray) -> np.ndarray:
-    """-A qbar_dot: the base twist the shape motion causes (5.29)."""
+    """Return -A qbar_dot: the base twist the shape motion causes (5.29)."""
     return -blocks.connection @ qbar_dot
 
 

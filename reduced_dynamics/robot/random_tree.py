@@ -48,7 +48,8 @@ def _link_xml(name: str, mass: float, com: np.ndarray, inertia: np.ndarray) -> s
 
 def random_tree_urdf(num_joints: int, seed: int = 0, planar_axes: bool = False,
                      prismatic: bool = True) -> str:
-    """URDF of a random tree: a heavy base and ``num_joints`` 1-dof joints.
+    """
+    URDF of a random tree: a heavy base and ``num_joints`` 1-dof joints.
 
     Parents are drawn at random among earlier links (a tree, not a chain).
     With ``prismatic`` at least one joint is prismatic. With ``planar_axes``
@@ -59,8 +60,8 @@ def random_tree_urdf(num_joints: int, seed: int = 0, planar_axes: bool = False,
     parts = [f'<?xml version="1.0"?>\n<robot name="random_tree_{num_joints}_{seed}">\n']
     base_dims = rng.uniform(0.8, 1.4, 3)
     base_mass = float(rng.uniform(80.0, 200.0))
-    parts.append(_link_xml('base', base_mass, np.zeros(3), np.diag(_box_inertia(base_mass,
-                                                                              base_dims))))
+    base_inertia = np.diag(_box_inertia(base_mass, base_dims))
+    parts.append(_link_xml('base', base_mass, np.zeros(3), base_inertia))
     types = [JOINT_TYPES[int(rng.integers(0, 2))] for _ in range(num_joints)]
     if prismatic and num_joints:
         types[int(rng.integers(0, num_joints))] = 'prismatic'

@@ -36,7 +36,7 @@ class FreeFloatingState:
     qbar_dot: np.ndarray
 
     def copy(self) -> 'FreeFloatingState':
-        """A deep copy."""
+        """Return a deep copy."""
         return FreeFloatingState(pin.SE3(self.g), self.xi.copy(), self.qbar.copy(),
                                  self.qbar_dot.copy())
 

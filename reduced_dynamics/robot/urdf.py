@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""URDF (file or string) to a Pinocchio model with a free base (section 3, Table 1).
+"""
+URDF (file or string) to a Pinocchio model with a free base (section 3, Table 1).
 
 The root link is the base body B1. Its joint to the world is either declared in
 the URDF (a ``world`` link joined to the base by a ``floating`` or ``planar``
@@ -29,7 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import math
 import os
-from typing import Optional
+from typing import Optional, Union
 import xml.etree.ElementTree as ElementTree
 
 import numpy as np
@@ -53,7 +54,7 @@ class UrdfLink:
     inertia: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
 
     def spatial_inertia(self) -> pin.Inertia:
-        """The link's spatial inertia in its own frame."""
+        """Return the link's spatial inertia in its own frame."""
         return pin.Inertia(self.mass, self.com, self.inertia)
 
 
@@ -159,8 +160,9 @@ class UrdfRobot:
         return [j for j in self.joints if j.parent == link]
 
 
-def read_urdf_text(source: str) -> str:
+def read_urdf_text(source: Union[str, os.PathLike]) -> str:
     """Return URDF XML from a path or from the XML text itself."""
+    source = str(source)
     stripped = source.lstrip()
     if stripped.startswith('<'):
         return source
@@ -171,7 +173,8 @@ def read_urdf_text(source: str) -> str:
 
 
 def parse_urdf(source: str, base_joint: Optional[str] = None) -> UrdfRobot:
-    """Parse URDF text or a file and find its free base.
+    """
+    Parse URDF text or a file and find its free base.
 
     ``base_joint`` ('floating' or 'planar') is used when the URDF has no world
     joint; when it has one, ``base_joint`` must agree with it.
@@ -232,7 +235,7 @@ def parse_urdf(source: str, base_joint: Optional[str] = None) -> UrdfRobot:
 
 
 def _frame_with_z_along(axis: np.ndarray) -> np.ndarray:
-    """A rotation whose z column is ``axis`` (for planar joints of any normal)."""
+    """Return a rotation whose z column is ``axis`` (for planar joints of any normal)."""
     z = axis / np.linalg.norm(axis)
     helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = np.cross(helper, z)
@@ -241,7 +244,7 @@ def _frame_with_z_along(axis: np.ndarray) -> np.ndarray:
 
 
 def _axis_joint(kind: str, axis: np.ndarray) -> pin.JointModel:
-    """A 1-dof Pinocchio joint about/along ``axis`` (aligned variants when possible)."""
+    """Return a 1-dof Pinocchio joint about/along ``axis`` (aligned variants when possible)."""
     for index, letter in enumerate('XYZ'):
         unit = np.zeros(3)
         unit[index] = 1.0

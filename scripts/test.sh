@@ -1,0 +1,170 @@
+#!/usr/bin/env bash
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+# The one test command: ./scripts/test.sh [pytest args...]
+#
+#   1. installs the ament linters from apt (Debian 12 / Ubuntu) when missing,
+#   2. pip-installs the package (editable, with the [test] extra) and colcon,
+#   3. colcon build  (workspace under .colcon/, never build/ install/ log/),
+#   4. checks the ros2-run executable lib/reduced_dynamics/reduced_dynamics_node,
+#   5. colcon test   (pytest runs once; its output and summary line are printed),
+#   6. colcon test-result --verbose.
+#
+# Extra arguments go to pytest, e.g. ./scripts/test.sh -k momentum -x
+#
+# Environment knobs:
+#   PYTHON=python3            interpreter used for pip, colcon and pytest
+#   RD_SKIP_INSTALL=1         skip the apt/pip steps (offline re-runs)
+#   RD_SYMLINK_INSTALL=0      plain `colcon build` instead of --symlink-install
+
+set -euo pipefail
+
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+REPO_ROOT="$PWD"
+WS="$REPO_ROOT/.colcon"
+PKG=reduced_dynamics
+
+PYTHON="${PYTHON:-python3}"
+RD_SKIP_INSTALL="${RD_SKIP_INSTALL:-0}"
+RD_SYMLINK_INSTALL="${RD_SYMLINK_INSTALL:-1}"
+
+export PIP_DISABLE_PIP_VERSION_CHECK=1
+export PIP_NO_INPUT=1
+export DEBIAN_FRONTEND=noninteractive
+# Keep colcon away from per-user defaults/mixins (~/.colcon) so runs are reproducible.
+export COLCON_HOME="$WS/home"
+# Disable colcon's desktop notifications (no display in CI).
+export COLCON_EXTENSION_BLOCKLIST="colcon_core.event_handler.desktop_notification${COLCON_EXTENSION_BLOCKLIST:+:$COLCON_EXTENSION_BLOCKLIST}"
+
+step() { printf '\n==> %s\n' "$*"; }
+warn() { printf 'WARNING: %s\n' "$*" >&2; }
+
+as_root() {
+  if [ "$(id -u)" -eq 0 ]; then
+    "$@"
+  elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
+    sudo -n "$@"
+  else
+    return 1
+  fi
+}
+
+# ---------------------------------------------------------------- 1. apt linters
+APT_PACKAGES=(python3-ament-flake8 python3-ament-pep257 python3-ament-copyright
+              python3-ament-xmllint python3-ament-index libxml2-utils)
+linters_available() {
+  local exe
+  for exe in ament_flake8 ament_pep257 ament_copyright ament_xmllint xmllint; do
+    command -v "$exe" >/dev/null 2>&1 || return 1
+  done
+}
+if [ "$RD_SKIP_INSTALL" != 1 ]; then
+  step "ament linters"
+  if linters_available; then
+    echo "already on PATH ($(command -v ament_flake8))"
+  elif command -v apt-get >/dev/null 2>&1; then
+    missing=()
+    for p in "${APT_PACKAGES[@]}"; do
+      dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q 'install ok installed' \
+        || missing+=("$p")
+    done
+    echo "installing from apt: ${missing[*]:-(none)}"
+    if [ "${#missing[@]}" -gt 0 ]; then
+      if as_root apt-get update -q && \
+         as_root apt-get install -y -q --no-install-recommends "${missing[@]}"; then
+        :
+      else
+        warn "cannot apt-get install ${missing[*]} (not root / no sudo);" \
+             "the linter tests will fail until they are installed"
+      fi
+    fi
+  else
+    warn "no apt-get and no ament linters on PATH (source ROS 2 to get them);" \
+         "the linter tests will fail"
+  fi
+fi
+
+# ------------------------------------------------------ 2. python environment
+# A Debian/Ubuntu system interpreter refuses pip installs (PEP 668): use a venv then.
+if "$PYTHON" - <<'EOF'
+import os
+import sys
+import sysconfig
+managed = os.path.exists(os.path.join(sysconfig.get_path('stdlib'), 'EXTERNALLY-MANAGED'))
+sys.exit(0 if managed and sys.prefix == sys.base_prefix else 1)
+EOF
+then
+  VENV="$WS/venv"
+  if [ ! -x "$VENV/bin/python" ]; then
+    step "creating $VENV ($PYTHON is externally managed)"
+    if ! "$PYTHON" -m venv --system-site-packages "$VENV"; then
+      as_root apt-get install -y -q --no-install-recommends python3-venv
+      "$PYTHON" -m venv --system-site-packages "$VENV"
+    fi
+  fi
+  PYTHON="$VENV/bin/python"
+fi
+echo "python: $("$PYTHON" -c 'import sys; print(sys.executable, sys.version.split()[0])')"
+
+if [ "$RD_SKIP_INSTALL" != 1 ]; then
+  step "pip install -e '.[test]' colcon-common-extensions"
+  "$PYTHON" -m pip install -q -e "$REPO_ROOT[test]" colcon-common-extensions
+fi
+
+# Run colcon with exactly this interpreter (colcon test runs `sys.executable -m pytest`).
+colcon() {
+  "$PYTHON" -c 'import sys; from colcon_core.command import main; sys.exit(main())' "$@"
+}
+
+# ------------------------------------------------------------ 3. colcon build
+WS_ARGS=(--base-paths "$REPO_ROOT" --build-base "$WS/build" --install-base "$WS/install")
+BUILD_ARGS=()
+if [ "$RD_SYMLINK_INSTALL" = 1 ]; then
+  BUILD_ARGS+=(--symlink-install)
+fi
+step "colcon build ${BUILD_ARGS[*]}"
+colcon --log-base "$WS/log" build "${WS_ARGS[@]}" "${BUILD_ARGS[@]}" \
+  --packages-select "$PKG" --event-handlers console_cohesion+
+
+# --------------------------------------------------- 4. ros2 run executable
+NODE_EXE="$WS/install/$PKG/lib/$PKG/reduced_dynamics_node"
+if [ ! -x "$NODE_EXE" ]; then
+  echo "ERROR: missing executable $NODE_EXE (check setup.cfg [install]/[develop])" >&2
+  exit 1
+fi
+echo "ros2 run executable: ${NODE_EXE#"$REPO_ROOT"/}"
+
+# ------------------------------------------------------------- 5. colcon test
+# Every pytest argument is prefixed by a space so colcon's argparse never mistakes
+# it for one of its own options (colcon strips the space again).
+PYTEST_ARGS=()
+if [ "$#" -gt 0 ]; then
+  PYTEST_ARGS+=(--pytest-args)
+  for a in "$@"; do
+    PYTEST_ARGS+=(" $a")
+  done
+fi
+step "colcon test"
+rc=0
+colcon --log-base "$WS/log" test "${WS_ARGS[@]}" --test-result-base "$WS/test_results" \
+  --packages-select "$PKG" --return-code-on-test-failure \
+  --event-handlers console_direct+ "${PYTEST_ARGS[@]}" || rc=$?
+
+# ------------------------------------------------------ 6. colcon test-result
+step "colcon test-result"
+colcon --log-base "$WS/log" test-result --test-result-base "$WS/test_results" --verbose \
+  || { [ "$rc" -ne 0 ] || rc=1; }
+
+exit "$rc"

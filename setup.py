@@ -1,0 +1,85 @@
+"""Packaging for reduced_dynamics (ROS 2 ament_python package, also pip-installable)."""
+
+from glob import glob
+import os
+
+from setuptools import find_packages
+from setuptools import setup
+
+package_name = 'reduced_dynamics'
+
+# Run from the directory holding this file (colcon and pip both do, but be safe
+# so the globs below never depend on the caller's working directory).
+_here = os.path.dirname(os.path.abspath(__file__))
+
+
+def _rel_glob(pattern):
+    """Return the sorted files matching ``pattern`` relative to this file's directory."""
+    return sorted(
+        os.path.relpath(p, _here)
+        for p in glob(os.path.join(_here, pattern))
+        if os.path.isfile(p))
+
+
+# Single source of truth for runtime configuration: the top-level config/ folder.
+# It is shipped twice from that one source:
+#   * as ament share data (share/reduced_dynamics/config/...) for colcon / ros2;
+#   * as package data of the install-only subpackage ``reduced_dynamics._data``
+#     (mapped onto config/ via package_dir) so a plain ``pip install .`` works.
+# reduced_dynamics._data never exists in the source tree; runtime code must go
+# through reduced_dynamics.resources, which tries every location.
+DATA_PACKAGE = package_name + '._data'
+config_files = _rel_glob('config/*.yaml')
+robot_files = _rel_glob('config/robots/*.urdf')
+
+packages = find_packages(where=_here, exclude=['test', 'test.*'])
+package_dir = {}
+package_data = {}
+if config_files or robot_files:
+    packages.append(DATA_PACKAGE)
+    package_dir[DATA_PACKAGE] = 'config'
+    package_data[DATA_PACKAGE] = ['*.yaml', 'robots/*.urdf']
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=packages,
+    package_dir=package_dir,
+    package_data=package_data,
+    include_package_data=False,
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/launch', _rel_glob('launch/*.launch.py')),
+        ('share/' + package_name + '/config', config_files),
+        ('share/' + package_name + '/config/robots', robot_files),
+    ],
+    python_requires='>=3.10',
+    install_requires=[
+        'numpy',
+        'scipy',
+        'pin',
+        'rosbags',
+        'mcap',
+        'pyyaml',
+        'matplotlib',
+    ],
+    extras_require={
+        'test': ['pytest'],
+    },
+    tests_require=['pytest'],
+    zip_safe=False,
+    maintainer='reduced_dynamics developers',
+    maintainer_email='dev@reduced-dynamics.local',
+    description=(
+        'Symplectically reduced Hamiltonian dynamics of free-floating space robots '
+        '(Chhabra & Emami 2014): momentum map, reduced model prediction and drift '
+        'estimation'),
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            'reduced-dynamics = reduced_dynamics.cli:main',
+            'reduced_dynamics_node = reduced_dynamics.node:main',
+        ],
+    },
+)
