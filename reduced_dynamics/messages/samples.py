@@ -1,0 +1,261 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+ROS-free sample dataclasses exchanged between bag I/O, nodes and the estimator.
+
+All times are integer nanoseconds (``stamp_ns``).  Arrays are coerced to
+contiguous ``float64`` numpy arrays and shape-checked on construction.  The
+dataclasses are frozen (fields cannot be rebound) and compare by identity,
+because element-wise numpy comparison has no single truth value.
+"""
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Optional, Union
+
+import numpy as np
+
+#: Diagnostic levels (diagnostic_msgs/msg/DiagnosticStatus constants).
+DIAG_OK = 0
+DIAG_WARN = 1
+DIAG_ERROR = 2
+DIAG_STALE = 3
+
+KeyValues = Union[Mapping[str, str], Iterable[tuple[str, str]]]
+
+
+def _stamp(value: int, name: str = 'stamp_ns') -> int:
+    """Validate a non-negative integer nanosecond timestamp."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f'{name} must be an integer number of nanoseconds, got {value!r}')
+    if value < 0:
+        raise ValueError(f'{name} must be >= 0, got {value}')
+    return int(value)
+
+
+def _array(value: object, shape: tuple[Optional[int], ...], name: str) -> np.ndarray:
+    """Coerce to a contiguous float64 array and check its shape (None = any size)."""
+    arr = np.ascontiguousarray(value, dtype=np.float64)
+    if arr.ndim != len(shape) or any(
+        want is not None and have != want for have, want in zip(arr.shape, shape)
+    ):
+        pretty = tuple('*' if s is None else s for s in shape)
+        raise ValueError(f'{name} must have shape {pretty}, got {arr.shape}')
+    return arr
+
+
+def _optional_array(value: object, shape: tuple[int, ...], name: str) -> Optional[np.ndarray]:
+    """Like _array but passes None through."""
+    return None if value is None else _array(value, shape, name)
+
+
+@dataclass(frozen=True, eq=False)
+class JointStateSample:
+    """Joint state; velocity and effort may be empty (size 0)."""
+
+    stamp_ns: int
+    frame_id: str
+    names: tuple[str, ...]
+    position: np.ndarray
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    effort: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def __post_init__(self) -> None:
+        """Validate and normalize fields."""
+        object.__setattr__(self, 'stamp_ns', _stamp(self.stamp_ns))
+        names = tuple(str(n) for n in self.names)
+        object.__setattr__(self, 'names', names)
+        n = len(names)
+        object.__setattr__(self, 'position', _array(self.position, (n,), 'position'))
+        for key in ('velocity', 'effort'):
+            arr = np.ascontiguousarray(getattr(self, key), dtype=np.float64).reshape(-1)
+            if arr.size not in (0, n):
+                raise ValueError(f'{key} must be empty or have {n} entries, got {arr.size}')
+            object.__setattr__(self, key, arr)
+
+
+@dataclass(frozen=True, eq=False)
+class BaseStateSample:
+    """
+    Floating-base pose in ``frame_id`` (world) with twist in ``child_frame_id`` (base).
+
+    The twist follows REP 105 / nav_msgs/Odometry: expressed in the child
+    (base) frame.  ``twist_linear``/``twist_angular`` are None when the
+    source carries no twist (e.g. geometry_msgs/PoseStamped).
+    """
+
+    stamp_ns: int
+    frame_id: str
+    child_frame_id: str
+    position: np.ndarray
+    orientation_xyzw: np.ndarray
+    twist_linear: Optional[np.ndarray] = None
+    twist_angular: Optional[np.ndarray] = None
+
+    def __post_init__(self) -> None:
+        """Validate and normalize fields."""
+        object.__setattr__(self, 'stamp_ns', _stamp(self.stamp_ns))
+        object.__setattr__(self, 'position', _array(self.position, (3,), 'position'))
+        object.__setattr__(
+            self, 'orientation_xyzw', _array(self.orientation_xyzw, (4,), 'orientation_xyzw'))
+        if (self.twist_linear is None) != (self.twist_angular is None):
+            raise ValueError('twist_linear and twist_angular must both be set or both be None')
+        object.__setattr__(
+            self, 'twist_linear', _optional_array(self.twist_linear, (3,), 'twist_linear'))
+        object.__setattr__(
+            self, 'twist_angular', _optional_array(self.twist_angular, (3,), 'twist_angular'))
+
+    @property
+    def has_twist(self) -> bool:
+        """Return True when the sample carries a base twist."""
+        return self.twist_linear is not None
+
+
+@dataclass(frozen=True, eq=False)
+class WrenchSample:
+    """Force/torque pair (also used for momenta: force=linear, torque=angular)."""
+
+    stamp_ns: int
+    frame_id: str
+    force: np.ndarray
+    torque: np.ndarray
+
+    def __post_init__(self) -> None:
+        """Validate and normalize fields."""
+        object.__setattr__(self, 'stamp_ns', _stamp(self.stamp_ns))
+        object.__setattr__(self, 'force', _array(self.force, (3,), 'force'))
+        object.__setattr__(self, 'torque', _array(self.torque, (3,), 'torque'))
+
+
+@dataclass(frozen=True, eq=False)
+class TwistSample:
+    """Linear/angular velocity pair expressed in ``frame_id``."""
+
+    stamp_ns: int
+    frame_id: str
+    linear: np.ndarray
+    angular: np.ndarray
+
+    def __post_init__(self) -> None:
+        """Validate and normalize fields."""
+        object.__setattr__(self, 'stamp_ns', _stamp(self.stamp_ns))
+        object.__setattr__(self, 'linear', _array(self.linear, (3,), 'linear'))
+        object.__setattr__(self, 'angular', _array(self.angular, (3,), 'angular'))
+
+
+@dataclass(frozen=True, eq=False)
+class ShapePrediction:
+    """
+    Predicted shape trajectory starting at ``stamp_ns``.
+
+    ``times_from_start_ns`` (N,) must be non-negative and strictly increasing;
+    ``positions`` is (N, m); ``velocities`` is (N, m) or None.
+    """
+
+    stamp_ns: int
+    frame_id: str
+    joint_names: tuple[str, ...]
+    times_from_start_ns: np.ndarray
+    positions: np.ndarray
+    velocities: Optional[np.ndarray] = None
+
+    def __post_init__(self) -> None:
+        """Validate and normalize fields."""
+        object.__setattr__(self, 'stamp_ns', _stamp(self.stamp_ns))
+        names = tuple(str(n) for n in self.joint_names)
+        object.__setattr__(self, 'joint_names', names)
+        times = np.asarray(self.times_from_start_ns)
+        if times.ndim != 1 or (times.size and not np.issubdtype(times.dtype, np.integer)):
+            raise ValueError('times_from_start_ns must be a 1-D integer array (nanoseconds)')
+        times = np.ascontiguousarray(times, dtype=np.int64)
+        if times.size and (times[0] < 0 or np.any(np.diff(times) <= 0)):
+            raise ValueError('times_from_start_ns must be >= 0 and strictly increasing')
+        object.__setattr__(self, 'times_from_start_ns', times)
+        shape = (times.size, len(names))
+        object.__setattr__(self, 'positions', _array(self.positions, shape, 'positions'))
+        object.__setattr__(
+            self, 'velocities', _optional_array(self.velocities, shape, 'velocities'))
+
+
+@dataclass(frozen=True, eq=False)
+class PosePath:
+    """Sequence of stamped poses in ``frame_id`` (e.g. a drift-integrated base path)."""
+
+    stamp_ns: int
+    frame_id: str
+    stamps_ns: np.ndarray
+    positions: np.ndarray
+    orientations_xyzw: np.ndarray
+
+    def __post_init__(self) -> None:
+        """Validate and normalize fields."""
+        object.__setattr__(self, 'stamp_ns', _stamp(self.stamp_ns))
+        stamps = np.asarray(self.stamps_ns)
+        if stamps.ndim != 1 or (stamps.size and not np.issubdtype(stamps.dtype, np.integer)):
+            raise ValueError('stamps_ns must be a 1-D integer array (nanoseconds)')
+        stamps = np.ascontiguousarray(stamps, dtype=np.int64)
+        if stamps.size and stamps.min() < 0:
+            raise ValueError('stamps_ns must be >= 0')
+        object.__setattr__(self, 'stamps_ns', stamps)
+        n = stamps.size
+        object.__setattr__(self, 'positions', _array(self.positions, (n, 3), 'positions'))
+        object.__setattr__(
+            self,
+            'orientations_xyzw',
+            _array(self.orientations_xyzw, (n, 4), 'orientations_xyzw'),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class DiagnosticStatusSample:
+    """One diagnostic status; ``values`` accepts a dict or (key, value) pairs."""
+
+    level: int
+    name: str
+    message: str = ''
+    hardware_id: str = ''
+    values: tuple[tuple[str, str], ...] = ()
+
+    def __post_init__(self) -> None:
+        """Validate and normalize fields."""
+        level = int(self.level)
+        if level not in (DIAG_OK, DIAG_WARN, DIAG_ERROR, DIAG_STALE):
+            raise ValueError(f'diagnostic level must be 0 (OK)..3 (STALE), got {self.level!r}')
+        object.__setattr__(self, 'level', level)
+        raw = self.values.items() if isinstance(self.values, Mapping) else self.values
+        pairs = tuple((str(k), str(v)) for k, v in raw)
+        object.__setattr__(self, 'values', pairs)
+
+    def values_dict(self) -> dict[str, str]:
+        """Return the key/value pairs as a dict (later duplicates win)."""
+        return dict(self.values)
+
+
+@dataclass(frozen=True, eq=False)
+class Diagnostics:
+    """A diagnostic array: several statuses sharing one stamp."""
+
+    stamp_ns: int
+    statuses: tuple[DiagnosticStatusSample, ...]
+    frame_id: str = ''
+
+    def __post_init__(self) -> None:
+        """Validate and normalize fields."""
+        object.__setattr__(self, 'stamp_ns', _stamp(self.stamp_ns))
+        statuses = tuple(self.statuses)
+        for status in statuses:
+            if not isinstance(status, DiagnosticStatusSample):
+                raise TypeError(f'statuses must be DiagnosticStatusSample, got {status!r}')
+        object.__setattr__(self, 'statuses', statuses)
