@@ -1,0 +1,138 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Prediction by the reduced model and its residual against what was then measured.
+
+From a measured state, the reduced system at the current momentum level is
+propagated over the horizon with the measured joint torques held, and the
+base pose is reconstructed. Each later sample inside a prediction's horizon
+is compared with it (cubic Hermite interpolation of the predicted shape), so
+the residual measures model drift: unmodelled torques, external wrenches,
+and (with noise) measurement error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import pinocchio as pin
+
+from reduced_dynamics.reduction.reconstruction import ReducedPropagator
+from reduced_dynamics.reduction.vector_field import ReducedSystem
+from reduced_dynamics.robot.model import RobotModel
+
+
+@dataclass
+class Prediction:
+    """A predicted trajectory and its running comparison with measurements."""
+
+    start_ns: int
+    times: np.ndarray
+    qbar: np.ndarray
+    qbar_dot: np.ndarray
+    poses: np.ndarray
+    shape_residual: float = 0.0
+    position_residual: float = 0.0
+    compared: int = 0
+
+    @property
+    def end_ns(self) -> int:
+        """Return the stamp of the last predicted point."""
+        return self.start_ns + int(round(self.times[-1] * 1e9))
+
+    def shape_at(self, stamp_ns: int) -> np.ndarray:
+        """Return the predicted shape at a stamp inside the horizon (cubic Hermite)."""
+        t = (stamp_ns - self.start_ns) * 1e-9
+        i = int(np.clip(np.searchsorted(self.times, t) - 1, 0, len(self.times) - 2))
+        h = self.times[i + 1] - self.times[i]
+        s = (t - self.times[i]) / h
+        h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
+        h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
+        return h00 * self.qbar[i] + h10 * h * self.qbar_dot[i] + h01 * self.qbar[i + 1] \
+            + h11 * h * self.qbar_dot[i + 1]
+
+    def position_at(self, stamp_ns: int) -> np.ndarray:
+        """Return the predicted base position at a stamp (linear between points)."""
+        t = (stamp_ns - self.start_ns) * 1e-9
+        return np.array([np.interp(t, self.times, self.poses[:, axis, 3]) for axis in range(3)])
+
+
+class Predictor:
+    """Runs predictions and tracks their residuals."""
+
+    def __init__(self, robot: RobotModel, horizon: float, step: float, integrator: str,
+                 tolerance: float) -> None:
+        """Predict over ``horizon`` seconds with points every ``step`` seconds."""
+        self.robot = robot
+        self.horizon = horizon
+        self.step = step
+        self.integrator = integrator
+        self.tolerance = tolerance
+        self.active: list[Prediction] = []
+        self.finished: list[Prediction] = []
+        self.made = 0
+
+    def predict(self, stamp_ns: int, g: pin.SE3, qbar: np.ndarray, qbar_dot: np.ndarray,
+                mu: np.ndarray, tau: np.ndarray) -> Prediction:
+        """Predict from a measured shape state and base pose at momentum level ``mu``."""
+        count = max(1, int(round(self.horizon / self.step)))
+        times = np.linspace(0.0, count * self.step, count + 1)
+        system = ReducedSystem(self.robot, mu, g)
+        blocks = self.robot.metric_blocks(qbar)
+        z = np.concatenate([np.zeros(system.k), qbar, blocks.reduced_metric @ qbar_dot])
+        held = np.array(tau, dtype=float)
+        propagator = ReducedPropagator(system, g, lambda t, q, qd: held)
+        y0 = np.concatenate([z, np.zeros(self.robot.n)])
+        trajectory = propagator.propagate(y0, times, self.integrator, self.tolerance,
+                                          self.tolerance, self.step)
+        prediction = Prediction(stamp_ns, times, trajectory.qbar, trajectory.qbar_dot,
+                                trajectory.poses)
+        self.active.append(prediction)
+        self.made += 1
+        return prediction
+
+    def compare(self, stamp_ns: int, qbar: np.ndarray, g: pin.SE3) -> list[Prediction]:
+        """Compare a measurement with active predictions; return the ones that expired."""
+        expired = []
+        still = []
+        for prediction in self.active:
+            if stamp_ns > prediction.end_ns:
+                expired.append(prediction)
+                continue
+            still.append(prediction)
+            if stamp_ns <= prediction.start_ns:
+                continue
+            error = float(np.max(np.abs(prediction.shape_at(stamp_ns) - qbar))) \
+                if qbar.size else 0.0
+            position = float(np.linalg.norm(prediction.position_at(stamp_ns) - g.translation))
+            prediction.shape_residual = max(prediction.shape_residual, error)
+            prediction.position_residual = max(prediction.position_residual, position)
+            prediction.compared += 1
+        self.active = still
+        self.finished.extend(expired)
+        return expired
+
+    def finish(self) -> None:
+        """Close every active prediction (end of input)."""
+        self.finished.extend(self.active)
+        self.active = []
+
+    @property
+    def last_residual(self) -> Optional[float]:
+        """Return the shape residual of the most recently finished prediction."""
+        done = [p for p in self.finished if p.compared]
+        return done[-1].shape_residual if done else None
