@@ -1,0 +1,81 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The output topics shared by the node and the replay tool, and their conversion.
+
+Names are relative to the node (``~/momentum`` for the node,
+``/reduced_dynamics/momentum`` in a replayed bag); ``/diagnostics`` is absolute.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Iterator, NamedTuple
+
+from reduced_dynamics.estimator.pipeline import EstimatorOutput
+from reduced_dynamics.messages.convert import (
+    diagnostics_to_ros, joint_state_to_ros, pose_path_to_ros, shape_prediction_to_ros,
+    twist_to_ros, wrench_to_ros)
+from reduced_dynamics.messages.types import MessageTypes
+
+NODE_NAME = 'reduced_dynamics'
+DIAGNOSTICS_TOPIC = '/diagnostics'
+
+
+class OutputTopic(NamedTuple):
+    """An output: relative topic name, message type, field of EstimatorOutput, converter."""
+
+    name: str
+    msgtype: str
+    field: str
+    to_ros: Callable[[Any, MessageTypes], Any]
+    meaning: str
+
+
+OUTPUT_TOPICS: tuple[OutputTopic, ...] = (
+    OutputTopic('momentum', 'geometry_msgs/msg/WrenchStamped', 'momentum', wrench_to_ros,
+                'mu: force = linear momentum [kg m/s], torque = angular momentum about the '
+                'world origin [kg m^2/s], world frame'),
+    OutputTopic('body_momentum', 'geometry_msgs/msg/WrenchStamped', 'body_momentum',
+                wrench_to_ros, 'pi = Ad_g^T mu, base frame'),
+    OutputTopic('shape_state', 'sensor_msgs/msg/JointState', 'shape_state',
+                joint_state_to_ros, 'qbar (position), qbar_dot (velocity), reduced momentum '
+                'pbar = S qbar_dot (effort field) [N m s or N s]'),
+    OutputTopic('drift/momentum_rate', 'geometry_msgs/msg/WrenchStamped', 'momentum_rate',
+                wrench_to_ros, 'estimated d mu/dt = external wrench [N, N m], world frame'),
+    OutputTopic('drift/base_twist', 'geometry_msgs/msg/TwistStamped', 'drift_twist',
+                twist_to_ros, 'I^-1 pi: base twist due to momentum alone, base frame'),
+    OutputTopic('prediction/shape', 'trajectory_msgs/msg/JointTrajectory', 'prediction',
+                shape_prediction_to_ros, 'predicted qbar, qbar_dot over the horizon'),
+    OutputTopic('prediction/base_path', 'nav_msgs/msg/Path', 'prediction_path',
+                pose_path_to_ros, 'predicted base poses, world frame'),
+    OutputTopic(DIAGNOSTICS_TOPIC, 'diagnostic_msgs/msg/DiagnosticArray', 'diagnostics',
+                diagnostics_to_ros, 'estimator status'),
+)
+
+
+def resolved_name(topic: OutputTopic, namespace: str = '/' + NODE_NAME) -> str:
+    """Return the absolute topic name under the node's private namespace."""
+    if topic.name.startswith('/'):
+        return topic.name
+    return f'{namespace.rstrip("/")}/{topic.name}'
+
+
+def output_messages(output: EstimatorOutput,
+                    types: MessageTypes) -> Iterator[tuple[OutputTopic, Any]]:
+    """Yield (topic, ROS message) for every output the sample carries."""
+    for topic in OUTPUT_TOPICS:
+        sample = getattr(output, topic.field)
+        if sample is not None:
+            yield topic, topic.to_ros(sample, types)
