@@ -237,8 +237,8 @@ class Estimator:
             if gap is None:
                 self._reject('no_base_state', f'no base pose near {head.stamp_ns}')
             elif gap > tolerance_ns:
-                self._reject('stale_base_state', f'nearest base pose {gap * 1e-9:.3f} s from '
-                                                  f'joint state {head.stamp_ns}')
+                detail = f'nearest base pose {gap * 1e-9:.3f} s from joint state {head.stamp_ns}'
+                self._reject('stale_base_state', detail)
             else:
                 outputs.append(self._process(head))
         return outputs

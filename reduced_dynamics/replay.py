@@ -1,0 +1,353 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Bag replay: ``reduced-dynamics replay BAG -o OUT``.
+
+Reads a rosbag2 bag (MCAP or sqlite3, any metadata version from Humble on) or
+a bare .mcap, drives the estimator pipeline with its joint states and base
+states, and writes a rosbag2 MCAP bag with exactly the node's output topics.
+Other topics, custom types included, are ignored. Streaming: memory does not
+grow with the bag's length.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections import Counter
+from dataclasses import dataclass, field
+import json
+import os
+import sys
+import time
+from typing import Any, Optional, TextIO
+
+import numpy as np
+
+from reduced_dynamics.bag.errors import BagError
+from reduced_dynamics.bag.reader import open_bag
+from reduced_dynamics.bag.writer import BagWriter
+from reduced_dynamics.estimator.config import EstimatorConfig
+from reduced_dynamics.estimator.pipeline import Estimator, EstimatorOutput
+from reduced_dynamics.messages.convert import (
+    joint_state_from_ros, odometry_from_ros, pose_stamped_from_ros)
+from reduced_dynamics.messages.types import RosbagsTypes
+from reduced_dynamics.params import defaults, load_params_file
+from reduced_dynamics.robot.model import load_robot, RobotModel
+from reduced_dynamics.topics import OUTPUT_TOPICS, output_messages, resolved_name
+
+JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
+ODOMETRY_TYPE = 'nav_msgs/msg/Odometry'
+POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
+
+
+@dataclass
+class ReplayOptions:
+    """Inputs of a replay beside the bag paths (topics default from the params)."""
+
+    params: dict = field(default_factory=defaults)
+    joint_states_topic: Optional[str] = None
+    odom_topic: Optional[str] = None
+    base_pose_topic: Optional[str] = None
+    start: Optional[float] = None
+    end: Optional[float] = None
+    plots_dir: Optional[str] = None
+    overwrite: bool = False
+    progress: Optional[TextIO] = None
+
+
+class _Series:
+    """Decimated time series for plots: at most ~2 * limit points, whatever the length."""
+
+    def __init__(self, limit: int = 5000) -> None:
+        self.limit = limit
+        self.stride = 1
+        self.count = 0
+        self.rows: list[tuple] = []
+
+    def add(self, row: tuple) -> None:
+        if self.count % self.stride == 0:
+            self.rows.append(row)
+            if len(self.rows) > 2 * self.limit:
+                self.rows = self.rows[::2]
+                self.stride *= 2
+        self.count += 1
+
+
+def _topic(name: str) -> str:
+    return name if name.startswith('/') else '/' + name
+
+
+InputChoice = tuple[Optional[str], str, bool]
+
+
+def choose_inputs(topics: dict[str, str], options: ReplayOptions) -> InputChoice:
+    """Return (joint-state topic or None, base topic, base topic is Odometry)."""
+    params = options.params
+    joint = _topic(options.joint_states_topic or params['joint_states_topic'])
+    joint_topic = joint if topics.get(joint) == JOINT_STATE_TYPE else None
+    if options.joint_states_topic and joint_topic is None:
+        raise BagError(f'bag has no {JOINT_STATE_TYPE} topic {joint}')
+    if options.odom_topic and options.base_pose_topic:
+        raise ValueError('give --odom-topic or --base-pose-topic, not both')
+    odom = _topic(options.odom_topic or params['odom_topic'])
+    pose = _topic(options.base_pose_topic or params['base_pose_topic'])
+    prefer_pose = bool(options.base_pose_topic) or (
+        params['base_input'] == 'pose' and not options.odom_topic)
+    candidates = [(pose, POSE_TYPE), (odom, ODOMETRY_TYPE)] if prefer_pose \
+        else [(odom, ODOMETRY_TYPE), (pose, POSE_TYPE)]
+    if options.odom_topic:
+        candidates = candidates[:1] if not prefer_pose else candidates
+    for name, msgtype in candidates:
+        if topics.get(name) == msgtype:
+            return joint_topic, name, msgtype == ODOMETRY_TYPE
+    wanted = ', '.join(f'{n} ({t})' for n, t in candidates)
+    raise BagError(f'bag has no base state topic: looked for {wanted}; it has '
+                   f'{sorted(topics)}')
+
+
+def load_robot_from_params(params: dict, urdf: str = '',
+                           base_joint: Optional[str] = None,
+                           gravity: Optional[list] = None) -> RobotModel:
+    """Return the robot of the options or the parameter file (default: the paper robot)."""
+    source = urdf or params.get('robot_description') or params.get('urdf_path') or ''
+    joint = base_joint or params.get('base_joint')
+    g = gravity if gravity is not None else params.get('gravity')
+    return load_robot(source, joint, None if g is None else np.asarray(g, dtype=float))
+
+
+def replay(bag_path: str, out_path: str, robot: RobotModel,
+           options: Optional[ReplayOptions] = None) -> dict[str, Any]:
+    """Replay ``bag_path`` through the estimator into ``out_path``; return the summary."""
+    options = options or ReplayOptions()
+    config = EstimatorConfig.from_mapping(options.params)
+    types = RosbagsTypes()
+    started = time.perf_counter()
+    with open_bag(bag_path) as reader:
+        topics = reader.topics()
+        joint_topic, base_topic, is_odom = choose_inputs(topics, options)
+        base_driven = joint_topic is None or robot.m == 0
+        estimator = Estimator(robot, config, use_odometry=is_odom, base_driven=base_driven)
+        start_ns = None if options.start is None else reader.start_ns + int(options.start * 1e9)
+        end_ns = None if options.end is None else reader.start_ns + int(options.end * 1e9)
+        wanted = [t for t in (joint_topic, base_topic) if t]
+        total_ns = max(reader.duration_ns, 1)
+        out_topics = {resolved_name(t): t.msgtype for t in OUTPUT_TOPICS}
+        written: Counter = Counter()
+        read: Counter = Counter()
+        series = {'mu': _Series(), 'rate': _Series(), 'shape': _Series(), 'residual': []}
+        last_report = started
+        with BagWriter(out_path, out_topics, overwrite=options.overwrite) as writer:
+            def emit(outputs: list[EstimatorOutput]) -> None:
+                for output in outputs:
+                    for topic, msg in output_messages(output, types):
+                        name = resolved_name(topic)
+                        writer.write(name, output.stamp_ns, msg)
+                        written[name] += 1
+                    if options.plots_dir:
+                        series['mu'].add((output.stamp_ns, *output.mu))
+                        series['rate'].add((output.stamp_ns, *output.momentum_rate.force,
+                                            *output.momentum_rate.torque))
+                        series['shape'].add((output.stamp_ns, *output.shape_state.position))
+
+            for message in reader.messages(wanted, start_ns, end_ns):
+                read[message.topic] += 1
+                try:
+                    if message.topic == joint_topic:
+                        sample = joint_state_from_ros(message.msg)
+                        emit(estimator.add_joint_state(sample))
+                    elif is_odom:
+                        emit(estimator.add_base_state(odometry_from_ros(message.msg)))
+                    else:
+                        sample = pose_stamped_from_ros(message.msg, robot.base_link)
+                        emit(estimator.add_base_state(sample))
+                except (ValueError, TypeError) as error:
+                    estimator.rejected['malformed'] += 1
+                    estimator.last_rejection = f'malformed: {error}'
+                now = time.perf_counter()
+                if options.progress is not None and now - last_report >= 2.0:
+                    last_report = now
+                    done = (message.timestamp_ns - reader.start_ns) / total_ns
+                    options.progress.write(f'\rreplay: {100 * done:5.1f}% '
+                                           f'({sum(read.values())} messages)')
+                    options.progress.flush()
+            emit(estimator.flush())
+        skipped = dict(reader.skipped)
+    if options.progress is not None:
+        options.progress.write('\rreplay: 100.0%\n')
+    elapsed = time.perf_counter() - started
+    summary = estimator.summary()
+    summary.update({'input_bag': str(bag_path), 'output_bag': str(out_path),
+                    'robot': robot.model.name, 'joint_states_topic': joint_topic,
+                    'base_topic': base_topic, 'base_driven': base_driven,
+                    'messages_in': dict(read), 'messages_out': dict(written),
+                    'undecodable_skipped': skipped, 'seconds': elapsed,
+                    'samples_per_second': estimator.processed / elapsed if elapsed else None})
+    if options.plots_dir:
+        for prediction in estimator.predictor.finished:
+            if prediction.compared:
+                series['residual'].append((prediction.start_ns, prediction.shape_residual,
+                                           prediction.position_residual))
+        summary['plots'] = write_plots(options.plots_dir, series, robot)
+    return summary
+
+
+def write_plots(directory: str, series: dict, robot: RobotModel) -> list[str]:
+    """Write PNG plots of mu, drift, shape state and prediction residual; return paths."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    os.makedirs(directory, exist_ok=True)
+    paths = []
+    labels6 = ['x', 'y', 'z', 'rx', 'ry', 'rz']
+
+    def save(fig, name: str) -> None:
+        path = os.path.join(directory, name)
+        fig.tight_layout()
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        paths.append(path)
+
+    mu = np.array(series['mu'].rows)
+    if mu.size:
+        t = (mu[:, 0] - mu[0, 0]) * 1e-9
+        fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+        wrench = np.array([robot.group.dual_to_wrench(row) for row in mu[:, 1:]])
+        for i in range(3):
+            axes[0].plot(t, wrench[:, i], label=f'p_{labels6[i]}')
+            axes[1].plot(t, wrench[:, 3 + i], label=f'L_{labels6[i][-1]}')
+        axes[0].set_ylabel('linear momentum [kg m/s]')
+        axes[1].set_ylabel('angular momentum [kg m²/s]')
+        axes[1].set_xlabel('time [s]')
+        axes[0].set_title('momentum map μ (world frame, about the origin)')
+        for ax in axes:
+            ax.legend(loc='upper right', fontsize=8)
+            ax.grid(True, alpha=0.3)
+        save(fig, 'momentum.png')
+    rate = np.array(series['rate'].rows)
+    if rate.size:
+        t = (rate[:, 0] - rate[0, 0]) * 1e-9
+        fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+        for i in range(3):
+            axes[0].plot(t, rate[:, 1 + i], label=f'F_{labels6[i]}')
+            axes[1].plot(t, rate[:, 4 + i], label=f'T_{labels6[i]}')
+        axes[0].set_ylabel('force [N]')
+        axes[1].set_ylabel('torque about origin [N m]')
+        axes[1].set_xlabel('time [s]')
+        axes[0].set_title('momentum drift: estimated external wrench dμ/dt')
+        for ax in axes:
+            ax.legend(loc='upper right', fontsize=8)
+            ax.grid(True, alpha=0.3)
+        save(fig, 'drift.png')
+    shape = np.array(series['shape'].rows)
+    if shape.size and shape.shape[1] > 1:
+        t = (shape[:, 0] - shape[0, 0]) * 1e-9
+        fig, ax = plt.subplots(figsize=(9, 4))
+        for i, name in enumerate(robot.shape_joint_names):
+            ax.plot(t, shape[:, 1 + i], label=name)
+        ax.set_xlabel('time [s]')
+        ax.set_ylabel('shape q̄ [rad or m]')
+        ax.set_title('shape state')
+        ax.legend(loc='upper right', fontsize=8, ncol=2)
+        ax.grid(True, alpha=0.3)
+        save(fig, 'shape.png')
+    residual = np.array(series['residual'])
+    fig, ax = plt.subplots(figsize=(9, 4))
+    if residual.size:
+        t = (residual[:, 0] - (mu[0, 0] if mu.size else residual[0, 0])) * 1e-9
+        ax.semilogy(t, np.maximum(residual[:, 1], 1e-16), 'o-', label='shape [rad]')
+        ax.semilogy(t, np.maximum(residual[:, 2], 1e-16), 's-', label='base position [m]')
+        ax.legend()
+    else:
+        ax.text(0.5, 0.5, 'no finished prediction', ha='center', transform=ax.transAxes)
+    ax.set_xlabel('prediction start [s]')
+    ax.set_ylabel('max error over horizon')
+    ax.set_title('prediction residual (reduced model vs. measured)')
+    ax.grid(True, which='both', alpha=0.3)
+    save(fig, 'prediction_residual.png')
+    return paths
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    """Return a human-readable summary of a replay."""
+    lines = [f'replayed {summary["input_bag"]} -> {summary["output_bag"]} '
+             f'(robot {summary["robot"]}, {summary["seconds"]:.2f} s, '
+             f'{summary["samples_per_second"] or 0:.0f} samples/s)']
+    lines.append(f'inputs: joint states {summary["joint_states_topic"]}, base '
+                 f'{summary["base_topic"]}' + (' (base-driven)' if summary['base_driven']
+                                               else ''))
+    lines.append('messages in:  ' + ', '.join(f'{k} {v}' for k, v in
+                                              sorted(summary['messages_in'].items())))
+    lines.append('messages out: ' + ', '.join(f'{k} {v}' for k, v in
+                                              sorted(summary['messages_out'].items())))
+    rejected = summary['rejected']
+    lines.append('rejected: ' + (', '.join(f'{k} {v}' for k, v in sorted(rejected.items()))
+                                 if rejected else 'none'))
+    mean = ' '.join(f'{v:+.6g}' for v in summary['mu_mean'])
+    spread = ' '.join(f'{v:.2e}' for v in summary['mu_spread'])
+    lines.append(f'mu mean [{mean}]  spread [{spread}]')
+    lines.append(f'events detected: {len(summary["events"])}')
+    for event in summary['events']:
+        impulse = 'n/a' if event['impulse'] is None else \
+            ' '.join(f'{v:+.4g}' for v in event['impulse'])
+        lines.append(f'  t={event["start_s"]:.3f} s: peak |w| {event["peak_wrench"]:.3g}, '
+                     f'impulse [{impulse}]')
+    residual = summary['prediction_shape_residual_max']
+    lines.append(f'predictions: {summary["predictions"]}, shape residual max '
+                 + ('n/a' if residual is None else f'{residual:.2e} rad, median '
+                    f'{summary["prediction_shape_residual_median"]:.2e} rad'))
+    if summary.get('plots'):
+        lines.append('plots: ' + ', '.join(summary['plots']))
+    return '\n'.join(lines)
+
+
+def _run(args: argparse.Namespace) -> int:
+    params = load_params_file(args.params) if args.params else defaults()
+    robot = load_robot_from_params(params, args.urdf, args.base_joint, args.gravity)
+    options = ReplayOptions(params=params, joint_states_topic=args.joint_states_topic,
+                            odom_topic=args.odom_topic, base_pose_topic=args.base_pose_topic,
+                            start=args.start, end=args.end, plots_dir=args.plots,
+                            overwrite=args.overwrite,
+                            progress=None if args.quiet else sys.stderr)
+    try:
+        summary = replay(args.bag, args.output, robot, options)
+    except BagError as error:
+        print(f'reduced-dynamics replay: error: {error}', file=sys.stderr)
+        return 2
+    print(format_summary(summary))
+    if args.summary_json:
+        with open(args.summary_json, 'w', encoding='utf-8') as stream:
+            json.dump(summary, stream, indent=2)
+    return 0
+
+
+def register_command(commands: Any) -> None:
+    """Add the ``replay`` subcommand."""
+    from reduced_dynamics.cli import add_robot_arguments
+    parser = commands.add_parser('replay', help='run the estimator over a recorded bag')
+    parser.add_argument('bag', help='rosbag2 directory (MCAP or sqlite3) or .mcap file')
+    parser.add_argument('-o', '--output', required=True, help='output bag directory')
+    add_robot_arguments(parser)
+    parser.add_argument('--params', help='parameters YAML (the node\'s format)')
+    parser.add_argument('--joint-states-topic')
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument('--odom-topic')
+    group.add_argument('--base-pose-topic')
+    parser.add_argument('--start', type=float, help='seconds from the bag start')
+    parser.add_argument('--end', type=float, help='seconds from the bag start')
+    parser.add_argument('--plots', metavar='DIR', help='write PNG plots into DIR')
+    parser.add_argument('--summary-json', metavar='FILE', help='write the summary as JSON')
+    parser.add_argument('--overwrite', action='store_true', help='replace an existing output')
+    parser.add_argument('--quiet', action='store_true', help='no progress display')
+    parser.set_defaults(func=_run)
