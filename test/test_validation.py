@@ -84,3 +84,18 @@ def test_validate_command_prints_the_table(capsys):
 def test_validate_command_rejects_bad_robot(capsys):
     assert main(['validate', '--urdf', '/nonexistent.urdf']) == 2
     assert 'not found' in capsys.readouterr().err
+
+
+def test_discrete_gradient_with_torques_converges_at_second_order():
+    robot = ROBOTS['paper']()
+    scenario = random_scenario(robot, MomentumClass.GENERIC, seed=8)
+    times = np.linspace(0.0, 0.5, 3)
+    reference = ReducedPropagator.from_full_state(robot, scenario.state, scenario.torque)
+    exact = reference[0].propagate(reference[1], times).qbar
+    errors = []
+    for step in (0.02, 0.01):
+        propagator, y0 = ReducedPropagator.from_full_state(robot, scenario.state,
+                                                           scenario.torque)
+        fixed = propagator.propagate(y0, times, 'discrete_gradient', step=step).qbar
+        errors.append(np.abs(fixed - exact).max())
+    assert 3.0 <= errors[0] / errors[1] <= 5.0

@@ -83,7 +83,10 @@ class BaseBuffer:
         latest = self.latest_ns
         if latest is None:
             return False
-        return latest > stamp_ns if needs_successor else latest >= stamp_ns
+        if not needs_successor:
+            return latest >= stamp_ns
+        # Differentiation uses three samples; at the start of a stream wait for them.
+        return latest > stamp_ns and len(self._stamps) >= 3
 
     def query(self, stamp_ns: int) -> BaseQuery:
         """Return pose and twist at ``stamp_ns`` (the buffer must not be empty)."""

@@ -126,7 +126,7 @@ class ReducedPropagator:
                 return np.zeros_like(z)
             qbar_dot = np.linalg.solve(system.robot.metric_blocks(qbar).reduced_metric, pbar)
             out = np.zeros_like(z)
-            out[system.k:system.k + system.m] = -self.torque(t, qbar, qbar_dot)
+            out[system.k:system.k + system.m] = self.torque(t, qbar, qbar_dot)
             return out
 
         return DiscreteGradient(evaluate, system.hamiltonian, forcing)
