@@ -64,7 +64,7 @@ try:
     from rclpy.qos import qos_profile_sensor_data
     from rclpy.qos import QoSProfile
     from rclpy.qos import ReliabilityPolicy
-    from rcl_interfaces.msg import FloatingPointRange  # noqa: I100  see the comment above
+    from rcl_interfaces.msg import FloatingPointRange
     from rcl_interfaces.msg import ParameterDescriptor
     from rcl_interfaces.msg import SetParametersResult
 except ImportError:  # main() explains; the ROS-free core must stay usable
@@ -154,7 +154,7 @@ class ReducedDynamicsNode(Node):
     # --- public state -----------------------------------------------------------------
     @property
     def estimator(self) -> Optional[Estimator]:
-        """Return the running estimator (None while there is no usable robot model)."""
+        """Return the running Estimator, or None while no robot model is usable."""
         return self._estimator
 
     @property
@@ -310,7 +310,7 @@ class ReducedDynamicsNode(Node):
         for topic, msg in output_messages(output, self._types):
             self._publishers_by_topic[topic.name].publish(msg)
             if topic.name == DIAGNOSTICS_TOPIC:
-                self._diagnostics_published = True
+                pass
 
     # --- node-clock duties ------------------------------------------------------------
     def _warn_throttled(self, key: str, message: str) -> None:

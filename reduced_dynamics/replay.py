@@ -301,8 +301,8 @@ def format_summary(summary: dict[str, Any]) -> str:
     for event in summary['events']:
         impulse = 'n/a' if event['impulse'] is None else \
             ' '.join(f'{v:+.4g}' for v in event['impulse'])
-        lines.append(f'  t={event["start_s"]:.3f} s: peak |w| {event["peak_wrench"]:.3g}, '
-                     f'impulse [{impulse}]')
+        lines.append(f'  t={event["start_s"]:.3f} s after start: peak |w| '
+                     f'{event["peak_wrench"]:.3g}, impulse [{impulse}]')
     residual = summary['prediction_shape_residual_max']
     lines.append(f'predictions: {summary["predictions"]}, shape residual max '
                  + ('n/a' if residual is None else f'{residual:.2e} rad, median '

@@ -78,7 +78,9 @@ def random_scenario(robot: RobotModel, cls: MomentumClass, seed: int,
     rng = np.random.default_rng(seed)
     qbar = rng.uniform(-0.5, 0.5, robot.m)
     qbar_dot = shape_speed * rng.standard_normal(robot.m)
-    g = robot.project_pose(pin.SE3.Random())
+    quat = rng.standard_normal(4)
+    rotation = pin.Quaternion(*(quat / np.linalg.norm(quat))).toRotationMatrix()
+    g = robot.project_pose(pin.SE3(rotation, rng.uniform(-1.0, 1.0, 3)))
     blocks = robot.metric_blocks(qbar)
     mu = _momentum_of_class(robot, cls, rng)
     if cls is not MomentumClass.ZERO:

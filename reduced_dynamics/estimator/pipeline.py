@@ -97,6 +97,7 @@ class Estimator:
         self.rejected: Counter = Counter()
         self.last_rejection: Optional[str] = None
         self.processed = 0
+        self.first_stamp_ns: Optional[int] = None
         self._buffer = BaseBuffer()
         self._pending: deque[_Pending] = deque()
         self._last_joint_ns: Optional[int] = None
@@ -259,6 +260,8 @@ class Estimator:
             + robot.potential_energy(qbar)
         rate = self.observer.update(sample.stamp_ns, mu)
         self.processed += 1
+        if self.first_stamp_ns is None:
+            self.first_stamp_ns = sample.stamp_ns
         delta = mu - self._mu_mean  # Welford: no cancellation for a near-constant mu
         self._mu_mean += delta / self.processed
         self._mu_m2 += delta * (mu - self._mu_mean)
@@ -373,14 +376,17 @@ class Estimator:
         spread = np.sqrt(self._mu_m2 / max(self.processed, 1))
         residuals = [p.shape_residual for p in self.predictor.finished if p.compared]
         positions = [p.position_residual for p in self.predictor.finished if p.compared]
+        origin = self.first_stamp_ns or 0
         return {
+            'first_stamp_ns': self.first_stamp_ns,
             'received': dict(self.received),
             'processed': self.processed,
             'rejected': dict(self.rejected),
             'mu_mean': mean.tolist(),
             'mu_spread': spread.tolist(),
-            'events': [{'start_s': e.start_ns * 1e-9,
-                        'end_s': None if e.end_ns is None else e.end_ns * 1e-9,
+            'events': [{'start_s': (e.start_ns - origin) * 1e-9,
+                        'end_s': None if e.end_ns is None else (e.end_ns - origin) * 1e-9,
+                        'start_stamp_ns': e.start_ns,
                         'impulse': None if e.impulse is None else e.impulse.tolist(),
                         'peak_wrench': e.peak_wrench} for e in self.events],
             'predictions': self.predictor.made,

@@ -1,0 +1,198 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""Bag replay end to end: shipped and generated bags in, output bags read independently."""
+
+import os
+import shutil
+
+from mcap.reader import make_reader
+import numpy as np
+import pytest
+
+from reduced_dynamics.bag.reader import open_bag
+from reduced_dynamics.cli import main
+from reduced_dynamics.estimator import Estimator
+from reduced_dynamics.messages.convert import joint_state_from_ros, odometry_from_ros
+from reduced_dynamics.replay import replay, ReplayOptions
+from reduced_dynamics.resources import config_path
+from reduced_dynamics.robot.model import load_robot
+from reduced_dynamics.simulator import simulate_bag, SimulationOptions, ThrusterPulse
+from reduced_dynamics.topics import OUTPUT_TOPICS, resolved_name
+
+DATA = os.path.join(os.path.dirname(__file__), 'data')
+
+
+def _read_all(path, topics):
+    with open_bag(path) as reader:
+        return [(m.topic, m.timestamp_ns, m.msg) for m in reader.messages(topics)]
+
+
+def _wrenches(messages, topic):
+    return np.array([[m.wrench.force.x, m.wrench.force.y, m.wrench.force.z,
+                      m.wrench.torque.x, m.wrench.torque.y, m.wrench.torque.z]
+                     for t, _, m in messages if t == topic])
+
+
+@pytest.fixture(scope='module')
+def thruster_replay(tmp_path_factory):
+    out = tmp_path_factory.mktemp('replay') / 'out'
+    summary = replay(os.path.join(DATA, 'paper_thruster'), str(out), load_robot())
+    return summary, str(out)
+
+
+def test_output_bag_read_independently_with_counts_of_summary(thruster_replay):
+    summary, out = thruster_replay
+    mcap_file = [f for f in os.listdir(out) if f.endswith('.mcap')][0]
+    counts = {}
+    with open(os.path.join(out, mcap_file), 'rb') as stream:
+        reader = make_reader(stream, validate_crcs=True)
+        for _, channel, _ in reader.iter_messages():
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+    assert counts == summary['messages_out']
+    assert set(counts) == {resolved_name(t) for t in OUTPUT_TOPICS}
+    with open_bag(out) as reader:
+        assert {t: reader.message_count(t) for t in reader.topics()} == counts
+        assert reader.topics() == {resolved_name(t): t.msgtype for t in OUTPUT_TOPICS}
+
+
+def test_replayed_momentum_matches_ground_truth_and_stamps(thruster_replay):
+    summary, out = thruster_replay
+    outputs = _read_all(out, ['/reduced_dynamics/momentum', '/reduced_dynamics/drift/'
+                              'momentum_rate'])
+    truth = _read_all(os.path.join(DATA, 'paper_thruster'), ['/ground_truth/momentum'])
+    mu = _wrenches(outputs, '/reduced_dynamics/momentum')
+    mu_truth = _wrenches(truth, '/ground_truth/momentum')
+    assert mu.shape == mu_truth.shape
+    assert np.abs(mu - mu_truth).max() <= 1e-9 * np.linalg.norm(mu_truth[0])
+    stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+              for t, _, m in outputs if t == '/reduced_dynamics/momentum']
+    assert stamps == [ts for _, ts, _ in truth]
+    # Impulse recovered from the published drift estimate, and flagged within 50 ms.
+    rate = _wrenches(outputs, '/reduced_dynamics/drift/momentum_rate')
+    seconds = (np.array(stamps) - stamps[0]) * 1e-9
+    impulse = np.trapezoid(rate, seconds, axis=0)
+    jump = mu_truth[-1] - mu_truth[0]
+    assert np.linalg.norm(impulse - jump) <= 0.05 * np.linalg.norm(jump)
+    (event,) = summary['events']
+    assert 0.0 <= event['start_s'] - 1.5 <= 0.05
+
+
+def test_replay_equals_pipeline_on_same_bag(thruster_replay):
+    _, out = thruster_replay
+    robot = load_robot()
+    estimator = Estimator(robot)
+    direct = []
+    for message in _read_all(os.path.join(DATA, 'paper_thruster'), ['/joint_states', '/odom']):
+        if message[0] == '/joint_states':
+            direct += estimator.add_joint_state(joint_state_from_ros(message[2]))
+        else:
+            direct += estimator.add_base_state(odometry_from_ros(message[2]))
+    direct += estimator.flush()
+    replayed = _wrenches(_read_all(out, ['/reduced_dynamics/body_momentum']),
+                         '/reduced_dynamics/body_momentum')
+    expected = np.array([np.r_[o.body_momentum.force, o.body_momentum.torque] for o in direct])
+    assert np.array_equal(replayed, expected)
+
+
+def test_constant_torque_bag_prediction_residual(tmp_path):
+    summary = replay(os.path.join(DATA, 'paper_constant'), str(tmp_path / 'out'), load_robot(),
+                     ReplayOptions(params={**_params(), 'prediction_rate': 2.0,
+                                           'prediction_horizon': 0.4}))
+    assert summary['predictions'] >= 4
+    # Torques are held for 1 s: predictions that do not straddle a flip are exact.
+    assert summary['prediction_shape_residual_median'] <= 1e-6
+
+
+def _params():
+    from reduced_dynamics.params import defaults
+    return defaults()
+
+
+def test_planar_puck_from_poses_only_with_custom_topic(tmp_path):
+    urdf = """<robot name="puck"><link name="puck"><inertial><mass value="12"/>
+      <inertia ixx="0.3" ixy="0" ixz="0" iyy="0.3" iyz="0" izz="0.5"/></inertial></link>
+      </robot>"""
+    robot = load_robot(urdf, 'planar')
+    bag = tmp_path / 'puck'
+    pulse = ThrusterPulse(1.0, 0.2, (3.0, -2.0, 0.0, 0.0, 0.0, 0.4))
+    simulate_bag(robot, bag, SimulationOptions(duration=3.0, rate=100.0, seed=4,
+                                               base_pose_only=True, status=True,
+                                               thrusters=(pulse,)))
+    with open_bag(bag) as reader:
+        assert '/simulator/status' in reader.topics()
+        assert '/joint_states' not in reader.topics() or robot.m == 0
+    summary = replay(str(bag), str(tmp_path / 'out'), robot)
+    assert summary['base_driven'] and not summary['rejected']
+    outputs = _read_all(tmp_path / 'out', ['/reduced_dynamics/momentum'])
+    truth = _read_all(bag, ['/ground_truth/momentum'])
+    mu = _wrenches(outputs, '/reduced_dynamics/momentum')
+    mu_truth = _wrenches(truth, '/ground_truth/momentum')
+    stamps = np.array([ts for _, ts, _ in truth])
+    quiet = np.abs((stamps - stamps[0]) * 1e-9 - 1.1) > 0.15
+    scale = np.linalg.norm(mu_truth[0])
+    assert np.abs(mu - mu_truth)[quiet].max() <= 1e-3 * scale
+    assert len(summary['events']) == 1
+    impulse = np.array(summary['events'][0]['impulse'])
+    jump = (mu_truth[-1] - mu_truth[0])[[0, 1, 5]]
+    assert np.linalg.norm(impulse - jump) <= 0.05 * np.linalg.norm(jump)
+
+
+def test_cli_replay_with_params_window_and_plots(tmp_path, capsys):
+    out = tmp_path / 'out'
+    code = main(['replay', os.path.join(DATA, 'planar_pose_only'), '-o', str(out),
+                 '--urdf', str(config_path('robots/planar_testbed.urdf')), '--base-joint', 'planar',
+                 '--gravity', '0', '0', '-9.81', '--params', str(config_path('params.yaml')),
+                 '--start', '0.5', '--end', '2.5', '--plots', str(tmp_path / 'plots'),
+                 '--quiet', '--summary-json', str(tmp_path / 'summary.json')])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert 'messages out' in text and 'rejected' in text
+    assert sorted(os.listdir(tmp_path / 'plots')) == ['drift.png', 'momentum.png',
+                                                      'prediction_residual.png', 'shape.png']
+    with open_bag(out) as reader:
+        stamps = [m.timestamp_ns for m in reader.messages(['/reduced_dynamics/momentum'])]
+    with open_bag(os.path.join(DATA, 'planar_pose_only')) as reader:
+        start = reader.start_ns
+    assert (stamps[0] - start) * 1e-9 >= 0.5 - 1e-9
+    assert (stamps[-1] - start) * 1e-9 < 2.5
+
+
+@pytest.mark.parametrize('damage', ['truncate', 'garbage', 'no_base_topic', 'missing'])
+def test_hostile_bags_give_clear_errors(tmp_path, capsys, damage):
+    bag = tmp_path / 'bag'
+    shutil.copytree(os.path.join(DATA, 'paper_constant'), bag)
+    mcap_file = bag / 'paper_constant.mcap'
+    args = ['replay', str(bag), '-o', str(tmp_path / 'out'), '--quiet']
+    if damage == 'truncate':
+        data = mcap_file.read_bytes()
+        mcap_file.write_bytes(data[:len(data) // 2])
+    elif damage == 'garbage':
+        mcap_file.write_bytes(os.urandom(4096))
+    elif damage == 'no_base_topic':
+        args += ['--odom-topic', '/nonexistent']
+    else:
+        args[1] = str(tmp_path / 'nothing_here')
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith('reduced-dynamics replay: error:') and len(err.splitlines()) == 1
+
+
+def test_output_is_not_overwritten(tmp_path, capsys):
+    out = tmp_path / 'out'
+    out.mkdir()
+    (out / 'keep.txt').write_text('precious')
+    assert main(['replay', os.path.join(DATA, 'paper_constant'), '-o', str(out),
+                 '--quiet']) == 2
+    assert (out / 'keep.txt').read_text() == 'precious'
