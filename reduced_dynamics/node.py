@@ -310,7 +310,7 @@ class ReducedDynamicsNode(Node):
         for topic, msg in output_messages(output, self._types):
             self._publishers_by_topic[topic.name].publish(msg)
             if topic.name == DIAGNOSTICS_TOPIC:
-                pass
+                self._diagnostics_published = True
 
     # --- node-clock duties ------------------------------------------------------------
     def _warn_throttled(self, key: str, message: str) -> None:

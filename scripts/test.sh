@@ -97,25 +97,8 @@ if [ "$RD_SKIP_INSTALL" != 1 ]; then
 fi
 
 # ------------------------------------------------------ 2. python environment
-# A Debian/Ubuntu system interpreter refuses pip installs (PEP 668): use a venv then.
-if "$PYTHON" - <<'EOF'
-import os
-import sys
-import sysconfig
-managed = os.path.exists(os.path.join(sysconfig.get_path('stdlib'), 'EXTERNALLY-MANAGED'))
-sys.exit(0 if managed and sys.prefix == sys.base_prefix else 1)
-EOF
-then
-  VENV="$WS/venv"
-  if [ ! -x "$VENV/bin/python" ]; then
-    step "creating $VENV ($PYTHON is externally managed)"
-    if ! "$PYTHON" -m venv --system-site-packages "$VENV"; then
-      as_root apt-get install -y -q --no-install-recommends python3-venv
-      "$PYTHON" -m venv --system-site-packages "$VENV"
-    fi
-  fi
-  PYTHON="$VENV/bin/python"
-fi
+# shellcheck source=scripts/python_env.sh
+source "$REPO_ROOT/scripts/python_env.sh"
 echo "python: $("$PYTHON" -c 'import sys; print(sys.executable, sys.version.split()[0])')"
 
 if [ "$RD_SKIP_INSTALL" != 1 ]; then

@@ -107,8 +107,8 @@ def test_replay_equals_pipeline_on_same_bag(thruster_replay):
 
 
 def test_constant_torque_bag_prediction_residual(tmp_path):
-    summary = replay(os.path.join(DATA, 'paper_constant'), str(tmp_path / 'out'), load_robot(),
-                     ReplayOptions(params={**_params(), 'prediction_rate': 2.0,
+    bag = os.path.join(DATA, 'paper_constant')
+    summary = replay(bag, str(tmp_path / 'out'), load_robot(), ReplayOptions(params={**_params(), 'prediction_rate': 2.0,
                                            'prediction_horizon': 0.4}))
     assert summary['predictions'] >= 4
     # Torques are held for 1 s: predictions that do not straddle a flip are exact.
