@@ -108,8 +108,8 @@ def test_replay_equals_pipeline_on_same_bag(thruster_replay):
 
 def test_constant_torque_bag_prediction_residual(tmp_path):
     bag = os.path.join(DATA, 'paper_constant')
-    summary = replay(bag, str(tmp_path / 'out'), load_robot(), ReplayOptions(params={**_params(), 'prediction_rate': 2.0,
-                                           'prediction_horizon': 0.4}))
+    params = {**_params(), 'prediction_rate': 2.0, 'prediction_horizon': 0.4}
+    summary = replay(bag, str(tmp_path / 'out'), load_robot(), ReplayOptions(params=params))
     assert summary['predictions'] >= 4
     # Torques are held for 1 s: predictions that do not straddle a flip are exact.
     assert summary['prediction_shape_residual_median'] <= 1e-6
@@ -152,7 +152,8 @@ def test_planar_puck_from_poses_only_with_custom_topic(tmp_path):
 def test_cli_replay_with_params_window_and_plots(tmp_path, capsys):
     out = tmp_path / 'out'
     code = main(['replay', os.path.join(DATA, 'planar_pose_only'), '-o', str(out),
-                 '--urdf', str(config_path('robots/planar_testbed.urdf')), '--base-joint', 'planar',
+                 '--urdf', str(config_path('robots/planar_testbed.urdf')),
+                 '--base-joint', 'planar',
                  '--gravity', '0', '0', '-9.81', '--params', str(config_path('params.yaml')),
                  '--start', '0.5', '--end', '2.5', '--plots', str(tmp_path / 'plots'),
                  '--quiet', '--summary-json', str(tmp_path / 'summary.json')])
