@@ -289,22 +289,30 @@ class ReducedDynamicsNode(Node):
             self._reject('no_robot_model', self._model_error or 'no robot model')
             return
         rejected_before = sum(estimator.rejected.values())
-        outputs = getattr(estimator, method)(sample)
+        try:
+            outputs = getattr(estimator, method)(sample)
+        except (ArithmeticError, RuntimeError, ValueError) as error:
+            # The estimator rejects bad input itself; anything it raises is a numerical
+            # failure (e.g. a prediction that did not converge). One sample is lost; a
+            # crashed node would lose them all.
+            self._reject('estimator_error', f'{type(error).__name__}: {error}', error=True)
+            return
         if sum(estimator.rejected.values()) != rejected_before and estimator.last_rejection:
             reason = estimator.last_rejection.partition(':')[0]
             self._warn_throttled(reason, f'input rejected: {estimator.last_rejection}')
         for output in outputs:
             self._publish(output)
 
-    def _reject(self, reason: str, detail: str) -> None:
-        """Count an input the estimator never saw, and say why (throttled)."""
+    def _reject(self, reason: str, detail: str, error: bool = False) -> None:
+        """Count an input the estimator did not process, and say why (throttled)."""
         if self._estimator is None:
             self.rejected[reason] += 1
         else:
             # The estimator's own counter feeds its diagnostics (rejected_<reason>, WARN
             # level); it has no public method for rejections made outside it yet.
-            self._estimator._reject(reason, detail)
-        self._warn_throttled(reason, f'input rejected ({reason}): {detail}')
+            self._estimator.reject(reason, detail)
+        # An estimator failure is this package's fault, not the input's: log an error.
+        self._warn_throttled(reason, f'input rejected ({reason}): {detail}', error)
 
     def _publish(self, output: EstimatorOutput) -> None:
         for topic, msg in output_messages(output, self._types):
@@ -313,8 +321,8 @@ class ReducedDynamicsNode(Node):
                 self._diagnostics_published = True
 
     # --- node-clock duties ------------------------------------------------------------
-    def _warn_throttled(self, key: str, message: str) -> None:
-        """Log at most once per LOG_THROTTLE_NS of node-clock time per key."""
+    def _warn_throttled(self, key: str, message: str, error: bool = False) -> None:
+        """Log a warning (or error) at most once per LOG_THROTTLE_NS of node time per key."""
         now = self.get_clock().now().nanoseconds
         last = self._last_log_ns.get(key)
         # A clock that went backwards (bag loop, sim restart) re-arms the throttle.
@@ -325,7 +333,8 @@ class ReducedDynamicsNode(Node):
         if suppressed:
             message += f' ({suppressed} similar suppressed)'
         self._last_log_ns[key] = now
-        self.get_logger().warning(message)
+        logger = self.get_logger()
+        (logger.error if error else logger.warning)(message)
 
     def _restart_watchdog(self) -> None:
         if self._watchdog is not None:

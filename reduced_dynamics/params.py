@@ -30,8 +30,9 @@ from reduced_dynamics.estimator.config import check_parameter, ParameterSpec, PA
 #: Settings of the node shell (robot, inputs) beside the estimator's own.
 NODE_PARAMETERS: dict[str, ParameterSpec] = {
     'robot_description': ParameterSpec('', None, None, (),
-                                       'URDF XML; empty: urdf_path, then the '
-                                       'robot_description topic, then the paper robot'),
+                                       'URDF XML; if empty, urdf_path; if both are empty, '
+                                       'the robot_description topic (the paper robot stands '
+                                       'in until it arrives)'),
     'urdf_path': ParameterSpec('', None, None, (), 'URDF file used when robot_description '
                                                    'is empty'),
     'base_joint': ParameterSpec('floating', None, None, ('floating', 'planar'),
@@ -64,7 +65,8 @@ def check_any_parameter(name: str, value: Any) -> None:
     if spec is None:
         raise ValueError(f'unknown parameter {name!r}')
     if name == 'gravity':
-        if not isinstance(value, (list, tuple)) or len(value) != 3 or not all(
+        if isinstance(value, (str, bytes)) or not hasattr(value, '__len__') or \
+                len(value) != 3 or not all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
             raise ValueError('gravity must be a list of three numbers')
         return
@@ -98,7 +100,7 @@ def node_section(document: Any, node_name: str, path: str = '<yaml>') -> dict[st
     if not isinstance(document, Mapping):
         raise ValueError(f'{path}: expected a mapping at the top level')
     merged: dict[str, Any] = {}
-    for key in ('/**', node_name, '/' + node_name):
+    for key in ('/**', node_name, '/' + node_name, '/**/' + node_name):
         section = document.get(key)
         if isinstance(section, Mapping) and isinstance(section.get('ros__parameters'),
                                                        Mapping):

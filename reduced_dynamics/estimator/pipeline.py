@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from collections import Counter, deque
 from dataclasses import dataclass
+import math
 from typing import Optional
 
 import numpy as np
@@ -40,7 +41,7 @@ from reduced_dynamics.estimator.sync import BaseBuffer, BasePoint
 from reduced_dynamics.geometry.isotropy import isotropy_algebra
 from reduced_dynamics.messages.samples import (
     BaseStateSample, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample, JointStateSample,
-    PosePath, ShapePrediction, TwistSample, WrenchSample)
+    PosePath, ShapePrediction, trusted_sample, TwistSample, WrenchSample)
 from reduced_dynamics.robot.model import RobotModel
 
 NS = 1_000_000_000
@@ -97,6 +98,7 @@ class Estimator:
         self.rejected: Counter = Counter()
         self.last_rejection: Optional[str] = None
         self.processed = 0
+        self.prediction_failures: Counter = Counter()
         self.first_stamp_ns: Optional[int] = None
         self._buffer = BaseBuffer()
         self._pending: deque[_Pending] = deque()
@@ -134,6 +136,10 @@ class Estimator:
             self.predictor.made = old_predictor.made
 
     # --- input -----------------------------------------------------------------------
+    def reject(self, reason: str, detail: str) -> list[EstimatorOutput]:
+        """Count an input rejected before it reached the pipeline (e.g. malformed)."""
+        return self._reject(reason, detail)
+
     def _reject(self, reason: str, detail: str) -> list[EstimatorOutput]:
         self.rejected[reason] += 1
         self._period_counts['rejected'] += 1
@@ -156,8 +162,8 @@ class Estimator:
         qbar = sample.position[mapping]
         qbar_dot = sample.velocity[mapping] if self.robot.m else np.zeros(0)
         tau = sample.effort[mapping] if sample.effort.size else np.zeros(self.robot.m)
-        if not (np.all(np.isfinite(qbar)) and np.all(np.isfinite(qbar_dot))
-                and np.all(np.isfinite(tau))):
+        if not (np.isfinite(qbar).all() and np.isfinite(qbar_dot).all()
+                and np.isfinite(tau).all()):
             return self._reject('non_finite', f'NaN or inf in joint state at {sample.stamp_ns}')
         if self._last_joint_ns is not None and sample.stamp_ns <= self._last_joint_ns:
             return self._reject('stamp_backwards', f'joint state stamp {sample.stamp_ns} <= '
@@ -186,13 +192,14 @@ class Estimator:
         """Take a base pose (with twist for Odometry); return outputs that became ready."""
         self.received['base'] += 1
         self._period_counts['base'] += 1
-        values = [sample.position, sample.orientation_xyzw]
-        if sample.has_twist:
-            values += [sample.twist_linear, sample.twist_angular]
-        if not all(np.all(np.isfinite(v)) for v in values):
+        values = (sample.position, sample.orientation_xyzw, sample.twist_linear,
+                  sample.twist_angular) if sample.has_twist \
+            else (sample.position, sample.orientation_xyzw)
+        if not np.isfinite(np.concatenate(values)).all():
             return self._reject('non_finite_base', f'NaN or inf in base state at '
                                                    f'{sample.stamp_ns}')
-        norm = float(np.linalg.norm(sample.orientation_xyzw))
+        x, y, z, w = sample.orientation_xyzw.tolist()
+        norm = math.sqrt(x * x + y * y + z * z + w * w)
         if norm < 1e-6:
             return self._reject('invalid_quaternion', f'zero quaternion at {sample.stamp_ns}')
         if self.use_odometry and not sample.has_twist:
@@ -201,7 +208,7 @@ class Estimator:
             return self._reject('base_stamp_backwards', f'base stamp {sample.stamp_ns} <= '
                                                         f'previous {self._last_base_ns}')
         self._last_base_ns = sample.stamp_ns
-        quat = pin.Quaternion(*(sample.orientation_xyzw[[3, 0, 1, 2]] / norm))
+        quat = pin.Quaternion(w / norm, x / norm, y / norm, z / norm)
         pose = self.robot.project_pose(pin.SE3(quat.toRotationMatrix(), sample.position))
         twist = None
         if self.use_odometry:
@@ -251,13 +258,16 @@ class Estimator:
         xi = group.coordinates(base.twist)
         qbar, qbar_dot = sample.qbar, sample.qbar_dot
         blocks = robot.metric_blocks(qbar)
-        pi = blocks.locked_inertia @ xi + blocks.coupling @ qbar_dot
+        n = robot.n
+        velocity = np.concatenate((xi, qbar_dot))
+        momentum = blocks.mass_matrix @ velocity  # [pi; p] = M [xi; qbar_dot]
+        pi = momentum[:n]
         mu = group.Ad(g.inverse()).T @ pi
         pbar = blocks.reduced_metric @ qbar_dot
         drift = blocks.solve_locked(pi)
-        velocity = np.concatenate([xi, qbar_dot])
-        energy = 0.5 * float(velocity @ blocks.mass_matrix @ velocity) \
-            + robot.potential_energy(qbar)
+        energy = 0.5 * float(velocity @ momentum)
+        if robot.has_potential:
+            energy += robot.potential_energy(qbar)
         rate = self.observer.update(sample.stamp_ns, mu)
         self.processed += 1
         if self.first_stamp_ns is None:
@@ -266,16 +276,22 @@ class Estimator:
         self._mu_mean += delta / self.processed
         self._mu_m2 += delta * (mu - self._mu_mean)
         stamp, world, base_frame = sample.stamp_ns, config.world_frame, robot.base_link
-        mu6, pi6, rate6 = (group.dual_to_wrench(v) for v in (mu, pi, rate))
+        # One product lifts mu, pi and the rate to 6-D; rows are contiguous (3,) halves.
+        wrenches = group.dual_to_wrench(np.stack((mu, pi, rate), axis=1)).T.copy()
         drift6 = group.twist(drift)
+        # Every array below is a fresh contiguous float64 of the right shape, so
+        # the samples skip their constructors' validation (the hot path).
         output = EstimatorOutput(
             stamp_ns=stamp,
-            momentum=WrenchSample(stamp, world, mu6[:3], mu6[3:]),
-            body_momentum=WrenchSample(stamp, base_frame, pi6[:3], pi6[3:]),
-            shape_state=JointStateSample(stamp, '', robot.shape_joint_names, qbar, qbar_dot,
-                                         pbar),
-            momentum_rate=WrenchSample(stamp, world, rate6[:3], rate6[3:]),
-            drift_twist=TwistSample(stamp, base_frame, drift6[:3], drift6[3:]),
+            momentum=trusted_sample(WrenchSample, stamp, world, wrenches[0, :3],
+                                    wrenches[0, 3:]),
+            body_momentum=trusted_sample(WrenchSample, stamp, base_frame, wrenches[1, :3],
+                                         wrenches[1, 3:]),
+            shape_state=trusted_sample(JointStateSample, stamp, '', robot.shape_joint_names,
+                                       qbar, qbar_dot, pbar),
+            momentum_rate=trusted_sample(WrenchSample, stamp, world, wrenches[2, :3],
+                                         wrenches[2, 3:]),
+            drift_twist=trusted_sample(TwistSample, stamp, base_frame, drift6[:3], drift6[3:]),
             mu=mu, energy=energy)
         self.predictor.compare(stamp, qbar, g)
         if self._prediction_due(stamp):
@@ -299,8 +315,15 @@ class Estimator:
     def _predict(self, output: EstimatorOutput, g: pin.SE3, sample: _Pending) -> None:
         self._last_prediction_ns = sample.stamp_ns
         self.observer.take_level_change()
-        prediction = self.predictor.predict(sample.stamp_ns, g, sample.qbar, sample.qbar_dot,
-                                            self.observer.level, sample.tau)
+        try:
+            prediction = self.predictor.predict(sample.stamp_ns, g, sample.qbar,
+                                                sample.qbar_dot, self.observer.level,
+                                                sample.tau)
+        except (RuntimeError, ValueError, ArithmeticError, np.linalg.LinAlgError) as error:
+            # A failed prediction (e.g. a singular chart) must not stop the estimates.
+            self.prediction_failures[type(error).__name__] += 1
+            self.last_rejection = f'prediction failed: {error}'
+            return
         output.prediction, output.prediction_path = self._prediction_messages(prediction)
 
     def _prediction_messages(self, prediction: Prediction) -> tuple[ShapePrediction, PosePath]:
@@ -390,6 +413,7 @@ class Estimator:
                         'impulse': None if e.impulse is None else e.impulse.tolist(),
                         'peak_wrench': e.peak_wrench} for e in self.events],
             'predictions': self.predictor.made,
+            'prediction_failures': dict(self.prediction_failures),
             'prediction_shape_residual_max': max(residuals) if residuals else None,
             'prediction_shape_residual_median': float(np.median(residuals))
             if residuals else None,
