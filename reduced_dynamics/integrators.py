@@ -124,6 +124,7 @@ class DiscreteGradient:
         energy0 = self.energy(z0) if h0 is None else h0
         z1 = z0.copy() if z1_guess is None else z1_guess.copy()
         scale = 1.0 + np.abs(z0)
+        residual = np.inf
         for iteration in range(1, self.max_iterations + 1):
             zm = 0.5 * (z0 + z1)
             _, grad_m, omega = self.evaluate(zm)
@@ -133,9 +134,11 @@ class DiscreteGradient:
             if norm2 > 0.0:
                 dgrad = grad_m + (self.energy(z1) - energy0 - grad_m @ dz) / norm2 * dz
             new = z0 + h * np.linalg.solve(omega, dgrad - self.forcing(t + 0.5 * h, zm))
+            previous = residual
             residual = float(np.max(np.abs(new - z1) / scale))
             z1 = new
-            if residual <= self.tol:
+            # Converged, or stalled at the round-off floor just above the tolerance.
+            if residual <= self.tol or (residual <= 1e3 * self.tol and residual >= previous):
                 break
         else:
             raise RuntimeError(f'discrete gradient: no convergence at t={t} (residual '
