@@ -61,6 +61,20 @@ def _optional_array(value: object, shape: tuple[int, ...], name: str) -> Optiona
     return None if value is None else _array(value, shape, name)
 
 
+def trusted_sample(cls: type, *values: object) -> object:
+    """
+    Build a sample dataclass from fields the caller guarantees valid, skipping checks.
+
+    For hot paths that construct samples from arrays they own: every array must
+    already be a contiguous float64 array of the right shape and ``stamp_ns`` a
+    non-negative int, exactly what ``__post_init__`` would produce. Fields are
+    given positionally, all of them.
+    """
+    sample = object.__new__(cls)
+    sample.__dict__.update(zip(cls.__dataclass_fields__, values))
+    return sample
+
+
 @dataclass(frozen=True, eq=False)
 class JointStateSample:
     """Joint state; velocity and effort may be empty (size 0)."""
