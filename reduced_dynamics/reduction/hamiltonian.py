@@ -29,7 +29,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
 
 from reduced_dynamics.robot.model import MetricBlocks, RobotModel
 
@@ -61,15 +60,22 @@ def shape_terms(robot: RobotModel, pi: np.ndarray, qbar: np.ndarray,
                 pbar: np.ndarray) -> ShapeTerms:
     """Evaluate H~, dH~/dqbar (pi, pbar fixed), qbar_dot = S^-1 pbar, xi and C."""
     blocks = robot.metric_blocks(qbar)
+    n = robot.n
     u = blocks.solve_locked(pi)
-    qbar_dot = cho_solve(cho_factor(blocks.reduced_metric), pbar)
+    # numpy rather than scipy's cho_factor/cho_solve: their wrappers dominate at this size.
+    qbar_dot = np.linalg.solve(blocks.reduced_metric, pbar)
     a_qdot = blocks.connection @ qbar_dot
-    u_full = np.concatenate([u, np.zeros(robot.m)])
-    w_full = np.concatenate([-a_qdot, qbar_dot])
+    u_full = np.zeros(n + robot.m)
+    u_full[:n] = u
+    w_full = np.empty(n + robot.m)
+    w_full[:n] = -a_qdot
+    w_full[n:] = qbar_dot
     d_mu, d_mw = robot.mass_matrix_derivative_action(qbar, (u_full, w_full))
-    horizontal = np.vstack([-blocks.connection, np.eye(robot.m)])
-    # p_mat[j, i] = pi^T d_i A_j
-    p_mat = horizontal.T @ d_mu
-    dH = -0.5 * (u_full @ d_mu) - 0.5 * (w_full @ d_mw) + robot.potential_gradient(qbar)
-    energy = 0.5 * float(pi @ u) + 0.5 * float(pbar @ qbar_dot) + robot.potential_energy(qbar)
+    # p_mat[j, i] = pi^T d_i A_j = ([-A; 1]^T d_mu)[j, i]
+    p_mat = d_mu[n:] - blocks.connection.T @ d_mu[:n]
+    dH = -0.5 * (u @ d_mu[:n]) - 0.5 * (w_full @ d_mw)
+    energy = 0.5 * float(pi @ u) + 0.5 * float(pbar @ qbar_dot)
+    if robot.has_potential:
+        dH += robot.potential_gradient(qbar)
+        energy += robot.potential_energy(qbar)
     return ShapeTerms(blocks, pi, u, qbar_dot, u - a_qdot, energy, dH, p_mat.T - p_mat)

@@ -40,7 +40,6 @@ import pinocchio as pin
 from reduced_dynamics.geometry.chart import CosetChart
 from reduced_dynamics.geometry.isotropy import isotropy_algebra, IsotropyAlgebra, RANK_RTOL
 from reduced_dynamics.reduction.hamiltonian import shape_terms, ShapeTerms
-from reduced_dynamics.reduction.magnetic import magnetic_form
 from reduced_dynamics.robot.model import RobotModel
 from reduced_dynamics.robot.momentum import body_momentum, momentum_map, reduced_momentum
 from reduced_dynamics.robot.state import FreeFloatingState
@@ -121,12 +120,19 @@ class ReducedSystem:
         pi = self.body_momentum(q1)
         terms = shape_terms(self.robot, pi, qbar, pbar)
         jac = self.chart.body_jacobian(q1)
-        form = magnetic_form(self.group, pi, jac, terms.blocks.connection, terms.curvature)
+        # The magnetic form U (magnetic.magnetic_form) assembled in place, sharing W.
         kirillov = self.group.coadjoint_form(pi)
-        dH_dq1 = jac.T @ kirillov @ terms.locked_velocity
+        kirillov_jac = kirillov @ jac
+        lower = terms.blocks.connection.T @ kirillov_jac
+        form = np.empty((k + m, k + m))
+        form[:k, :k] = jac.T @ kirillov_jac
+        form[k:, :k] = lower
+        form[:k, k:] = -lower.T
+        form[k:, k:] = terms.curvature
+        dH_dq1 = -(kirillov_jac.T @ terms.locked_velocity)
         qbar_dot = terms.qbar_dot
         if k:
-            rhs = -dH_dq1 - form[k:, :k].T @ qbar_dot
+            rhs = -dH_dq1 - lower.T @ qbar_dot
             q1_dot = np.linalg.solve(form[:k, :k].T, rhs)
         else:
             q1_dot = np.zeros(0)
@@ -137,8 +143,9 @@ class ReducedSystem:
         gradient = np.concatenate([dH_dq1, terms.dH_dqbar, qbar_dot])
         structure = np.zeros((k + 2 * m, k + 2 * m))
         structure[:k + m, :k + m] = form
-        structure[k:k + m, k + m:] = -np.eye(m)
-        structure[k + m:, k:k + m] = np.eye(m)
+        diagonal = np.arange(m)
+        structure[k + diagonal, k + m + diagonal] = -1.0
+        structure[k + m + diagonal, k + diagonal] = 1.0
         return ReducedEvaluation(np.concatenate([q1_dot, qbar_dot, pbar_dot]), terms.xi, pi,
                                  terms.energy, gradient, structure, terms)
 

@@ -28,7 +28,6 @@ from typing import Optional
 
 import numpy as np
 import pinocchio as pin
-from scipy.linalg import cho_factor, cho_solve
 
 from reduced_dynamics.geometry.lie_group import BaseGroup, SUBGROUPS
 from reduced_dynamics.robot.urdf import build_pinocchio_model, parse_urdf, UrdfError
@@ -57,10 +56,13 @@ class MetricBlocks:
     locked_inertia_factor: tuple
     connection: np.ndarray
     reduced_metric: np.ndarray
+    locked_inverse: Optional[np.ndarray] = None
 
     def solve_locked(self, covector: np.ndarray) -> np.ndarray:
         """I^-1 covector (e.g. the drift twist I^-1 pi)."""
-        return cho_solve(self.locked_inertia_factor, covector)
+        if self.locked_inverse is None:
+            self.locked_inverse = np.linalg.inv(self.locked_inertia)
+        return self.locked_inverse @ covector
 
 
 class RobotModel:
@@ -98,6 +100,9 @@ class RobotModel:
         self.n = self.group.dim
         self.m = self.model.nv - self.n
         self.nq_base = self.model.joints[1].nq
+        self._lower = np.tril_indices(self.model.nv, -1)
+        self._has_potential = bool(np.any(self.gravity != 0.0))
+        self._zero_v = np.zeros(self.model.nv)
         self._q_work = pin.neutral(self.model)
         self._base_identity_q = self._q_work[:self.nq_base].copy()
         self.total_mass = float(pin.computeTotalMass(self.model))
@@ -120,7 +125,7 @@ class RobotModel:
     @property
     def has_potential(self) -> bool:
         """Whether a (G-invariant) gravitational potential is present."""
-        return bool(np.any(self.gravity != 0.0))
+        return self._has_potential
 
     # --- configurations -------------------------------------------------------------
     def full_configuration(self, g: pin.SE3, qbar: np.ndarray) -> np.ndarray:
@@ -159,8 +164,11 @@ class RobotModel:
     # --- metric -----------------------------------------------------------------------
     def mass_matrix(self, qbar: np.ndarray) -> np.ndarray:
         """M(qbar) = crba(e, qbar), symmetric (Lemma 52)."""
-        upper = pin.crba(self.model, self.data, self.identity_configuration(qbar))
-        return np.triu(upper) + np.triu(upper, 1).T
+        # crba fills the upper triangle of a fresh array: mirror it in place.
+        mass = pin.crba(self.model, self.data, self.identity_configuration(qbar))
+        lower = self._lower
+        mass[lower] = mass.T[lower]
+        return mass
 
     def metric_blocks(self, qbar: np.ndarray) -> MetricBlocks:
         """Blocks I, B, Mr of M(qbar), the connection A (5.29) and reduced metric S."""
@@ -169,11 +177,14 @@ class RobotModel:
         locked = mass[:n, :n]
         coupling = mass[:n, n:]
         shape = mass[n:, n:]
-        factor = cho_factor(locked)
-        connection = cho_solve(factor, coupling)
+        # numpy on these small blocks: scipy's cho_factor/cho_solve wrappers cost more
+        # than the factorisation. Cholesky checks that I is positive definite.
+        factor = (np.linalg.cholesky(locked), True)
+        inverse = np.linalg.inv(locked)
+        connection = inverse @ coupling
         reduced = shape - coupling.T @ connection
         return MetricBlocks(mass, locked, coupling, shape, factor, connection,
-                            0.5 * (reduced + reduced.T))
+                            0.5 * (reduced + reduced.T), inverse)
 
     def potential_energy(self, qbar: np.ndarray) -> float:
         """V(e, qbar): G-invariant gravitational potential (0 without gravity)."""
@@ -200,12 +211,12 @@ class RobotModel:
         depend on the base pose (Theorem 51).
         """
         q = self.identity_configuration(qbar)
-        zero = np.zeros(self.model.nv)
+        zero, n = self._zero_v, self.n
         out = np.empty((len(vectors), self.model.nv, self.m))
+        derivatives = pin.computeRNEADerivatives
+        model, data = self._kinetic_model, self._kinetic_data
         for index, w in enumerate(vectors):
-            dtau_dq, _, _ = pin.computeRNEADerivatives(self._kinetic_model, self._kinetic_data,
-                                                       q, zero, w)
-            out[index] = dtau_dq[:, self.n:]
+            out[index] = derivatives(model, data, q, zero, w)[0][:, n:]
         return out
 
 

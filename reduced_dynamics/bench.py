@@ -1,0 +1,651 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Benchmark: ``reduced-dynamics bench [--quick] [--json FILE] [--csv FILE] [--repeats N]``.
+
+One process measures, side by side, each figure as a median over repeats with
+its spread (interquartile range) and as a ratio to a baseline measured in the
+same run (machines are noisy: ratios, not absolutes):
+
+1. ``update``: the per-sample estimator update (mu, pi, pbar, drift observer;
+   prediction off) against one Pinocchio ``crba`` call on the same robot.
+2. ``prediction``: a 2 s prediction of the paper robot by the reduced model
+   (DOP853 and the discrete gradient) against full dynamics (Pinocchio ``aba``,
+   DOP853) at equal accuracy: each method is swept over tolerances (steps), the
+   achieved shape error is measured against a DOP853 rtol 1e-13 reference, and
+   the full model's wall time is interpolated (log-log) at the reduced model's
+   achieved error.
+3. ``replay``: replay throughput of a simulated 1 kHz bag (prediction off)
+   against bare read-and-decode of the same topics; peak resident memory of
+   replay subprocesses on a short and a long (10-minute) bag.
+4. ``scaling``: random trees with 6, 12, 24 and 48 shape joints: update and
+   reduced-vector-field cost, with exponents fitted by log-log least squares.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from dataclasses import asdict, dataclass, field
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from typing import Any, Callable, Optional, Sequence
+
+import numpy as np
+import pinocchio as pin
+
+NS = 1_000_000_000
+SHAPE_JOINTS = (6, 12, 24, 48)
+HORIZON = 2.0
+
+
+@dataclass
+class Settings:
+    """Sizes of the benchmark runs (``quick`` shrinks all of them)."""
+
+    repeats: int = 7
+    update_samples: int = 3000
+    crba_calls: int = 5000
+    full_rtols: tuple = (1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12)
+    reduced_rtols: tuple = (1e-6, 1e-8, 1e-10, 1e-12)
+    dg_steps: tuple = (0.05, 0.025, 0.01)
+    prediction_points: int = 41
+    replay_seconds: float = 20.0
+    memory_short_seconds: float = 60.0
+    memory_long_seconds: float = 600.0
+    scaling_samples: int = 600
+    scaling_evaluations: int = 300
+    shape_joints: tuple = SHAPE_JOINTS
+    quick: bool = False
+
+    @classmethod
+    def quick_settings(cls, repeats: Optional[int] = None) -> 'Settings':
+        """Return small settings for a fast run (shorter bags, fewer tolerances)."""
+        return cls(repeats=repeats or 3, update_samples=600, crba_calls=2000,
+                   full_rtols=(1e-6, 1e-8, 1e-10, 1e-12), reduced_rtols=(1e-8, 1e-10),
+                   dg_steps=(0.05, 0.025), replay_seconds=3.0, memory_short_seconds=5.0,
+                   memory_long_seconds=20.0, scaling_samples=200, scaling_evaluations=60,
+                   quick=True)
+
+
+@dataclass
+class Figure:
+    """One benchmark figure: median over repeats, spread, baseline and ratio."""
+
+    section: str
+    name: str
+    unit: str
+    median: float
+    low: float
+    high: float
+    baseline: str = ''
+    baseline_median: Optional[float] = None
+    ratio: Optional[float] = None
+    ratio_low: Optional[float] = None
+    ratio_high: Optional[float] = None
+    target: str = ''
+    met: Optional[bool] = None
+    note: str = ''
+
+
+@dataclass
+class Report:
+    """Everything a bench run produced."""
+
+    machine: dict
+    settings: dict
+    figures: list = field(default_factory=list)
+    details: dict = field(default_factory=dict)
+
+    def add(self, figure: Figure) -> Figure:
+        """Append a figure and return it."""
+        self.figures.append(figure)
+        return figure
+
+    def to_dict(self) -> dict:
+        """Return a JSON-serialisable dict."""
+        return {'machine': self.machine, 'settings': self.settings,
+                'figures': [asdict(f) for f in self.figures], 'details': self.details}
+
+
+# --------------------------------------------------------------------------- statistics
+def spread(values: Sequence[float]) -> tuple[float, float, float]:
+    """Return (median, first quartile, third quartile)."""
+    data = np.asarray(values, dtype=float)
+    q1, median, q3 = np.percentile(data, [25.0, 50.0, 75.0])
+    return float(median), float(q1), float(q3)
+
+
+def make_figure(section: str, name: str, unit: str, values: Sequence[float],
+                baseline: str = '', baseline_values: Optional[Sequence[float]] = None,
+                ratios: Optional[Sequence[float]] = None, target: str = '',
+                check: Optional[Callable[[float], bool]] = None, note: str = '') -> Figure:
+    """
+    Summarise repeated measurements (and their per-repeat ratios to a baseline).
+
+    ``check`` is applied to the median ratio (or to the median when there are
+    no ratios) to decide whether the target is met.
+    """
+    median, low, high = spread(values)
+    figure = Figure(section, name, unit, median, low, high, baseline, target=target, note=note)
+    if baseline_values is not None:
+        figure.baseline_median = spread(baseline_values)[0]
+    if ratios is not None:
+        figure.ratio, figure.ratio_low, figure.ratio_high = spread(ratios)
+    if check is not None:
+        figure.met = bool(check(figure.ratio if figure.ratio is not None else figure.median))
+    return figure
+
+
+def fit_exponent(sizes: Sequence[float], costs: Sequence[float]) -> float:
+    """Slope of log(cost) against log(size) by least squares."""
+    slope, _ = np.polyfit(np.log(np.asarray(sizes, float)), np.log(np.asarray(costs, float)), 1)
+    return float(slope)
+
+
+def machine_info() -> dict:
+    """Return CPU model, CPU count and library versions."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open('/proc/cpuinfo', encoding='utf-8') as stream:
+            for line in stream:
+                if line.startswith('model name'):
+                    cpu = line.split(':', 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    import scipy
+    return {'cpu': cpu, 'nproc': os.cpu_count(), 'python': platform.python_version(),
+            'numpy': np.__version__, 'scipy': scipy.__version__, 'pinocchio': pin.__version__,
+            'platform': platform.platform()}
+
+
+# --------------------------------------------------------------------------- 1. update
+def update_samples(robot, count: int, seed: int = 0) -> tuple[list, list]:
+    """Return pre-built joint and Odometry base samples of a smooth motion at 1 kHz."""
+    from reduced_dynamics.messages.samples import BaseStateSample, JointStateSample
+    rng = np.random.default_rng(seed)
+    m = robot.m
+    amplitude = rng.uniform(0.1, 0.4, m)
+    frequency = rng.uniform(0.5, 2.0, m)
+    phase = rng.uniform(0.0, 2.0 * np.pi, m)
+    joints, bases = [], []
+    for index in range(count):
+        t = index * 1e-3
+        stamp = NS + index * 1_000_000
+        qbar = amplitude * np.sin(frequency * t + phase)
+        qbar_dot = amplitude * frequency * np.cos(frequency * t + phase)
+        joints.append(JointStateSample(stamp, '', robot.shape_joint_names, qbar, qbar_dot,
+                                       np.zeros(m)))
+        angle = 0.05 * t
+        quat = np.array([0.0, 0.0, np.sin(0.5 * angle), np.cos(0.5 * angle)])
+        bases.append(BaseStateSample(stamp, 'world', robot.base_link,
+                                     np.array([0.01 * t, 0.0, 0.0]), quat,
+                                     np.array([0.01, 0.0, 0.0]), np.array([0.0, 0.0, 0.05])))
+    return joints, bases
+
+
+def time_crba(robot, calls: int) -> float:
+    """Return seconds per ``crba`` call at a generic shape (base at identity)."""
+    model, data = robot.model, robot.model.createData()
+    q = robot.identity_configuration(np.linspace(-0.3, 0.3, robot.m)).copy()
+    crba = pin.crba
+    start = time.perf_counter()
+    for _ in range(calls):
+        crba(model, data, q)
+    return (time.perf_counter() - start) / calls
+
+
+def time_update(robot, joints: list, bases: list, warmup: int = 20) -> float:
+    """Return seconds per processed sample (joint state + base state, prediction off)."""
+    from reduced_dynamics.estimator.config import EstimatorConfig
+    from reduced_dynamics.estimator.pipeline import Estimator
+    estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0))
+    add_joint, add_base = estimator.add_joint_state, estimator.add_base_state
+    for joint, base in zip(joints[:warmup], bases[:warmup]):
+        add_joint(joint)
+        add_base(base)
+    before = estimator.processed
+    start = time.perf_counter()
+    for joint, base in zip(joints[warmup:], bases[warmup:]):
+        add_joint(joint)
+        add_base(base)
+    elapsed = time.perf_counter() - start
+    processed = estimator.processed - before
+    if processed <= 0:
+        raise RuntimeError('the estimator processed no sample')
+    return elapsed / processed
+
+
+def measure_update(robot, settings: Settings, samples: int) -> tuple[list, list]:
+    """Interleave update and crba timings over the repeats; return (update, crba) in s."""
+    joints, bases = update_samples(robot, samples)
+    updates, crbas = [], []
+    for _ in range(settings.repeats):
+        crbas.append(time_crba(robot, settings.crba_calls))
+        updates.append(time_update(robot, joints, bases))
+    return updates, crbas
+
+
+def bench_update(report: Report, robot, settings: Settings) -> None:
+    """Section 1: per-sample estimator update against one crba call."""
+    updates, crbas = measure_update(robot, settings, settings.update_samples)
+    ratios = [u / c for u, c in zip(updates, crbas)]
+    report.add(make_figure('update', 'estimator update (paper robot)', 'us/sample',
+                           [1e6 * u for u in updates], 'crba',
+                           [1e6 * c for c in crbas], ratios, 'ratio <= 10',
+                           lambda r: r <= 10.0))
+    report.add(make_figure('update', 'crba (paper robot)', 'us/call',
+                           [1e6 * c for c in crbas], note='baseline'))
+
+
+# --------------------------------------------------------------------------- 2. prediction
+def _timed(run: Callable[[], Any], repeats: int) -> tuple[Any, list]:
+    result, times = None, []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = run()
+        times.append(time.perf_counter() - start)
+    return result, times
+
+
+def matched_time(errors: Sequence[float], seconds: Sequence[float],
+                 error: float) -> tuple[float, bool]:
+    """
+    Interpolate log(time) against log(error) of a tolerance sweep at ``error``.
+
+    Returns (time, inside) where ``inside`` tells whether ``error`` lies in the
+    swept range (outside it the nearest end is used: no extrapolation).
+    """
+    log_e = np.log10(np.maximum(np.asarray(errors, float), 1e-300))
+    log_t = np.log10(np.asarray(seconds, float))
+    order = np.argsort(log_e)
+    log_e, log_t = log_e[order], log_t[order]
+    target = np.log10(max(error, 1e-300))
+    inside = bool(log_e[0] <= target <= log_e[-1])
+    return float(10.0 ** np.interp(target, log_e, log_t)), inside
+
+
+def bench_prediction(report: Report, robot, settings: Settings) -> None:
+    """Section 2: 2 s prediction, reduced against full dynamics at equal accuracy."""
+    from reduced_dynamics.full_dynamics import FullDynamics
+    from reduced_dynamics.geometry.isotropy import MomentumClass
+    from reduced_dynamics.reduction.reconstruction import ReducedPropagator
+    from reduced_dynamics.validation import random_scenario
+
+    scenario = random_scenario(robot, MomentumClass.GENERIC, 0)
+    state, torque = scenario.state, scenario.torque
+    times = np.linspace(0.0, HORIZON, settings.prediction_points)
+    reference = FullDynamics(robot, torque).simulate(state, times, 1e-13, 1e-13).qbar
+
+    def error_of(qbar: np.ndarray) -> float:
+        return float(np.max(np.abs(qbar - reference)))
+
+    def full_run(rtol: float) -> Callable[[], Any]:
+        return lambda: FullDynamics(robot, torque).simulate(state, times, rtol, rtol)
+
+    def reduced_run(integrator: str, tol: float) -> Callable[[], Any]:
+        def run():
+            propagator, y0 = ReducedPropagator.from_full_state(robot, state, torque)
+            return propagator.propagate(y0, times, integrator, tol, tol, tol)
+        return run
+
+    sweep: dict[str, list] = {'full dop853': [], 'reduced dop853': [],
+                              'reduced discrete_gradient': []}
+    runs = [('full dop853', rtol, full_run(rtol)) for rtol in settings.full_rtols]
+    runs += [('reduced dop853', rtol, reduced_run('dop853', rtol))
+             for rtol in settings.reduced_rtols]
+    runs += [('reduced discrete_gradient', step, reduced_run('discrete_gradient', step))
+             for step in settings.dg_steps]
+    for method, tol, run in runs:
+        trajectory, seconds = _timed(run, settings.repeats)
+        sweep[method].append({'tolerance': tol, 'error': error_of(trajectory.qbar),
+                              'seconds': seconds})
+    report.details['prediction_sweep'] = sweep
+    full = sweep['full dop853']
+    full_errors = [row['error'] for row in full]
+    for method in ('reduced dop853', 'reduced discrete_gradient'):
+        knob = 'rtol' if method.endswith('dop853') else 'step'
+        for row in sweep[method]:
+            # Full-dynamics time at the reduced run's error, per repeat.
+            baseline = []
+            inside = True
+            for repeat in range(settings.repeats):
+                value, inside = matched_time(full_errors,
+                                             [r['seconds'][repeat] for r in full],
+                                             row['error'])
+                baseline.append(value)
+            ratios = [s / b for s, b in zip(row['seconds'], baseline)]
+            is_default = method.endswith('dop853') and row['tolerance'] == 1e-10
+            note = f'error {row["error"]:.1e} rad'
+            if not inside:
+                note += ' (outside the full sweep: nearest end)'
+            report.add(make_figure(
+                'prediction', f'{method} {knob} {row["tolerance"]:g}', 'ms',
+                [1e3 * s for s in row['seconds']], 'full aba dop853 at equal error',
+                [1e3 * b for b in baseline], ratios, 'ratio <= 1' if is_default else '',
+                (lambda r: r <= 1.0) if is_default else None, note))
+            if is_default or (method.endswith('gradient')
+                              and row['tolerance'] == settings.dg_steps[0]):
+                realtime = [HORIZON / s for s in row['seconds']]
+                report.add(make_figure(
+                    'prediction', f'{method} {knob} {row["tolerance"]:g} vs real time',
+                    'x real time', realtime, target='>= 100',
+                    check=lambda r: r >= 100.0, note='2 s horizon / wall time'))
+    for row in full:
+        report.add(make_figure('prediction', f'full aba dop853 rtol {row["tolerance"]:g}', 'ms',
+                               [1e3 * s for s in row['seconds']],
+                               note=f'error {row["error"]:.1e} rad (baseline sweep)'))
+
+
+# --------------------------------------------------------------------------- 3. replay
+def simulate_input_bag(robot, path: str, seconds: float) -> None:
+    """Simulate the robot and write a 1 kHz bag (Odometry base) at ``path``."""
+    from reduced_dynamics.simulator import SimulationOptions, simulate_bag
+    simulate_bag(robot, path, SimulationOptions(duration=seconds, rate=1000.0, overwrite=True))
+
+
+def tile_bag(source: str, target: str, seconds: float, topics: Sequence[str]) -> int:
+    """
+    Write a ``seconds`` long bag by repeating ``source``'s ``topics`` shifted in time.
+
+    Header stamps are patched in the CDR bytes (a std_msgs/Header leads both
+    JointState and Odometry: sec at bytes 4-8, nanosec at 8-12, little endian),
+    so the copy costs no (de)serialisation. The motion jumps at each seam (the
+    estimator sees momentum steps there); the bag is for memory measurements.
+    Returns the number of messages written.
+    """
+    from reduced_dynamics.bag.reader import open_bag
+    from reduced_dynamics.bag.writer import BagWriter
+    with open_bag(source) as reader:
+        types = {t: m for t, m in reader.topics().items() if t in topics}
+        items = [(m.topic, m.timestamp_ns, bytes(m.data)) for m in reader.raw_messages(topics)]
+        start, period = reader.start_ns, reader.duration_ns + 1_000_000
+    written = 0
+    with BagWriter(target, types, overwrite=True) as writer:
+        for tile in range(max(1, int(np.ceil(seconds * NS / period)))):
+            shift = tile * period
+            for topic, stamp, data in items:
+                new = stamp + shift
+                if new - start > seconds * NS:
+                    break
+                buffer = bytearray(data)
+                header = int.from_bytes(buffer[4:8], 'little', signed=True) * NS \
+                    + int.from_bytes(buffer[8:12], 'little') + shift
+                buffer[4:8] = int(header // NS).to_bytes(4, 'little', signed=True)
+                buffer[8:12] = int(header % NS).to_bytes(4, 'little')
+                writer.write_raw(topic, new, bytes(buffer))
+                written += 1
+    return written
+
+
+def replay_once(robot, bag: str, out: str) -> tuple[float, int]:
+    """Replay ``bag`` with prediction off; return (seconds, processed samples)."""
+    from reduced_dynamics.params import defaults
+    from reduced_dynamics.replay import replay, ReplayOptions
+    params = defaults()
+    params['prediction_rate'] = 0.0
+    start = time.perf_counter()
+    summary = replay(bag, out, robot, ReplayOptions(params=params, overwrite=True))
+    return time.perf_counter() - start, int(summary['processed'])
+
+
+def decode_once(bag: str, topics: Sequence[str], joint_topic: str) -> tuple[float, int]:
+    """Read and deserialise ``topics`` of ``bag``; return (seconds, joint-state messages)."""
+    from reduced_dynamics.bag.reader import open_bag
+    start = time.perf_counter()
+    count = 0
+    with open_bag(bag) as reader:
+        for message in reader.messages(topics):
+            count += message.topic == joint_topic
+    return time.perf_counter() - start, count
+
+
+_MEMORY_SCRIPT = """
+import resource, sys, time
+from reduced_dynamics.robot.model import load_robot
+from reduced_dynamics.params import defaults
+from reduced_dynamics.replay import replay, ReplayOptions
+robot = load_robot()
+params = defaults()
+params['prediction_rate'] = 0.0
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+start = time.perf_counter()
+summary = replay(sys.argv[1], sys.argv[2], robot, ReplayOptions(params=params, overwrite=True))
+elapsed = time.perf_counter() - start
+after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(before, after, summary['processed'], elapsed)
+"""
+
+
+def replay_memory(bag: str, out: str) -> dict:
+    """Replay ``bag`` in a fresh interpreter; return its peak RSS (MiB) before and after."""
+    env = dict(os.environ)
+    package_root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env['PYTHONPATH'] = package_root + os.pathsep + env.get('PYTHONPATH', '')
+    result = subprocess.run([sys.executable, '-c', _MEMORY_SCRIPT, bag, out], env=env,
+                            capture_output=True, text=True, check=True)
+    before, after, processed, elapsed = result.stdout.split()[-4:]
+    return {'rss_before_mib': int(before) / 1024.0, 'peak_rss_mib': int(after) / 1024.0,
+            'processed': int(processed), 'seconds': float(elapsed)}
+
+
+def bench_replay(report: Report, robot, settings: Settings, workdir: str) -> None:
+    """Section 3: replay throughput against decode-only; peak memory against bag length."""
+    from reduced_dynamics.simulator import TOPIC_JOINT_STATES, TOPIC_ODOM
+    topics = (TOPIC_JOINT_STATES, TOPIC_ODOM)
+    bag = os.path.join(workdir, 'input')
+    simulate_input_bag(robot, bag, settings.replay_seconds)
+    out = os.path.join(workdir, 'output')
+    replays, decodes, ratios, processed = [], [], [], 0
+    for _ in range(settings.repeats):
+        seconds, count = decode_once(bag, topics, TOPIC_JOINT_STATES)
+        decodes.append(count / seconds)
+        seconds, processed = replay_once(robot, bag, out)
+        replays.append(processed / seconds)
+        ratios.append(replays[-1] / decodes[-1])
+    shutil.rmtree(out, ignore_errors=True)
+    label = f'{settings.replay_seconds:g} s at 1 kHz, {processed} samples'
+    report.add(make_figure('replay', 'replay throughput (prediction off)', 'samples/s',
+                           replays, 'read+decode only', decodes, ratios,
+                           '>= 10000/s, ratio >= 0.5',
+                           lambda r: r >= 0.5 and spread(replays)[0] >= 10000.0, label))
+    report.add(make_figure('replay', 'read+decode only', 'samples/s', decodes,
+                           note='baseline: BagReader.messages, same topics'))
+    short_bag, long_bag = os.path.join(workdir, 'short'), os.path.join(workdir, 'long')
+    tile_bag(bag, short_bag, settings.memory_short_seconds, topics)
+    tile_bag(bag, long_bag, settings.memory_long_seconds, topics)
+    short = replay_memory(short_bag, out)
+    long = replay_memory(long_bag, out)
+    shutil.rmtree(out, ignore_errors=True)
+    shutil.rmtree(short_bag, ignore_errors=True)
+    shutil.rmtree(long_bag, ignore_errors=True)
+    report.details['replay_memory'] = {'short': short, 'long': long}
+    growth = short['peak_rss_mib'], long['peak_rss_mib']
+    note = (f'{settings.memory_long_seconds:g} s vs {settings.memory_short_seconds:g} s bag at '
+            f'1 kHz (tiled from the simulated one); {long["processed"]} samples; '
+            f'{long["processed"] / long["seconds"]:.0f} samples/s in the subprocess')
+    if settings.quick:
+        note += '; --quick: shorter than the 10-minute bag'
+    report.add(make_figure('replay', 'replay peak RSS, long bag', 'MiB', [growth[1]],
+                           'same, short bag', [growth[0]], [growth[1] / growth[0]],
+                           'ratio <= 1.1 (flat)', lambda r: r <= 1.1, note))
+
+
+# --------------------------------------------------------------------------- 4. scaling
+def time_evaluation(robot, calls: int, repeats: int) -> list:
+    """Return seconds per reduced vector-field evaluation at a generic state."""
+    from reduced_dynamics.geometry.isotropy import MomentumClass
+    from reduced_dynamics.reduction.vector_field import ReducedSystem
+    from reduced_dynamics.validation import random_scenario
+    scenario = random_scenario(robot, MomentumClass.GENERIC, 0)
+    system, z = ReducedSystem.from_full_state(robot, scenario.state)
+    tau = np.zeros(robot.m)
+    evaluate = system.evaluate
+    out = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for _ in range(calls):
+            evaluate(z, tau)
+        out.append((time.perf_counter() - start) / calls)
+    return out
+
+
+def bench_scaling(report: Report, settings: Settings) -> None:
+    """Section 4: costs on random trees and their fitted exponents in m."""
+    from reduced_dynamics.robot.model import load_robot
+    from reduced_dynamics.robot.random_tree import random_tree_urdf
+    sizes, update_costs, evaluation_costs, crba_costs = [], [], [], []
+    for m in settings.shape_joints:
+        robot = load_robot(random_tree_urdf(m, seed=1))
+        updates, crbas = measure_update(robot, settings, settings.scaling_samples)
+        evaluations = time_evaluation(robot, settings.scaling_evaluations, settings.repeats)
+        sizes.append(m)
+        update_costs.append(spread(updates)[0])
+        crba_costs.append(spread(crbas)[0])
+        evaluation_costs.append(spread(evaluations)[0])
+        report.add(make_figure('scaling', f'update, random tree m={m}', 'us/sample',
+                               [1e6 * u for u in updates], 'crba', [1e6 * c for c in crbas],
+                               [u / c for u, c in zip(updates, crbas)]))
+        report.add(make_figure('scaling', f'reduced evaluation, random tree m={m}', 'us/call',
+                               [1e6 * e for e in evaluations], 'crba',
+                               [1e6 * c for c in crbas],
+                               [e / c for e, c in zip(evaluations, crbas)]))
+    exponents = {'update': fit_exponent(sizes, update_costs),
+                 'reduced_evaluation': fit_exponent(sizes, evaluation_costs),
+                 'crba': fit_exponent(sizes, crba_costs)}
+    report.details['scaling'] = {'shape_joints': sizes, 'update_s': update_costs,
+                                 'evaluation_s': evaluation_costs, 'crba_s': crba_costs,
+                                 'exponents': exponents}
+    sizes_text = ','.join(str(m) for m in sizes)
+    report.add(make_figure('scaling', 'update cost exponent', 'p in m^p', [exponents['update']],
+                           target='<= 2', check=lambda p: p <= 2.0,
+                           note=f'log-log fit over m={sizes_text}'))
+    report.add(make_figure('scaling', 'reduced evaluation exponent', 'p in m^p',
+                           [exponents['reduced_evaluation']], note=f'm={sizes_text}'))
+    report.add(make_figure('scaling', 'crba exponent', 'p in m^p', [exponents['crba']],
+                           note=f'm={sizes_text}'))
+
+
+# --------------------------------------------------------------------------- output
+def _number(value: Optional[float]) -> str:
+    if value is None:
+        return ''
+    magnitude = abs(value)
+    if magnitude != 0.0 and (magnitude >= 1e5 or magnitude < 1e-2):
+        return f'{value:.3g}'
+    return f'{value:.4g}' if magnitude < 100 else f'{value:.0f}'
+
+
+def format_report(report: Report) -> str:
+    """Return the printed table."""
+    machine = report.machine
+    lines = [f'machine: {machine["cpu"]}, {machine["nproc"]} CPUs; Python {machine["python"]}, '
+             f'numpy {machine["numpy"]}, scipy {machine["scipy"]}, '
+             f'pinocchio {machine["pinocchio"]}',
+             f'each figure: median [IQR] over {report.settings["repeats"]} repeats'
+             + ('; --quick sizes' if report.settings.get('quick') else '')]
+    header = (f'{"section":<11}{"figure":<48}{"median [IQR]":>26} {"unit":<12}'
+              f'{"ratio [IQR]":>24}  {"vs":<32}{"target":<26}{"met":<5}note')
+    lines += [header, '-' * len(header)]
+    for f in report.figures:
+        value = f'{_number(f.median)} [{_number(f.low)}, {_number(f.high)}]'
+        ratio = '' if f.ratio is None else \
+            f'{_number(f.ratio)} [{_number(f.ratio_low)}, {_number(f.ratio_high)}]'
+        met = '' if f.met is None else ('yes' if f.met else 'NO')
+        lines.append(f'{f.section:<11}{f.name:<48}{value:>26} {f.unit:<12}{ratio:>24}  '
+                     f'{f.baseline:<32}{f.target:<26}{met:<5}{f.note}')
+    return '\n'.join(lines)
+
+
+def write_csv(report: Report, path: str) -> None:
+    """Write one row per figure."""
+    names = list(Figure.__dataclass_fields__)
+    with open(path, 'w', newline='', encoding='utf-8') as stream:
+        writer = csv.DictWriter(stream, fieldnames=names)
+        writer.writeheader()
+        for figure in report.figures:
+            writer.writerow(asdict(figure))
+
+
+SECTIONS = ('update', 'prediction', 'replay', 'scaling')
+
+
+def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
+              progress: Optional[Callable[[str], None]] = None) -> Report:
+    """Run the chosen sections and return the report."""
+    from reduced_dynamics.robot.model import load_robot
+    say = progress or (lambda text: None)
+    report = Report(machine_info(), asdict(settings))
+    robot = load_robot()
+    if 'update' in sections:
+        say('update...')
+        bench_update(report, robot, settings)
+    if 'prediction' in sections:
+        say('prediction...')
+        bench_prediction(report, robot, settings)
+    if 'replay' in sections:
+        say('replay...')
+        workdir = tempfile.mkdtemp(prefix='reduced_dynamics_bench_')
+        try:
+            bench_replay(report, robot, settings, workdir)
+        finally:
+            shutil.rmtree(workdir, ignore_errors=True)
+    if 'scaling' in sections:
+        say('scaling...')
+        bench_scaling(report, settings)
+    return report
+
+
+def _run(args: argparse.Namespace) -> int:
+    settings = Settings.quick_settings(args.repeats) if args.quick else Settings()
+    if args.repeats and not args.quick:
+        settings.repeats = args.repeats
+    if settings.repeats < 1:
+        raise ValueError('--repeats must be at least 1')
+    sections = args.sections or ('update', 'prediction', 'replay', 'scaling')
+    report = run_bench(settings, sections,
+                       lambda text: print(f'bench: {text}', file=sys.stderr, flush=True))
+    print(format_report(report))
+    if args.json:
+        with open(args.json, 'w', encoding='utf-8') as stream:
+            json.dump(report.to_dict(), stream, indent=2)
+    if args.csv:
+        write_csv(report, args.csv)
+    return 0
+
+
+def register_command(commands: Any) -> None:
+    """Add the ``bench`` subcommand."""
+    parser = commands.add_parser(
+        'bench', help='benchmark the estimator, prediction, replay and scaling',
+        description='Measure each figure as a median over repeats (with its interquartile '
+                    'range) and as a ratio to a baseline measured in the same run.')
+    parser.add_argument('--quick', action='store_true',
+                        help='small sizes (short bags, fewer tolerances): about a minute')
+    parser.add_argument('--repeats', type=int, default=None,
+                        help='repeats per figure (default 7, or 3 with --quick)')
+    parser.add_argument('--json', metavar='FILE', help='write the report as JSON')
+    parser.add_argument('--csv', metavar='FILE', help='write the figures as CSV')
+    parser.add_argument('--sections', nargs='+',
+                        choices=('update', 'prediction', 'replay', 'scaling'),
+                        help='run only these sections (default: all)')
+    parser.set_defaults(func=_run)

@@ -1,0 +1,80 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""Smoke test of the benchmark machinery at tiny sizes (structure and ratios, no timings)."""
+
+import json
+import math
+
+import numpy as np
+
+from reduced_dynamics import bench
+from reduced_dynamics.cli import build_parser
+
+
+def _tiny() -> bench.Settings:
+    return bench.Settings(repeats=2, update_samples=60, crba_calls=50,
+                          full_rtols=(1e-6, 1e-9), reduced_rtols=(1e-8,),
+                          dg_steps=(0.05,), prediction_points=11, replay_seconds=0.3,
+                          memory_short_seconds=0.2, memory_long_seconds=0.4,
+                          scaling_samples=40, scaling_evaluations=3,
+                          shape_joints=(6, 12), quick=True)
+
+
+def test_statistics_helpers():
+    median, q1, q3 = bench.spread([1.0, 2.0, 3.0, 4.0, 100.0])
+    assert (median, q1, q3) == (3.0, 2.0, 4.0)
+    assert math.isclose(bench.fit_exponent([6, 12, 24], [36.0, 144.0, 576.0]), 2.0)
+    time_at, inside = bench.matched_time([1e-4, 1e-8], [1.0, 100.0], 1e-6)
+    assert inside and math.isclose(time_at, 10.0)
+    _, inside = bench.matched_time([1e-4, 1e-8], [1.0, 100.0], 1e-12)
+    assert not inside
+    figure = bench.make_figure('s', 'x', 'us', [2.0, 4.0], 'base', [1.0, 1.0], [2.0, 4.0],
+                               'ratio <= 10', lambda r: r <= 10.0)
+    assert figure.ratio == 3.0 and figure.met is True and figure.baseline_median == 1.0
+
+
+def test_bench_sections_tiny(tmp_path):
+    report = bench.run_bench(_tiny())
+    sections = {f.section for f in report.figures}
+    assert sections == set(bench.SECTIONS)
+    for figure in report.figures:
+        assert figure.low <= figure.median <= figure.high or figure.low == figure.high
+        if figure.baseline_median is not None:
+            assert figure.ratio is not None and figure.ratio > 0.0
+            assert math.isfinite(figure.ratio)
+    names = [f.name for f in report.figures]
+    assert 'estimator update (paper robot)' in names
+    assert any(n.startswith('reduced dop853') for n in names)
+    assert any(n.startswith('reduced discrete_gradient') for n in names)
+    assert 'replay throughput (prediction off)' in names
+    assert 'update cost exponent' in names
+    sweep = report.details['prediction_sweep']
+    assert all(row['error'] < 1e-2 for row in sweep['full dop853'])
+    assert report.details['replay_memory']['long']['processed'] > \
+        report.details['replay_memory']['short']['processed'] > 0
+    assert np.all(np.isfinite(report.details['scaling']['update_s']))
+    table = bench.format_report(report)
+    assert 'estimator update' in table and 'machine:' in table
+    path = tmp_path / 'bench.csv'
+    bench.write_csv(report, str(path))
+    assert len(path.read_text().splitlines()) == len(report.figures) + 1
+    json.dumps(report.to_dict())
+
+
+def test_cli_registers_bench():
+    args = build_parser().parse_args(['bench', '--quick', '--repeats', '2', '--json', 'x.json',
+                                      '--csv', 'x.csv', '--sections', 'update'])
+    assert args.quick and args.repeats == 2 and args.sections == ['update']
+    assert args.func is bench._run
