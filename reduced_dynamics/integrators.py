@@ -54,8 +54,15 @@ class ChartedSystem(Protocol):
 
 def integrate_adaptive(system: ChartedSystem, y0: np.ndarray, t_eval: Sequence[float],
                        method: str = 'DOP853', rtol: float = 1e-11, atol: float = 1e-12,
-                       max_chart: float = 0.5, max_step: float = np.inf) -> np.ndarray:
-    """Integrate from t_eval[0] to t_eval[-1]; return observe() at each t_eval."""
+                       max_chart: float = 0.5, max_step: float = np.inf,
+                       max_evaluations: int = 1_000_000) -> np.ndarray:
+    """
+    Integrate from t_eval[0] to t_eval[-1]; return observe() at each t_eval.
+
+    Raises RuntimeError after ``max_evaluations`` right-hand-side calls: near a
+    coordinate singularity (gimbal lock of three revolutes) the step size
+    collapses and the run would otherwise not end.
+    """
     if method not in ADAPTIVE_METHODS:
         raise ValueError(f'unknown adaptive method {method!r}; choose from {ADAPTIVE_METHODS}')
     times = np.asarray(t_eval, dtype=float)
@@ -71,9 +78,19 @@ def integrate_adaptive(system: ChartedSystem, y0: np.ndarray, t_eval: Sequence[f
     leaves_chart.terminal = True
     leaves_chart.direction = -1
 
+    evaluations = 0
+
+    def rhs(t_now: float, state: np.ndarray) -> np.ndarray:
+        nonlocal evaluations
+        evaluations += 1
+        if evaluations > max_evaluations:
+            raise RuntimeError(f'integration stalled at t={t_now:.6g} after {evaluations} '
+                               'evaluations (a coordinate singularity?)')
+        return system.rhs(t_now, state)
+
     while index < times.size:
         end = float(times[-1])
-        solution = solve_ivp(system.rhs, (t, end), y, method=method, rtol=rtol, atol=atol,
+        solution = solve_ivp(rhs, (t, end), y, method=method, rtol=rtol, atol=atol,
                              dense_output=True, events=leaves_chart, max_step=max_step)
         if solution.status < 0:
             raise RuntimeError(f'integration failed at t={t}: {solution.message}')
