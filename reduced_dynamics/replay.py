@@ -210,7 +210,6 @@ def write_plots(directory: str, series: dict, robot: RobotModel) -> list[str]:
     import matplotlib.pyplot as plt
     os.makedirs(directory, exist_ok=True)
     paths = []
-    labels6 = ['x', 'y', 'z', 'rx', 'ry', 'rz']
 
     def save(fig, name: str) -> None:
         path = os.path.join(directory, name)
@@ -219,37 +218,31 @@ def write_plots(directory: str, series: dict, robot: RobotModel) -> list[str]:
         plt.close(fig)
         paths.append(path)
 
+    def wrench_plot(rows: np.ndarray, names: tuple, units: tuple, title: str,
+                    file: str) -> None:
+        # rows: stamp then six (force-like, torque-like) columns, world frame.
+        t = (rows[:, 0] - rows[0, 0]) * 1e-9
+        fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+        for half, ax in enumerate(axes):
+            for i in range(3):
+                ax.plot(t, rows[:, 1 + 3 * half + i], label=f'{names[half]}_{"xyz"[i]}')
+            ax.set_ylabel(units[half])
+            ax.legend(loc='upper right', fontsize=8)
+            ax.grid(True, alpha=0.3)
+        axes[1].set_xlabel('time [s]')
+        axes[0].set_title(title)
+        save(fig, file)
+
     mu = np.array(series['mu'].rows)
     if mu.size:
-        t = (mu[:, 0] - mu[0, 0]) * 1e-9
-        fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
-        wrench = np.array([robot.group.dual_to_wrench(row) for row in mu[:, 1:]])
-        for i in range(3):
-            axes[0].plot(t, wrench[:, i], label=f'p_{labels6[i]}')
-            axes[1].plot(t, wrench[:, 3 + i], label=f'L_{labels6[i][-1]}')
-        axes[0].set_ylabel('linear momentum [kg m/s]')
-        axes[1].set_ylabel('angular momentum [kg m²/s]')
-        axes[1].set_xlabel('time [s]')
-        axes[0].set_title('momentum map μ (world frame, about the origin)')
-        for ax in axes:
-            ax.legend(loc='upper right', fontsize=8)
-            ax.grid(True, alpha=0.3)
-        save(fig, 'momentum.png')
+        lifted = np.array([robot.group.dual_to_wrench(row) for row in mu[:, 1:]])
+        wrench_plot(np.column_stack([mu[:, 0], lifted]), ('p', 'L'),
+                    ('linear momentum [kg m/s]', 'angular momentum [kg m²/s]'),
+                    'momentum map μ (world frame, about the origin)', 'momentum.png')
     rate = np.array(series['rate'].rows)
     if rate.size:
-        t = (rate[:, 0] - rate[0, 0]) * 1e-9
-        fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
-        for i in range(3):
-            axes[0].plot(t, rate[:, 1 + i], label=f'F_{labels6[i]}')
-            axes[1].plot(t, rate[:, 4 + i], label=f'T_{labels6[i]}')
-        axes[0].set_ylabel('force [N]')
-        axes[1].set_ylabel('torque about origin [N m]')
-        axes[1].set_xlabel('time [s]')
-        axes[0].set_title('momentum drift: estimated external wrench dμ/dt')
-        for ax in axes:
-            ax.legend(loc='upper right', fontsize=8)
-            ax.grid(True, alpha=0.3)
-        save(fig, 'drift.png')
+        wrench_plot(rate, ('F', 'T'), ('force [N]', 'torque about origin [N m]'),
+                    'momentum drift: estimated external wrench dμ/dt', 'drift.png')
     shape = np.array(series['shape'].rows)
     if shape.size and shape.shape[1] > 1:
         t = (shape[:, 0] - shape[0, 0]) * 1e-9
