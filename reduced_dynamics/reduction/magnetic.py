@@ -35,18 +35,24 @@ from reduced_dynamics.geometry.lie_group import BaseGroup
 
 
 def magnetic_form(group: BaseGroup, pi: np.ndarray, chart_jacobian: np.ndarray,
-                  connection: np.ndarray, curvature: np.ndarray) -> np.ndarray:
-    """U, the matrix of Xi_mu in coordinates x = (q~1, qbar) (5.37 via Cartan)."""
-    kirillov = group.coadjoint_form(pi)
+                  connection: np.ndarray, curvature: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Return U, the matrix of Xi_mu in coordinates x = (q~1, qbar) (5.37 via Cartan).
+
+    Also returns ``W L`` (the Kirillov form times the chart Jacobian), which the
+    q~1-gradient of H~ shares: ``dH~/dq~1 = -(W L)^T I^-1 pi``.
+    """
+    kirillov_jac = group.coadjoint_form(pi) @ chart_jacobian
     k = chart_jacobian.shape[1]
     m = connection.shape[1]
+    lower = connection.T @ kirillov_jac
     form = np.empty((k + m, k + m))
-    form[:k, :k] = chart_jacobian.T @ kirillov @ chart_jacobian
-    lower = connection.T @ kirillov @ chart_jacobian
+    form[:k, :k] = chart_jacobian.T @ kirillov_jac
     form[k:, :k] = lower
     form[:k, k:] = -lower.T
     form[k:, k:] = curvature
-    return form
+    return form, kirillov_jac
 
 
 def magnetic_form_corollary55(group: BaseGroup, mu: np.ndarray, connection: np.ndarray,

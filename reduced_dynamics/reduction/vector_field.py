@@ -40,6 +40,7 @@ import pinocchio as pin
 from reduced_dynamics.geometry.chart import CosetChart
 from reduced_dynamics.geometry.isotropy import isotropy_algebra, IsotropyAlgebra, RANK_RTOL
 from reduced_dynamics.reduction.hamiltonian import shape_terms, ShapeTerms
+from reduced_dynamics.reduction.magnetic import magnetic_form
 from reduced_dynamics.robot.model import RobotModel
 from reduced_dynamics.robot.momentum import body_momentum, momentum_map, reduced_momentum
 from reduced_dynamics.robot.state import FreeFloatingState
@@ -120,15 +121,9 @@ class ReducedSystem:
         pi = self.body_momentum(q1)
         terms = shape_terms(self.robot, pi, qbar, pbar)
         jac = self.chart.body_jacobian(q1)
-        # The magnetic form U (magnetic.magnetic_form) assembled in place, sharing W.
-        kirillov = self.group.coadjoint_form(pi)
-        kirillov_jac = kirillov @ jac
-        lower = terms.blocks.connection.T @ kirillov_jac
-        form = np.empty((k + m, k + m))
-        form[:k, :k] = jac.T @ kirillov_jac
-        form[k:, :k] = lower
-        form[:k, k:] = -lower.T
-        form[k:, k:] = terms.curvature
+        form, kirillov_jac = magnetic_form(self.group, pi, jac, terms.blocks.connection,
+                                           terms.curvature)
+        lower = form[k:, :k]
         dH_dq1 = -(kirillov_jac.T @ terms.locked_velocity)
         qbar_dot = terms.qbar_dot
         if k:
