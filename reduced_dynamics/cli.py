@@ -12,7 +12,7 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Command line: ``reduced-dynamics validate | simulate | replay | bench``."""
+"""Command line: ``reduced-dynamics validate | symmetries | simulate | replay | bench``."""
 
 from __future__ import annotations
 
@@ -58,6 +58,14 @@ def _validate(args: argparse.Namespace) -> int:
     return 0 if ok else 1
 
 
+def _symmetries(args: argparse.Namespace) -> int:
+    from reduced_dynamics.robot.symmetry import detect_symmetries
+    robot = load_robot_from_args(args)
+    report = detect_symmetries(robot, args.rtol, args.configurations, args.seed)
+    print(report.format())
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of every subcommand."""
     parser = argparse.ArgumentParser(
@@ -73,6 +81,15 @@ def build_parser() -> argparse.ArgumentParser:
     validate.add_argument('--tolerance', type=float, default=1e-8,
                           help='largest shape error accepted, rad')
     validate.set_defaults(func=_validate)
+    symmetries = commands.add_parser(
+        'symmetries', help='report the cyclic joints (section 5.1: 5.43, Prop. 56, 5.46)')
+    add_robot_arguments(symmetries)
+    symmetries.add_argument('--rtol', type=float, default=1e-9,
+                            help='invariance tolerance relative to the inertias')
+    symmetries.add_argument('--configurations', type=int, default=12,
+                            help='random configurations tested besides the home pose')
+    symmetries.add_argument('--seed', type=int, default=0)
+    symmetries.set_defaults(func=_symmetries)
     for register in _extra_commands():
         register(commands)
     return parser
