@@ -43,11 +43,13 @@ def load_robot_from_args(args: argparse.Namespace):
 
 
 def _validate(args: argparse.Namespace) -> int:
-    from reduced_dynamics.validation import format_table, validation_table
+    from reduced_dynamics.robot.symmetry import detect_symmetries
+    from reduced_dynamics.validation import (format_second_stage_table, format_table,
+                                             second_stage_table, validation_table)
     robot = load_robot_from_args(args)
     print(f'robot {robot.model.name}: base {robot.group.name} ({robot.base_link}), '
-          f'{robot.m} shape joints, {args.duration:g} s per run, DOP853 rtol 1e-12')
-    rows = validation_table(robot, args.duration, args.seed)
+          f'{robot.m} shape joints, {args.duration:g} s per run, DOP853 rtol {args.rtol:g}')
+    rows = validation_table(robot, args.duration, args.seed, rtol=args.rtol)
     print(format_table(rows))
     worst = max(max(r.shape_error for r in rows), max(r.pose_error for r in rows) / 10.0,
                 max(r.pi_error for r in rows))
@@ -55,6 +57,20 @@ def _validate(args: argparse.Namespace) -> int:
     print(f'{"PASS" if ok else "FAIL"}: reduced model agrees with full dynamics '
           f'(shape <= {args.tolerance:g} rad, pose <= {10 * args.tolerance:g}, '
           f'pi <= {args.tolerance:g} relative)')
+    cyclic = detect_symmetries(robot).cyclic_joints
+    if cyclic:
+        print(f'\nsecond stage (Theorem 57) by the cyclic joints {", ".join(cyclic)}: '
+              'shape error on the kept joints, the same for stage one, cyclic angles, '
+              'base pose, theta against the torque impulse and against full dynamics')
+        second = second_stage_table(robot, cyclic, args.duration, args.seed, rtol=args.rtol)
+        print(format_second_stage_table(second))
+        worst = max(max(max(r.shape_error, r.cyclic_angle_error, r.pose_error / 10.0,
+                            r.theta_torque_error, r.theta_full_error) for r in second), 0.0)
+        second_ok = worst <= args.tolerance
+        print(f'{"PASS" if second_ok else "FAIL"}: second-stage model agrees with full '
+              f'dynamics (shape and wheel angles <= {args.tolerance:g} rad, theta <= '
+              f'{args.tolerance:g} relative)')
+        ok = ok and second_ok
     return 0 if ok else 1
 
 
@@ -78,6 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_robot_arguments(validate)
     validate.add_argument('--duration', type=float, default=10.0, help='seconds per run')
     validate.add_argument('--seed', type=int, default=0)
+    validate.add_argument('--rtol', type=float, default=1e-12,
+                          help='DOP853 relative (and absolute) tolerance of every run')
     validate.add_argument('--tolerance', type=float, default=1e-8,
                           help='largest shape error accepted, rad')
     validate.set_defaults(func=_validate)

@@ -135,6 +135,13 @@ class RobotModel:
         rotational = data.Ig.inertia
         return float(np.sqrt(np.trace(rotational) / self.total_mass))
 
+    def symmetry_report(self):
+        """Return the cyclic-joint analysis of section 5.1 (computed once, then cached)."""
+        if getattr(self, '_symmetry_report', None) is None:
+            from reduced_dynamics.robot.symmetry import detect_symmetries
+            self._symmetry_report = detect_symmetries(self)
+        return self._symmetry_report
+
     def length_scales(self) -> np.ndarray:
         """Per shape joint: 1 for angles, the radius of gyration for slides (m)."""
         scales = np.ones(self.m)
