@@ -99,41 +99,40 @@ def random_scenario(robot: RobotModel, cls: MomentumClass, seed: int,
     return Scenario(f'{cls.value} mu', FreeFloatingState(g, xi, qbar, qbar_dot), torque, cls)
 
 
-def metric_conditioning(robot: RobotModel, qbar: np.ndarray) -> float:
+def integration_sensitivity(robot: RobotModel, scenario: Scenario, duration: float,
+                            samples: int = 51) -> float:
     """
-    Smallest eigenvalue of M(qbar) scaled to unit diagonal.
+    Largest shape difference between full runs at rtol 1e-9 and 1e-10 (rad).
 
-    It drops to zero where the joint coordinates are singular, e.g. the gimbal
-    lock of a spherical joint written as three revolutes (massless links between
-    them): a velocity direction then moves no mass at all.
+    It estimates how much the integrator, not the model, limits any comparison:
+    near a coordinate singularity (the gimbal lock of a spherical joint written
+    as three revolutes) it grows by orders of magnitude. Measured on the wheel
+    robot, runs at rtol 1e-12 are accurate to about 1e-3 of this figure.
     """
-    mass = robot.mass_matrix(qbar)
-    scale = 1.0 / np.sqrt(np.diag(mass))
-    return float(np.linalg.eigvalsh(mass * scale[:, None] * scale[None, :])[0])
+    times = np.linspace(0.0, duration, samples)
+    dynamics = FullDynamics(robot, scenario.torque)
+    coarse = dynamics.simulate(scenario.state, times, 1e-9, 1e-11).qbar
+    fine = dynamics.simulate(scenario.state, times, 1e-10, 1e-12).qbar
+    return float(np.max(np.abs(coarse - fine)))
 
 
 def well_conditioned_scenario(robot: RobotModel, cls: MomentumClass, seed: int,
                               duration: float, attempts: int = 20,
-                              min_conditioning: float = 0.05, **options) -> Scenario:
+                              max_sensitivity: float = 5e-7, **options) -> Scenario:
     """
-    Return the first of seeds ``seed, seed + 1000, ...`` whose run stays regular.
+    Return the first of seeds ``seed, seed + 1000, ...`` the integrator resolves well.
 
-    A coarse full-dynamics run (rtol 1e-7) must keep :func:`metric_conditioning`
-    above ``min_conditioning`` times its value at the home shape; near a
-    coordinate singularity both models are limited by the integrator, not by the
-    reduction, so such runs say nothing about the model.
+    A scenario is kept when :func:`integration_sensitivity` is at most
+    ``max_sensitivity``: runs that graze a coordinate singularity are limited by
+    the integrator in both models and say nothing about the reduction.
     """
-    floor = min_conditioning * metric_conditioning(robot, np.zeros(robot.m))
-    times = np.linspace(0.0, duration, 51)
     for attempt in range(attempts):
         scenario = random_scenario(robot, cls, seed + 1000 * attempt, **options)
         try:
-            full = FullDynamics(robot, scenario.torque).simulate(scenario.state, times,
-                                                                 1e-7, 1e-9)
+            if integration_sensitivity(robot, scenario, duration) <= max_sensitivity:
+                return scenario
         except RuntimeError:
             continue
-        if min(metric_conditioning(robot, qbar) for qbar in full.qbar) >= floor:
-            return scenario
     raise ValueError(f'no regular {cls.value} scenario in {attempts} attempts from seed {seed}')
 
 
