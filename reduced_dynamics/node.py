@@ -239,11 +239,23 @@ class ReducedDynamicsNode(Node):
                                                         'model is given')
             return
         self._model_error = None
-        self._estimator = Estimator(robot, self._config,
-                                    use_odometry=self._value('base_input') == 'odom')
+        try:
+            self._estimator = Estimator(robot, self._config,
+                                        use_odometry=self._value('base_input') == 'odom',
+                                        cyclic_joints=self._value('cyclic_joints'))
+        except ModelError as error:
+            self._estimator = None
+            self._model_error = f'cannot reduce {robot.model.name} by cyclic_joints: {error}'
+            self.get_logger().error(self._model_error + '; not estimating until a usable '
+                                                        'model is given')
+            return
         self.get_logger().info(
             f'robot {robot.model.name} from {source}: base {robot.group.name} '
             f'({robot.base_link}), {robot.m} shape joints {list(robot.shape_joint_names)}')
+        if self._estimator.cyclic_joints:
+            self.get_logger().info(
+                'second-stage reduction (Theorem 57) by the cyclic joints '
+                f'{list(self._estimator.cyclic_joints)}: their momenta on cyclic_momenta')
 
     def _on_robot_description(self, msg: Any) -> None:
         text = string_from_ros(msg)

@@ -48,6 +48,11 @@ NODE_PARAMETERS: dict[str, ParameterSpec] = {
     'odom_topic': ParameterSpec('odom', None, None, (), 'nav_msgs/Odometry input'),
     'base_pose_topic': ParameterSpec('base_pose', None, None, (),
                                      'geometry_msgs/PoseStamped input'),
+    'cyclic_joints': ParameterSpec('', None, None, (),
+                                   'second-stage reduction (Theorem 57): empty for off, '
+                                   '"auto" for every cyclic joint found (reaction wheels, '
+                                   'rotors), or comma-separated joint names; their momenta '
+                                   'go to ~/cyclic_momenta and leave ~/shape_state'),
 }
 
 #: Parameters a running node may change (the others need a restart).

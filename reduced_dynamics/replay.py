@@ -45,7 +45,7 @@ from reduced_dynamics.messages.convert import (
 from reduced_dynamics.messages.types import RosbagsTypes
 from reduced_dynamics.params import defaults, load_params_file
 from reduced_dynamics.robot.model import load_robot, RobotModel
-from reduced_dynamics.topics import OUTPUT_TOPICS, output_messages, resolved_name
+from reduced_dynamics.topics import active_topics, output_messages, resolved_name
 
 JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
 ODOMETRY_TYPE = 'nav_msgs/msg/Odometry'
@@ -138,12 +138,14 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
         topics = reader.topics()
         joint_topic, base_topic, is_odom = choose_inputs(topics, options)
         base_driven = joint_topic is None or robot.m == 0
-        estimator = Estimator(robot, config, use_odometry=is_odom, base_driven=base_driven)
+        estimator = Estimator(robot, config, use_odometry=is_odom, base_driven=base_driven,
+                              cyclic_joints=options.params.get('cyclic_joints', ''))
         start_ns = None if options.start is None else reader.start_ns + int(options.start * 1e9)
         end_ns = None if options.end is None else reader.start_ns + int(options.end * 1e9)
         wanted = [t for t in (joint_topic, base_topic) if t]
         total_ns = max(reader.duration_ns, 1)
-        out_topics = {resolved_name(t): t.msgtype for t in OUTPUT_TOPICS}
+        out_topics = {resolved_name(t): t.msgtype
+                      for t in active_topics(bool(estimator.cyclic_joints))}
         written: Counter = Counter()
         read: Counter = Counter()
         series = {'mu': _Series(), 'rate': _Series(), 'shape': _Series(), 'residual': []}
@@ -297,6 +299,9 @@ def format_summary(summary: dict[str, Any]) -> str:
         lines.append(f'  t={event["start_s"]:.3f} s after start: peak |w| '
                      f'{event["peak_wrench"]:.3g}, impulse [{impulse}]')
     residual = summary['prediction_shape_residual_max']
+    if summary.get('cyclic_joints'):
+        lines.append('second stage (Theorem 57) by the cyclic joints '
+                     + ', '.join(summary['cyclic_joints']))
     lines.append(f'predictions: {summary["predictions"]}, shape residual max '
                  + ('n/a' if residual is None else f'{residual:.2e} rad, median '
                     f'{summary["prediction_shape_residual_median"]:.2e} rad'))
@@ -307,6 +312,8 @@ def format_summary(summary: dict[str, Any]) -> str:
 
 def _run(args: argparse.Namespace) -> int:
     params = load_params_file(args.params) if args.params else defaults()
+    if args.cyclic_joints is not None:
+        params['cyclic_joints'] = args.cyclic_joints
     robot = load_robot_from_params(params, args.urdf, args.base_joint, args.gravity)
     options = ReplayOptions(params=params, joint_states_topic=args.joint_states_topic,
                             odom_topic=args.odom_topic, base_pose_topic=args.base_pose_topic,
@@ -337,6 +344,9 @@ def register_command(commands: Any) -> None:
     group = parser.add_mutually_exclusive_group()
     group.add_argument('--odom-topic')
     group.add_argument('--base-pose-topic')
+    parser.add_argument('--cyclic-joints', metavar='NAMES',
+                        help='second-stage reduction: "auto" or comma-separated cyclic '
+                             'joints (overrides the parameters file)')
     parser.add_argument('--start', type=float, help='seconds from the bag start')
     parser.add_argument('--end', type=float, help='seconds from the bag start')
     parser.add_argument('--plots', metavar='DIR', help='write PNG plots into DIR')

@@ -52,6 +52,11 @@ OUTPUT_TOPICS: tuple[OutputTopic, ...] = (
     OutputTopic('shape_state', 'sensor_msgs/msg/JointState', 'shape_state',
                 joint_state_to_ros, 'qbar (position), qbar_dot (velocity), reduced momentum '
                 'pbar = S qbar_dot (effort field) [N m s or N s]'),
+    OutputTopic('cyclic_momenta', 'sensor_msgs/msg/JointState', 'cyclic_state',
+                joint_state_to_ros, 'second stage only: cyclic joints (reaction wheels), '
+                'angle (position), rate (velocity) and conserved momentum theta = rows of '
+                'M v (effort) [N m s]; shape_state then holds the other joints, with p^ = '
+                'K^ q^_dot'),
     OutputTopic('drift/momentum_rate', 'geometry_msgs/msg/WrenchStamped', 'momentum_rate',
                 wrench_to_ros, 'estimated d mu/dt = external wrench [N, N m], world frame'),
     OutputTopic('drift/base_twist', 'geometry_msgs/msg/TwistStamped', 'drift_twist',
@@ -63,6 +68,15 @@ OUTPUT_TOPICS: tuple[OutputTopic, ...] = (
     OutputTopic(DIAGNOSTICS_TOPIC, 'diagnostic_msgs/msg/DiagnosticArray', 'diagnostics',
                 diagnostics_to_ros, 'estimator status'),
 )
+
+
+#: The output that exists only with the second-stage reduction on.
+CYCLIC_TOPIC = 'cyclic_momenta'
+
+
+def active_topics(second_stage: bool) -> tuple[OutputTopic, ...]:
+    """Return the outputs a run produces (``cyclic_momenta`` only in the second stage)."""
+    return tuple(t for t in OUTPUT_TOPICS if second_stage or t.name != CYCLIC_TOPIC)
 
 
 def resolved_name(topic: OutputTopic, namespace: str = '/' + NODE_NAME) -> str:

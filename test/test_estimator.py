@@ -22,6 +22,7 @@ from conftest_robots import paper_robot, tree_robot
 from reduced_dynamics.estimator import Estimator, EstimatorConfig
 from reduced_dynamics.geometry.isotropy import MomentumClass
 from reduced_dynamics.messages.samples import BaseStateSample, JointStateSample
+from reduced_dynamics.resources import config_path
 from reduced_dynamics.robot.model import load_robot
 from reduced_dynamics.robot.state import sinusoid_torque, zero_torque
 from reduced_dynamics.validation import random_scenario
@@ -31,15 +32,15 @@ RATE = 200.0
 
 
 def _run(robot, seconds=3.0, torque=None, pulse=None, seed=3, odometry=True, config=None,
-         rate=RATE):
+         rate=RATE, cyclic_joints='', rotors=()):
     scenario = random_scenario(robot, MomentumClass.GENERIC, seed, drift_speed=0.1,
-                               shape_speed=0.2)
+                               shape_speed=0.2, rotors=rotors)
     torque = torque or scenario.torque
     times = np.arange(int(round(seconds * rate)) + 1) / rate
     run = simulate(robot, scenario.state, torque, times, pulse)
     joints, bases = samples(robot, times, *run[:4], torque=torque, odometry=odometry)
     estimator = Estimator(robot, config or EstimatorConfig(prediction_rate=0.0),
-                          use_odometry=odometry)
+                          use_odometry=odometry, cyclic_joints=cyclic_joints)
     return estimator, feed(estimator, joints, bases), run, times
 
 
@@ -207,3 +208,34 @@ def test_runtime_config_change_keeps_state():
     assert estimator.observer.bandwidth == 10.0 and estimator.processed == processed
     with pytest.raises(ValueError, match='outside'):
         estimator.config.replaced(observer_bandwidth=-1.0)
+
+
+def test_second_stage_outputs_theta_and_predictions():
+    robot = load_robot(str(config_path('robots/paper_robot_wheels.urdf')))
+    levels = np.r_[0.05 * np.ones(6), 0.02, -0.03, 0.04]  # arm and wheel motor torques
+    constant = sinusoid_torque(levels, np.zeros(robot.m), np.full(robot.m, np.pi / 2))
+    config = EstimatorConfig(prediction_rate=1.0, prediction_step=0.05)
+    estimator, outputs, run, times = _run(robot, seconds=4.0, torque=constant, config=config,
+                                          cyclic_joints='auto', rotors=[6, 7, 8])
+    assert estimator.cyclic_joints == ('wheel_x', 'wheel_y', 'wheel_z')
+    assert not estimator.rejected and len(outputs) == len(times)
+    last = outputs[-1]
+    assert last.shape_state.names == robot.shape_joint_names[:6]
+    assert last.cyclic_state.names == ('wheel_x', 'wheel_y', 'wheel_z')
+    # theta grows exactly by the wheel-motor impulse, and is M v of the true state.
+    theta = np.array([o.cyclic_state.effort for o in outputs])
+    np.testing.assert_allclose(theta - theta[0], np.outer(times, levels[6:]), atol=1e-9)
+    velocity = np.r_[run[1][-1], run[3][-1]]
+    np.testing.assert_allclose(theta[-1], (robot.mass_matrix(run[2][-1]) @ velocity)[-3:],
+                               rtol=1e-9)
+    # p^ = K^ q^_dot on the kept joints.
+    from reduced_dynamics.reduction.second_stage import CyclicSplit, second_stage_blocks
+    blocks = second_stage_blocks(robot, CyclicSplit(robot, estimator.cyclic_joints), run[2][-1])
+    np.testing.assert_allclose(last.shape_state.effort, blocks.reduced_metric @ run[3][-1][:6],
+                               rtol=1e-9)
+    # Second-stage predictions with held torques, wheel torques included.
+    predictions = [o for o in outputs if o.prediction is not None]
+    assert len(predictions) >= 3
+    assert predictions[0].prediction.joint_names == robot.shape_joint_names[:6]
+    assert estimator.summary()['prediction_shape_residual_max'] <= 1e-6
+    assert estimator.summary()['cyclic_joints'] == ['wheel_x', 'wheel_y', 'wheel_z']

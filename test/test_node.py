@@ -83,11 +83,17 @@ def node_factory(ros):
         node.destroy_node()
 
 
+def wheel_robot_urdf():
+    """Return the path of the paper robot with three reaction wheels."""
+    return str(config_path('robots/paper_robot_wheels.urdf'))
+
+
 @functools.lru_cache(maxsize=None)
-def trajectory():
-    """Return a full-dynamics run of the paper robot as plain arrays (no ROS types)."""
-    robot = load_robot()
-    scenario = random_scenario(robot, MomentumClass.GENERIC, seed=4)
+def trajectory(urdf=''):
+    """Return a full-dynamics run of the paper robot (or ``urdf``) as plain arrays."""
+    robot = load_robot(urdf)
+    rotors = [i for i, name in enumerate(robot.shape_joint_names) if name.startswith('wheel')]
+    scenario = random_scenario(robot, MomentumClass.GENERIC, seed=4, rotors=rotors)
     times = numpy.arange(SAMPLES) * (PERIOD_NS / NS)
     run = FullDynamics(robot, scenario.torque).simulate(scenario.state, times, 1e-10, 1e-10)
     quats = numpy.array([pin.Quaternion(run.pose(i).rotation).coeffs() for i in range(SAMPLES)])
@@ -140,9 +146,9 @@ def pose_stamped(ros, stamp_ns, position, quat):
         header=_header(ros, stamp_ns, 'world'), pose=_pose(ros, position, quat))
 
 
-def input_messages(ros, base_input='odom', count=SAMPLES):
+def input_messages(ros, base_input='odom', count=SAMPLES, urdf=''):
     """Return [(topic, message)] of the simulated run, base state before joint state."""
-    run = trajectory()
+    run = trajectory(urdf)
     messages = []
     for i in range(count):
         stamp = int(run['stamps'][i])
@@ -157,10 +163,11 @@ def input_messages(ros, base_input='odom', count=SAMPLES):
     return messages
 
 
-def expected_outputs(node, messages, config, use_odometry=True):
+def expected_outputs(node, messages, config, use_odometry=True, urdf='', cyclic_joints=''):
     """Feed an Estimator directly with the same messages; return {topic: [messages]}."""
-    estimator = Estimator(load_robot(str(paper_robot_urdf()), 'floating', numpy.zeros(3)),
-                          config, use_odometry=use_odometry)
+    estimator = Estimator(load_robot(urdf or str(paper_robot_urdf()), 'floating',
+                                     numpy.zeros(3)),
+                          config, use_odometry=use_odometry, cyclic_joints=cyclic_joints)
     expected = {_resolved(node, topic): [] for topic in OUTPUT_TOPICS}
     for topic, msg in messages:
         if topic == 'joint_states':
@@ -362,6 +369,8 @@ def test_outputs_equal_an_estimator_fed_directly(ros, node_factory, base_input):
     feed(ros, node, messages)
     expected = expected_outputs(node, messages, EstimatorConfig(**settings),
                                 use_odometry=base_input == 'odom')
+    cyclic_topic = node.resolve_topic_name('~/cyclic_momenta')
+    assert expected.pop(cyclic_topic) == [] and ros.published(cyclic_topic) == []
     for topic, wanted in expected.items():
         assert wanted, f'the run produced nothing on {topic}'  # every topic is exercised
         got = ros.published(topic)
@@ -372,6 +381,38 @@ def test_outputs_equal_an_estimator_fed_directly(ros, node_factory, base_input):
     momentum = ros.published('~/momentum', node)
     assert {m.header.stamp.sec * NS + m.header.stamp.nanosec for m in momentum} <= stamps
     assert node.estimator.processed == len(momentum) > 0.9 * count
+
+
+def test_second_stage_outputs_equal_an_estimator_fed_directly(ros, node_factory):
+    settings = {'prediction_rate': 2.0, 'diagnostics_rate': 2.0}
+    urdf = wheel_robot_urdf()
+    node = node_factory(urdf_path=urdf, cyclic_joints='auto', **settings)
+    messages = input_messages(ros, 'odom', SAMPLES, urdf)
+    feed(ros, node, messages)
+    expected = expected_outputs(node, messages, EstimatorConfig(**settings), urdf=urdf,
+                                cyclic_joints='auto')
+    for topic, wanted in expected.items():
+        assert wanted, f'the run produced nothing on {topic}'
+        got = ros.published(topic)
+        assert len(got) == len(wanted), topic
+        for i, (actual, want) in enumerate(zip(got, wanted)):
+            assert_same_message(actual, want, f'{topic}[{i}]')
+    cyclic = ros.published(node.resolve_topic_name('~/cyclic_momenta'))
+    assert list(cyclic[0].name) == ['wheel_x', 'wheel_y', 'wheel_z']
+    shape = ros.published(node.resolve_topic_name('~/shape_state'))
+    assert 'wheel_x' not in list(shape[0].name) and len(shape[0].name) == 6
+    # theta is conserved up to the wheel torques: it equals rows of M v of the run.
+    run = trajectory(urdf)
+    robot = load_robot(urdf)
+    velocity = numpy.concatenate([robot.group.coordinates(run['twist'][0]), run['qbar_dot'][0]])
+    theta = (robot.mass_matrix(run['qbar'][0]) @ velocity)[-3:]
+    numpy.testing.assert_allclose(cyclic[0].effort, theta, rtol=1e-9)
+
+
+def test_non_cyclic_joint_stops_estimation_with_the_reason(ros, node_factory):
+    node = node_factory(urdf_path=wheel_robot_urdf(), cyclic_joints='wheel_x, j4')
+    assert node.estimator is None
+    assert 'j4 cannot be reduced: not cyclic' in node.model_error
 
 
 # ------------------------------------------------------------------ time
@@ -533,7 +574,8 @@ def test_main_shuts_down_cleanly(ros, interrupt):
 
     def stop(node):
         spun.append(node)
-        assert len(list(node.subscriptions)) == 3 and len(list(node.publishers)) == 8
+        assert len(list(node.subscriptions)) == 3
+        assert len(list(node.publishers)) == len(OUTPUT_TOPICS)
         raise error()
     ros.on_spin(stop)
     assert main([]) == 0
@@ -613,7 +655,7 @@ def test_node_and_replay_publish_the_same_messages_for_the_same_bag(ros, node_fa
     from rclpy_double._messages import from_rosbags, to_rosbags
     from reduced_dynamics.bag.reader import open_bag
     from reduced_dynamics.replay import replay
-    from reduced_dynamics.topics import OUTPUT_TOPICS, resolved_name
+    from reduced_dynamics.topics import active_topics, resolved_name
     bag = os.path.join(os.path.dirname(__file__), 'data', 'paper_constant')
     replay(bag, str(tmp_path / 'out'), load_robot())
     node = node_factory(urdf_path=str(paper_robot_urdf()))
@@ -621,7 +663,7 @@ def test_node_and_replay_publish_the_same_messages_for_the_same_bag(ros, node_fa
         for message in reader.messages(['/joint_states', '/odom']):
             ros.deliver(node, message.topic, from_rosbags(message.msg))
     with open_bag(tmp_path / 'out') as reader:
-        for topic in OUTPUT_TOPICS:
+        for topic in active_topics(False):
             replayed = [m.msg for m in reader.messages([resolved_name(topic)])]
             published = ros.published(_resolved(node, topic))
             assert len(published) == len(replayed) > 0, topic.name

@@ -29,7 +29,7 @@ from reduced_dynamics.replay import replay, ReplayOptions
 from reduced_dynamics.resources import config_path
 from reduced_dynamics.robot.model import load_robot
 from reduced_dynamics.simulator import simulate_bag, SimulationOptions, ThrusterPulse
-from reduced_dynamics.topics import OUTPUT_TOPICS, resolved_name
+from reduced_dynamics.topics import active_topics, resolved_name
 
 DATA = os.path.join(os.path.dirname(__file__), 'data')
 
@@ -61,10 +61,10 @@ def test_output_bag_read_independently_with_counts_of_summary(thruster_replay):
         for _, channel, _ in reader.iter_messages():
             counts[channel.topic] = counts.get(channel.topic, 0) + 1
     assert counts == summary['messages_out']
-    assert set(counts) == {resolved_name(t) for t in OUTPUT_TOPICS}
+    assert set(counts) == {resolved_name(t) for t in active_topics(False)}
     with open_bag(out) as reader:
         assert {t: reader.message_count(t) for t in reader.topics()} == counts
-        assert reader.topics() == {resolved_name(t): t.msgtype for t in OUTPUT_TOPICS}
+        assert reader.topics() == {resolved_name(t): t.msgtype for t in active_topics(False)}
 
 
 def test_replayed_momentum_matches_ground_truth_and_stamps(thruster_replay):

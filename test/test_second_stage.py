@@ -150,3 +150,23 @@ def test_validate_command_covers_the_second_stage(capsys):
     assert 'PASS: second-stage model agrees with full dynamics' in out
     assert main(['validate', '--duration', '1']) == 0
     assert 'second stage' not in capsys.readouterr().out
+
+
+def test_replay_with_the_second_stage(tmp_path, capsys):
+    from reduced_dynamics.bag import open_bag
+    from reduced_dynamics.simulator import simulate_bag, SimulationOptions
+    robot = wheel_robot()
+    simulate_bag(robot, tmp_path / 'in', SimulationOptions(duration=1.0, rate=100.0))
+    urdf = str(config_path('robots/paper_robot_wheels.urdf'))
+    args = ['replay', str(tmp_path / 'in'), '-o', str(tmp_path / 'out'), '--urdf', urdf,
+            '--quiet', '--cyclic-joints', 'auto']
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert 'second stage (Theorem 57) by the cyclic joints wheel_x, wheel_y, wheel_z' in out
+    with open_bag(str(tmp_path / 'out')) as reader:
+        assert reader.topics()['/reduced_dynamics/cyclic_momenta'] == \
+            'sensor_msgs/msg/JointState'
+    args[3] = str(tmp_path / 'out2')
+    args[-1] = 'wheel_x,j3'
+    assert main(args) == 2
+    assert 'joint j3 cannot be reduced: not cyclic' in capsys.readouterr().err

@@ -29,12 +29,13 @@ from __future__ import annotations
 from collections import Counter, deque
 from dataclasses import dataclass
 import math
-from typing import Optional
+from typing import Optional, Sequence, Union
 
 import numpy as np
 import pinocchio as pin
 
 from reduced_dynamics.estimator.config import EstimatorConfig
+from reduced_dynamics.estimator.cyclic import CYCLIC_OFF, CyclicView, resolve_cyclic_joints
 from reduced_dynamics.estimator.observer import MomentumEvent, MomentumObserver
 from reduced_dynamics.estimator.prediction import Prediction, Predictor
 from reduced_dynamics.estimator.sync import BaseBuffer, BasePoint
@@ -42,6 +43,7 @@ from reduced_dynamics.geometry.isotropy import isotropy_algebra
 from reduced_dynamics.messages.samples import (
     BaseStateSample, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample, JointStateSample,
     PosePath, ShapePrediction, trusted_sample, TwistSample, WrenchSample)
+from reduced_dynamics.reduction.second_stage import CyclicSplit
 from reduced_dynamics.robot.model import RobotModel
 
 NS = 1_000_000_000
@@ -62,6 +64,8 @@ class EstimatorOutput:
     prediction: Optional[ShapePrediction] = None
     prediction_path: Optional[PosePath] = None
     diagnostics: Optional[Diagnostics] = None
+    #: second stage on: the cyclic joints' angles, rates and momenta theta (effort)
+    cyclic_state: Optional[JointStateSample] = None
 
 
 class _Pending:
@@ -85,12 +89,22 @@ class Estimator:
     is differentiated from poses. ``base_driven``: base samples drive the
     pipeline (default: when the robot has no shape joints); the shape is then
     held at its last joint state, or at rest at zero if none came.
+    ``cyclic_joints``: ``''`` (first stage), ``'auto'`` (every cyclic joint of
+    section 5.1), or joint names: the second stage (Theorem 57) then shapes the
+    outputs, see :mod:`.cyclic`.
     """
 
     def __init__(self, robot: RobotModel, config: Optional[EstimatorConfig] = None,
-                 use_odometry: bool = True, base_driven: Optional[bool] = None) -> None:
-        """Set up the pipeline for ``robot``."""
+                 use_odometry: bool = True, base_driven: Optional[bool] = None,
+                 cyclic_joints: Union[str, Sequence[str]] = CYCLIC_OFF) -> None:
+        """Set up the pipeline for ``robot`` (ModelError for unusable cyclic joints)."""
         self.robot = robot
+        self.cyclic_joints = resolve_cyclic_joints(robot, cyclic_joints) \
+            if isinstance(cyclic_joints, str) else CyclicSplit(robot, tuple(cyclic_joints)).names
+        self._cyclic_view = CyclicView(robot, self.cyclic_joints) if self.cyclic_joints \
+            else None
+        self.shape_names = self._cyclic_view.kept_names if self._cyclic_view \
+            else robot.shape_joint_names
         self.config = config or EstimatorConfig()
         self.use_odometry = use_odometry
         self.base_driven = robot.m == 0 if base_driven is None else base_driven
@@ -129,7 +143,7 @@ class Estimator:
         old_predictor = getattr(self, 'predictor', None)
         self.predictor = Predictor(self.robot, config.prediction_horizon,
                                    config.prediction_step, config.prediction_integrator,
-                                   config.prediction_tolerance)
+                                   config.prediction_tolerance, self.cyclic_joints)
         if old_predictor is not None:
             self.predictor.active = old_predictor.active
             self.predictor.finished = old_predictor.finished
@@ -293,6 +307,9 @@ class Estimator:
                                          wrenches[2, 3:]),
             drift_twist=trusted_sample(TwistSample, stamp, base_frame, drift6[:3], drift6[3:]),
             mu=mu, energy=energy)
+        if self._cyclic_view is not None:
+            output.shape_state, output.cyclic_state = self._cyclic_view.samples(
+                stamp, blocks.mass_matrix, momentum, qbar, qbar_dot)
         self.predictor.compare(stamp, qbar, g)
         if self._prediction_due(stamp):
             self._predict(output, g, sample)
@@ -316,9 +333,10 @@ class Estimator:
         self._last_prediction_ns = sample.stamp_ns
         self.observer.take_level_change()
         try:
+            theta = None if output.cyclic_state is None else output.cyclic_state.effort
             prediction = self.predictor.predict(sample.stamp_ns, g, sample.qbar,
                                                 sample.qbar_dot, self.observer.level,
-                                                sample.tau)
+                                                sample.tau, theta)
         except (RuntimeError, ValueError, ArithmeticError, np.linalg.LinAlgError) as error:
             # A failed prediction (e.g. a singular chart) must not stop the estimates.
             self.prediction_failures[type(error).__name__] += 1
@@ -328,7 +346,7 @@ class Estimator:
 
     def _prediction_messages(self, prediction: Prediction) -> tuple[ShapePrediction, PosePath]:
         offsets = np.round(prediction.times * NS).astype(np.int64)
-        shape = ShapePrediction(prediction.start_ns, '', self.robot.shape_joint_names,
+        shape = ShapePrediction(prediction.start_ns, '', self.shape_names,
                                 offsets, prediction.qbar, prediction.qbar_dot)
         quats = np.array([pin.Quaternion(pose[:3, :3]).coeffs() for pose in prediction.poses])
         path = PosePath(prediction.start_ns, self.config.world_frame,
@@ -377,7 +395,8 @@ class Estimator:
                  'isotropy_dim': str(iso.dim),
                  'external_wrench_norm': f'{wrench:.6g}',
                  'events': str(len(self.observer.events)),
-                 'kinetic_plus_potential_energy': f'{out.energy:.9g}'}))
+                 'kinetic_plus_potential_energy': f'{out.energy:.9g}',
+                 **self._cyclic_diagnostics(out)}))
         residual = self.predictor.last_residual
         statuses.append(DiagnosticStatusSample(
             DIAG_OK, 'reduced_dynamics: prediction',
@@ -387,6 +406,14 @@ class Estimator:
              'last_shape_residual_rad': 'n/a' if residual is None else f'{residual:.3e}',
              'horizon_s': f'{self.config.prediction_horizon:g}'}))
         return Diagnostics(stamp_ns, statuses)
+
+    def _cyclic_diagnostics(self, out: EstimatorOutput) -> dict[str, str]:
+        """Second-stage key-values: the cyclic joints and their momenta theta."""
+        if out.cyclic_state is None:
+            return {'second_stage': 'off'}
+        return {'second_stage': 'on (Theorem 57)',
+                'cyclic_joints': ' '.join(out.cyclic_state.names),
+                'theta': ' '.join(f'{v:.6g}' for v in out.cyclic_state.effort)}
 
     @property
     def events(self) -> list[MomentumEvent]:
@@ -405,6 +432,7 @@ class Estimator:
             'received': dict(self.received),
             'processed': self.processed,
             'rejected': dict(self.rejected),
+            'cyclic_joints': list(self.cyclic_joints),
             'mu_mean': mean.tolist(),
             'mu_spread': spread.tolist(),
             'events': [{'start_s': (e.start_ns - origin) * 1e-9,

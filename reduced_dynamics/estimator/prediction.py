@@ -32,6 +32,8 @@ import numpy as np
 import pinocchio as pin
 
 from reduced_dynamics.reduction.reconstruction import ReducedPropagator
+from reduced_dynamics.reduction.second_stage import (second_stage_blocks, SecondStagePropagator,
+                                                     SecondStageSystem)
 from reduced_dynamics.reduction.vector_field import ReducedSystem
 from reduced_dynamics.robot.model import RobotModel
 
@@ -116,12 +118,22 @@ class Prediction:
 
 
 class Predictor:
-    """Runs predictions and tracks their residuals."""
+    """
+    Runs predictions and tracks their residuals.
+
+    With ``cyclic_joints`` the second-stage model (Theorem 57) predicts: the
+    predicted and compared shape is then that of the kept joints only.
+    """
 
     def __init__(self, robot: RobotModel, horizon: float, step: float, integrator: str,
-                 tolerance: float) -> None:
+                 tolerance: float, cyclic_joints: tuple[str, ...] = ()) -> None:
         """Predict over ``horizon`` seconds with points every ``step`` seconds."""
         self.robot = robot
+        self.cyclic_joints = tuple(cyclic_joints)
+        self.kept: Optional[np.ndarray] = None
+        if self.cyclic_joints:
+            self.kept = np.array([i for i, name in enumerate(robot.shape_joint_names)
+                                  if name not in self.cyclic_joints], dtype=int)
         self.horizon = horizon
         self.step = step
         self.integrator = integrator
@@ -131,10 +143,18 @@ class Predictor:
         self.made = 0
 
     def predict(self, stamp_ns: int, g: pin.SE3, qbar: np.ndarray, qbar_dot: np.ndarray,
-                mu: np.ndarray, tau: np.ndarray) -> Prediction:
-        """Predict from a measured shape state and base pose at momentum level ``mu``."""
+                mu: np.ndarray, tau: np.ndarray,
+                theta: Optional[np.ndarray] = None) -> Prediction:
+        """
+        Predict from a measured shape state and base pose at momentum level ``mu``.
+
+        ``theta``: the cyclic momenta, needed when predicting by the second stage.
+        """
         count = max(1, int(round(self.horizon / self.step)))
         times = np.linspace(0.0, count * self.step, count + 1)
+        if self.cyclic_joints:
+            return self._predict_second_stage(stamp_ns, times, g, qbar, qbar_dot, mu, tau,
+                                              theta)
         system = ReducedSystem(self.robot, mu, g)
         blocks = self.robot.metric_blocks(qbar)
         z = np.concatenate([np.zeros(system.k), qbar, blocks.reduced_metric @ qbar_dot])
@@ -149,8 +169,33 @@ class Predictor:
         self.made += 1
         return prediction
 
+    def _predict_second_stage(self, stamp_ns: int, times: np.ndarray, g: pin.SE3,
+                              qbar: np.ndarray, qbar_dot: np.ndarray, mu: np.ndarray,
+                              tau: np.ndarray, theta: Optional[np.ndarray]) -> Prediction:
+        if theta is None:
+            raise ValueError('second-stage prediction needs the cyclic momenta theta')
+        if self.integrator != 'dop853':
+            raise ValueError('the second-stage model predicts with dop853 only')
+        system = SecondStageSystem(self.robot, self.cyclic_joints, mu, g)
+        split = system.split_indices
+        blocks = second_stage_blocks(self.robot, split, qbar)
+        z = np.concatenate([np.zeros(system.k), qbar[split.kept],
+                            blocks.reduced_metric @ qbar_dot[split.kept], theta])
+        held = np.array(tau, dtype=float)
+        propagator = SecondStagePropagator(system, g, qbar[split.cyclic],
+                                           lambda t, q, qd: held)
+        y0 = np.concatenate([z, qbar[split.cyclic], np.zeros(self.robot.n)])
+        trajectory = propagator.propagate(y0, times, self.tolerance, self.tolerance)
+        prediction = Prediction(stamp_ns, times, trajectory.qbar[:, split.kept],
+                                trajectory.qbar_dot[:, split.kept], trajectory.poses)
+        self.active.append(prediction)
+        self.made += 1
+        return prediction
+
     def compare(self, stamp_ns: int, qbar: np.ndarray, g: pin.SE3) -> list[Prediction]:
         """Compare a measurement with active predictions; return the ones that expired."""
+        if self.kept is not None:
+            qbar = qbar[self.kept]
         expired = []
         still = []
         for prediction in self.active:
