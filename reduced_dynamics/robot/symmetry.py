@@ -110,10 +110,18 @@ class SymmetryReport:
                  f'{self.configurations} configurations (relative tolerance '
                  f'{self.rtol:g})']
         width = max([len(j.name) for j in self.joints] + [5])
+        lines.append(f'  {"joint":<{width}}  {"verdict":<10}  {"|dM/dq|":>8}  (5.43)  '
+                     'Prop56  (5.46)  why')
         for joint in self.joints:
             verdict = 'cyclic' if joint.cyclic else 'not cyclic'
+            left = 'holds' if joint.invariance_residual <= self.rtol else 'fails'
+            prop56 = 'n/a' if joint.proposition56 is None else \
+                ('holds' if joint.proposition56 else 'fails')
+            right = 'n/a' if joint.rotor_residual is None else \
+                ('holds' if joint.rotor_residual <= self.rtol else 'fails')
             lines.append(f'  {joint.name:<{width}}  {verdict:<10}  '
-                         f'|dM/dq| {joint.invariance_residual:8.1e}  {joint.explanation}')
+                         f'{joint.invariance_residual:8.1e}  {left:<6}  {prop56:<6}  '
+                         f'{right:<6}  {joint.explanation}')
         cyclic = ', '.join(self.cyclic_joints)
         lines.append(f'second-stage group N = {self.group}'
                      + (f' (cyclic joints: {cyclic}; Theorem 57 applies)' if cyclic
