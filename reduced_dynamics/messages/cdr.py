@@ -304,9 +304,9 @@ ENCODERS: dict[str, Callable[[Any], bytes]] = {
 def _strict(decode: Callable[..., Any]) -> Callable[..., Any]:
     """Turn every failure of ``decode`` into CdrError (one exception for the caller)."""
     @functools.wraps(decode)
-    def wrapper(data: Buffer, *args: Any) -> Any:
+    def wrapper(data: Buffer, *args: Any, **kwargs: Any) -> Any:
         try:
-            return decode(data, *args)
+            return decode(data, *args, **kwargs)
         except CdrError:
             raise
         except (struct.error, ValueError, IndexError, TypeError) as error:
