@@ -206,7 +206,6 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
             else:
                 expected = JOINT_STATE_TYPE if topic == joint_topic else base_type
                 inputs[topic, msgtype] = (_wrong_type(topic, msgtype, expected), None)
-        written: Counter = Counter()
         read: Counter = Counter()
         series = {'mu': _Series(), 'rate': _Series(), 'shape': _Series(), 'residual': []}
         last_report = started
@@ -220,7 +219,6 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                         sample = getattr(output, name)
                         if sample is not None:
                             write(topic, stamp, encode(sample))
-                            written[topic] += 1
                     if options.plots_dir:
                         series['mu'].add((output.stamp_ns, *output.mu))
                         series['rate'].add((output.stamp_ns, *output.momentum_rate.force,
@@ -249,6 +247,7 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                                                f'({sum(read.values())} messages)')
                         options.progress.flush()
             emit(estimator.flush())
+        written = {topic: count for topic, count in writer.message_counts.items() if count}
         skipped = dict(reader.skipped)
     if options.progress is not None:
         options.progress.write('\rreplay: 100.0%\n')

@@ -258,12 +258,14 @@ class BagWriter:
         conn = self._connections.get(topic)
         if conn is None:
             raise BagError(f'topic {topic!r} was not declared for {self.path}')
-        try:
-            if isinstance(timestamp_ns, bool):
-                raise TypeError
-            timestamp_ns = operator.index(timestamp_ns)
-        except TypeError:
-            raise BagError(f'timestamp_ns must be an integer, got {timestamp_ns!r}') from None
+        if type(timestamp_ns) is not int:  # plain ints (the hot path) need no conversion
+            try:
+                if isinstance(timestamp_ns, bool):
+                    raise TypeError
+                timestamp_ns = operator.index(timestamp_ns)
+            except TypeError:
+                raise BagError(
+                    f'timestamp_ns must be an integer, got {timestamp_ns!r}') from None
         if not 0 <= timestamp_ns < 2**63:
             raise BagError(f'timestamp_ns out of range: {timestamp_ns}')
         if self._appender is not None:
