@@ -233,38 +233,89 @@ def encode_joint_state(sample: JointStateSample) -> bytes:
     return b''.join(parts)
 
 
+def _seconds(stamps_ns: np.ndarray, low: int, what: str) -> tuple[list, list]:
+    """Split integer nanoseconds into (sec, nanosec) lists, sec within [low, int32 max]."""
+    sec, nanosec = np.divmod(np.asarray(stamps_ns, dtype=np.int64), NS_PER_S)
+    if sec.size and (sec.min() < low or sec.max() > _INT32_MAX):
+        raise ValueError(f'{what} sec outside [{low}, {_INT32_MAX}] in {stamps_ns}')
+    return sec.tolist(), nanosec.tolist()
+
+
+_LAYOUTS: dict = {}
+
+
+def _points_layout(count: int, m: int, velocities: bool, start: int) -> struct.Struct:
+    """Return the struct of ``count`` JointTrajectoryPoints from (4-aligned) offset ``start``."""
+    fmt, pos = ['<'], start
+    for _ in range(count):
+        for size in (m, m if velocities else 0, 0, 0):  # positions ... effort
+            fmt.append('I')
+            pos += 4
+            if size:
+                pad = -pos & 7
+                fmt.append(f'{pad}x{size}d')
+                pos += pad + 8 * size
+        fmt.append('iI')  # time_from_start, 4-aligned after a count or float64 values
+        pos += 8
+    return struct.Struct(''.join(fmt))
+
+
 def encode_joint_trajectory(sample: ShapePrediction) -> bytes:
     """Encode trajectory_msgs/msg/JointTrajectory like ``shape_prediction_to_ros``."""
     out = CdrBuilder()
     out.header(sample.stamp_ns, sample.frame_id)
     out.strings(sample.joint_names)
-    times = sample.times_from_start_ns.tolist()
-    out.uint32(len(times))
-    empty = np.zeros(0)
-    for i, t_ns in enumerate(times):
-        out.float64s(sample.positions[i])
-        out.float64s(empty if sample.velocities is None else sample.velocities[i])
-        out.float64s(empty)  # accelerations
-        out.float64s(empty)  # effort
-        out.align(4)
-        out.raw(_duration(t_ns))
+    count = len(sample.times_from_start_ns)
+    out.uint32(count)
+    sec, nanosec = _seconds(sample.times_from_start_ns, _INT32_MIN, 'ROS Duration')
+    m = len(sample.joint_names)
+    positions = np.asarray(sample.positions, dtype=_F8).reshape(count, m)
+    velocities = sample.velocities
+    # One struct.pack for all points: their layout depends on m and alignment only.
+    layout = _cached(_LAYOUTS, ('points', count, m, velocities is not None, out.pos & 7),
+                     lambda: _points_layout(count, m, velocities is not None, out.pos & 7))
+    values: list = []
+    rows = positions.tolist()
+    if velocities is None:
+        for i in range(count):
+            values += (m, *rows[i], 0, 0, 0, sec[i], nanosec[i])
+    else:
+        speeds = np.asarray(velocities, dtype=_F8).reshape(count, m).tolist()
+        for i in range(count):
+            values += (m, *rows[i], m, *speeds[i], 0, 0, sec[i], nanosec[i])
+    out.raw(layout.pack(*values))
     return out.getvalue()
+
+
+def _poses_layout(count: int, frame_size: int, start: int) -> struct.Struct:
+    """Return the struct of ``count`` PoseStamped with one frame_id, from offset ``start``."""
+    fmt, pos = ['<'], start
+    for _ in range(count):
+        pos += 12 + frame_size  # stamp, frame_id length and bytes (4-aligned start)
+        pad = -pos & 7
+        fmt.append(f'iII{frame_size}s{pad}x7d')
+        pos += pad + 56
+    return struct.Struct(''.join(fmt))
 
 
 def encode_path(sample: PosePath) -> bytes:
     """Encode nav_msgs/msg/Path like ``pose_path_to_ros`` (each pose in the path frame)."""
     out = CdrBuilder()
     out.header(sample.stamp_ns, sample.frame_id)
-    stamps = sample.stamps_ns.tolist()
-    out.uint32(len(stamps))
+    count = len(sample.stamps_ns)
+    out.uint32(count)
+    sec, nanosec = _seconds(sample.stamps_ns, 0, 'ROS Time')
     poses = np.hstack((np.asarray(sample.positions, dtype=_F8).reshape(-1, 3),
                        np.asarray(sample.orientations_xyzw, dtype=_F8).reshape(-1, 4)))
-    if poses.shape[0] != len(stamps):
+    if poses.shape[0] != count:
         raise ValueError('one position and orientation per stamp expected')
-    for i, stamp in enumerate(stamps):
-        out.header(stamp, sample.frame_id)
-        out.align(8)
-        out.raw(poses[i].tobytes())
+    frame = str(sample.frame_id).encode() + b'\x00'
+    layout = _cached(_LAYOUTS, ('poses', count, len(frame), out.pos & 7),
+                     lambda: _poses_layout(count, len(frame), out.pos & 7))
+    values: list = []
+    for i, pose in enumerate(poses.tolist()):
+        values += (sec[i], nanosec[i], len(frame), frame, *pose)
+    out.raw(layout.pack(*values))
     return out.getvalue()
 
 
