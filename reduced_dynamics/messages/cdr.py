@@ -408,34 +408,28 @@ def _check_end(data: Buffer, pos: int) -> None:
         raise CdrError('message length disagrees with its content')
 
 
-class _NameBlock:
-    """The last joint-name block seen: recorded names repeat in every message."""
-
-    __slots__ = ('count', 'data', 'names')
-
-    def __init__(self) -> None:
-        self.count, self.data, self.names = -1, b'', ()
-
-
-_LAST_NAMES = _NameBlock()
+#: The last joint-name block seen, as one tuple (count, bytes, names) so that
+#: threads read a consistent triple: recorded names repeat in every message.
+_LAST_NAMES: list = [(-1, b'', ())]
 
 
 def _names_at(data: Buffer, pos: int) -> tuple[tuple[str, ...], int]:
     """Decode the string sequence at (4-aligned) ``pos``; return it and the next offset."""
     (count,) = _U32.unpack_from(data, 4 + pos)
     pos += 4
-    last = _LAST_NAMES
+    last_count, last_data, last_names = _LAST_NAMES[0]
     # The same bytes parse to the same names: compare instead of parsing again.
-    if count == last.count and data[4 + pos:4 + pos + len(last.data)] == last.data:
-        return last.names, pos + len(last.data)
+    if count == last_count and data[4 + pos:4 + pos + len(last_data)] == last_data:
+        return last_names, pos + len(last_data)
     if 5 * count > len(data):
         raise CdrError('string count beyond the data')
-    start, names = pos, []
+    start, decoded = pos, []
     for _ in range(count):
         name, pos = _string_at(data, (pos + 3) & -4)
-        names.append(name)
-    last.count, last.data, last.names = count, bytes(data[4 + start:4 + pos]), tuple(names)
-    return last.names, pos
+        decoded.append(name)
+    names = tuple(decoded)
+    _LAST_NAMES[0] = (count, bytes(data[4 + start:4 + pos]), names)
+    return names, pos
 
 
 @_strict
