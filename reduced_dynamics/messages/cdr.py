@@ -83,8 +83,8 @@ def _cached(cache: dict, key: Any, make: Callable[[], Any]) -> Any:
 
 
 def _f64(values: np.ndarray) -> bytes:
-    """Return the little-endian float64 bytes of an array (any float dtype)."""
-    if values.dtype is not _F8:
+    """Return the little-endian float64 bytes of an array (or sequence) of numbers."""
+    if getattr(values, 'dtype', None) is not _F8:
         values = np.asarray(values, dtype=_F8)
     return values.tobytes()
 
