@@ -27,11 +27,12 @@ from __future__ import annotations
 import argparse
 from collections import Counter
 from dataclasses import dataclass, field
+import functools
 import json
 import os
 import sys
 import time
-from typing import Any, Optional, TextIO
+from typing import Any, Callable, Optional, TextIO
 
 import numpy as np
 
@@ -40,12 +41,14 @@ from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.bag.writer import BagWriter
 from reduced_dynamics.estimator.config import EstimatorConfig
 from reduced_dynamics.estimator.pipeline import Estimator, EstimatorOutput
+from reduced_dynamics.bag.reader import BagReader
+from reduced_dynamics.messages import cdr
 from reduced_dynamics.messages.convert import (
     joint_state_from_ros, odometry_from_ros, pose_stamped_from_ros)
 from reduced_dynamics.messages.types import RosbagsTypes
 from reduced_dynamics.params import defaults, load_params_file
 from reduced_dynamics.robot.model import load_robot, RobotModel
-from reduced_dynamics.topics import active_topics, output_messages, resolved_name
+from reduced_dynamics.topics import active_topics, cdr_encoder, resolved_name
 
 JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
 ODOMETRY_TYPE = 'nav_msgs/msg/Odometry'
@@ -117,6 +120,50 @@ def choose_inputs(topics: dict[str, str], options: ReplayOptions) -> InputChoice
                    f'{sorted(topics)}')
 
 
+Decoder = Callable[[bytes], Any]
+
+
+def input_decoder(reader: BagReader, topic: str, msgtype: str, child_frame_id: str) -> Decoder:
+    """
+    Return raw CDR -> sample for an input topic (None: undecodable, counted by the reader).
+
+    The fixed-layout decoder runs first when the bag's definition is the
+    standard one; whatever it refuses goes through the typestore and the
+    ``*_from_ros`` converter, so bad data gets the generic path's verdict and
+    message: skipped if it does not deserialize, ValueError/TypeError if it
+    deserializes into something invalid.
+    """
+    deserialize = reader.deserializer(topic, msgtype)
+    if msgtype == JOINT_STATE_TYPE:
+        convert, fast = joint_state_from_ros, cdr.decode_joint_state
+    elif msgtype == ODOMETRY_TYPE:
+        convert, fast = odometry_from_ros, cdr.decode_odometry
+    elif msgtype == POSE_TYPE:
+        convert = functools.partial(pose_stamped_from_ros, child_frame_id=child_frame_id)
+        fast = functools.partial(cdr.decode_pose_stamped, child_frame_id=child_frame_id)
+    else:
+        raise BagError(f'topic {topic}: cannot use {msgtype} as an input')
+    if not cdr.fast_path_applies(reader.typestore_for(topic, msgtype), msgtype):
+        fast = None
+
+    def decode(data: bytes) -> Any:
+        if fast is not None:
+            try:
+                return fast(data)
+            except cdr.CdrError:
+                pass
+        msg = deserialize(data)
+        return None if msg is None else convert(msg)
+    return decode
+
+
+def _wrong_type(topic: str, msgtype: str, expected: str) -> Decoder:
+    """Return a decoder rejecting a topic's messages of an unexpected type."""
+    def reject(data: bytes) -> Any:
+        raise ValueError(f'{topic} carries {msgtype}, expected {expected}')
+    return reject
+
+
 def load_robot_from_params(params: dict, urdf: str = '',
                            base_joint: Optional[str] = None,
                            gravity: Optional[list] = None) -> RobotModel:
@@ -144,47 +191,65 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
         end_ns = None if options.end is None else reader.start_ns + int(options.end * 1e9)
         wanted = [t for t in (joint_topic, base_topic) if t]
         total_ns = max(reader.duration_ns, 1)
-        out_topics = {resolved_name(t): t.msgtype
-                      for t in active_topics(bool(estimator.cyclic_joints))}
-        written: Counter = Counter()
+        outputs = active_topics(bool(estimator.cyclic_joints))
+        out_topics = {resolved_name(t): t.msgtype for t in outputs}
+        # Per output: sample field, bag topic, sample -> CDR bytes (no message objects).
+        encoders = [(t.field, resolved_name(t), cdr_encoder(t, types)) for t in outputs]
+        base_type = ODOMETRY_TYPE if is_odom else POSE_TYPE
+        inputs = {}
+        for topic, msgtype in reader.connection_types(wanted):
+            if (topic, msgtype) == (joint_topic, JOINT_STATE_TYPE):
+                inputs[topic, msgtype] = (input_decoder(reader, topic, msgtype, ''),
+                                          estimator.add_joint_state)
+            elif (topic, msgtype) == (base_topic, base_type):
+                inputs[topic, msgtype] = (
+                    input_decoder(reader, topic, msgtype, robot.base_link),
+                    estimator.add_base_state)
+            else:
+                expected = JOINT_STATE_TYPE if topic == joint_topic else base_type
+                inputs[topic, msgtype] = (_wrong_type(topic, msgtype, expected), None)
         read: Counter = Counter()
         series = {'mu': _Series(), 'rate': _Series(), 'shape': _Series(), 'residual': []}
         last_report = started
         with BagWriter(out_path, out_topics, overwrite=options.overwrite) as writer:
+            write = writer.write_raw
+
             def emit(outputs: list[EstimatorOutput]) -> None:
                 for output in outputs:
-                    for topic, msg in output_messages(output, types):
-                        name = resolved_name(topic)
-                        writer.write(name, output.stamp_ns, msg)
-                        written[name] += 1
+                    stamp = output.stamp_ns
+                    for name, topic, encode in encoders:
+                        sample = getattr(output, name)
+                        if sample is not None:
+                            write(topic, stamp, encode(sample))
                     if options.plots_dir:
                         series['mu'].add((output.stamp_ns, *output.mu))
                         series['rate'].add((output.stamp_ns, *output.momentum_rate.force,
                                             *output.momentum_rate.torque))
                         series['shape'].add((output.stamp_ns, *output.shape_state.position))
 
-            for message in reader.messages(wanted, start_ns, end_ns):
-                read[message.topic] += 1
+            for count, message in enumerate(reader.raw_messages(wanted, start_ns, end_ns)):
+                decode, add = inputs[message.topic, message.msgtype]
+                sample = None
                 try:
-                    if message.topic == joint_topic:
-                        sample = joint_state_from_ros(message.msg)
-                        emit(estimator.add_joint_state(sample))
-                    elif is_odom:
-                        emit(estimator.add_base_state(odometry_from_ros(message.msg)))
-                    else:
-                        sample = pose_stamped_from_ros(message.msg, robot.base_link)
-                        emit(estimator.add_base_state(sample))
+                    sample = decode(message.data)
+                    if sample is not None:  # None: undecodable, in reader.skipped
+                        read[message.topic] += 1
+                        emit(add(sample))
                 except (ValueError, TypeError) as error:
+                    if sample is None:  # deserialized, but not into a valid sample
+                        read[message.topic] += 1
                     estimator.rejected['malformed'] += 1
                     estimator.last_rejection = f'malformed: {error}'
-                now = time.perf_counter()
-                if options.progress is not None and now - last_report >= 2.0:
-                    last_report = now
-                    done = (message.timestamp_ns - reader.start_ns) / total_ns
-                    options.progress.write(f'\rreplay: {100 * done:5.1f}% '
-                                           f'({sum(read.values())} messages)')
-                    options.progress.flush()
+                if options.progress is not None and count % 256 == 0:
+                    now = time.perf_counter()
+                    if now - last_report >= 2.0:
+                        last_report = now
+                        done = (message.timestamp_ns - reader.start_ns) / total_ns
+                        options.progress.write(f'\rreplay: {100 * done:5.1f}% '
+                                               f'({sum(read.values())} messages)')
+                        options.progress.flush()
             emit(estimator.flush())
+        written = {topic: count for topic, count in writer.message_counts.items() if count}
         skipped = dict(reader.skipped)
     if options.progress is not None:
         options.progress.write('\rreplay: 100.0%\n')

@@ -24,10 +24,11 @@ from __future__ import annotations
 from typing import Any, Callable, Iterator, NamedTuple
 
 from reduced_dynamics.estimator.pipeline import EstimatorOutput
+from reduced_dynamics.messages import cdr
 from reduced_dynamics.messages.convert import (
     diagnostics_to_ros, joint_state_to_ros, pose_path_to_ros, shape_prediction_to_ros,
     twist_to_ros, wrench_to_ros)
-from reduced_dynamics.messages.types import MessageTypes
+from reduced_dynamics.messages.types import MessageTypes, RosbagsTypes
 
 NODE_NAME = 'reduced_dynamics'
 DIAGNOSTICS_TOPIC = '/diagnostics'
@@ -93,3 +94,17 @@ def output_messages(output: EstimatorOutput,
         sample = getattr(output, topic.field)
         if sample is not None:
             yield topic, topic.to_ros(sample, types)
+
+
+def cdr_encoder(topic: OutputTopic, types: RosbagsTypes) -> Callable[[Any], bytes]:
+    """
+    Return a function turning the topic's sample into its CDR bytes.
+
+    The fixed-layout encoder of :mod:`reduced_dynamics.messages.cdr` when it
+    applies to ``types.typestore``, else the converter plus the typestore's
+    generic serializer (same bytes, about ten times slower).
+    """
+    if cdr.fast_path_applies(types.typestore, topic.msgtype):
+        return cdr.ENCODERS[topic.msgtype]
+    store, to_ros, msgtype = types.typestore, topic.to_ros, topic.msgtype
+    return lambda sample: bytes(store.serialize_cdr(to_ros(sample, types), msgtype))

@@ -306,6 +306,49 @@ def test_time_order_when_written_out_of_order(tmp_path: Path) -> None:
     assert got == [(s, s) for s in sorted(stamps)]
 
 
+def test_fast_mcap_path_writes_the_same_bytes_as_rosbags(tmp_path: Path, monkeypatch) -> None:
+    # BagWriter appends MCAP records itself (rosbags internals); the files must not differ
+    # from rosbags' own path: out of order stamps, several chunks, every topic.
+    import reduced_dynamics.bag.writer as writer_module
+    rng = np.random.default_rng(5)
+    topics = {f'/t{i}': 'std_msgs/msg/String' for i in range(4)}
+    items = [(f'/t{int(rng.integers(0, 4))}', T0 + int(rng.integers(0, 10**9)),
+              b'\x00\x01\x00\x00' + rng.bytes(int(rng.integers(0, 3000))))
+             for _ in range(1500)]
+
+    def write(path: Path) -> BagWriter:
+        with BagWriter(path, topics) as bag:
+            for topic, stamp, data in items:
+                bag.write_raw(topic, stamp, data)
+        return bag
+
+    fast = write(tmp_path / 'fast' / 'bag')
+    assert fast.message_counts == {t: sum(i[0] == t for i in items) for t in topics}
+    monkeypatch.setattr(writer_module._McapAppender, 'attach', classmethod(lambda c, w: None))
+    write(tmp_path / 'slow' / 'bag')
+    for name in ('bag.mcap', 'metadata.yaml'):
+        assert (tmp_path / 'fast' / 'bag' / name).read_bytes() == \
+            (tmp_path / 'slow' / 'bag' / name).read_bytes(), name
+    assert (tmp_path / 'fast' / 'bag' / 'bag.mcap').stat().st_size > 2 * 2**20  # chunks
+
+
+def test_fast_mcap_path_only_for_the_layout_it_knows(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+    import reduced_dynamics.bag.writer as writer_module
+    with BagWriter(tmp_path / 'mcap', {'/a': 'std_msgs/msg/String'}) as bag:
+        assert bag._appender is not None
+        rosbags_writer = bag._writer
+        assert writer_module._McapAppender.attach(rosbags_writer) is not None
+        other = SimpleNamespace(**vars(rosbags_writer))  # e.g. another rosbags version
+        other.storage = SimpleNamespace(chunk=rosbags_writer.storage.chunk)
+        assert writer_module._McapAppender.attach(other) is None
+    with BagWriter(tmp_path / 'db', {'/a': 'std_msgs/msg/String'}, storage='sqlite3') as bag:
+        assert bag._appender is None
+        bag.write('/a', T0, string_to_ros('x', RosbagsTypes()))
+    with open_bag(tmp_path / 'db') as bag:
+        assert [string_from_ros(m.msg) for m in bag.messages(['/a'])] == ['x']
+
+
 # ============================================================================================
 # independent verification of the written files
 # ============================================================================================

@@ -197,3 +197,67 @@ def test_output_is_not_overwritten(tmp_path, capsys):
     assert main(['replay', os.path.join(DATA, 'paper_constant'), '-o', str(out),
                  '--quiet']) == 2
     assert (out / 'keep.txt').read_text() == 'precious'
+
+
+def _raw_outputs(path):
+    names = [resolved_name(t) for t in active_topics(False)]
+    with open_bag(path) as reader:
+        return [(m.topic, m.timestamp_ns, bytes(m.data)) for m in reader.raw_messages(names)]
+
+
+def test_fixed_layout_codecs_change_no_output_byte(tmp_path, monkeypatch):
+    # Same bag, prediction and diagnostics on: fast codecs against rosbags' generic
+    # (de)serialization through the *_to_ros / *_from_ros converters.
+    from reduced_dynamics.messages import cdr
+    params = {**_params(), 'prediction_rate': 2.0, 'prediction_horizon': 0.4}
+    bag = os.path.join(DATA, 'paper_constant')
+    fast = replay(bag, str(tmp_path / 'fast'), load_robot(), ReplayOptions(params=params))
+    monkeypatch.setattr(cdr, 'fast_path_applies', lambda store, msgtype: False)
+    slow = replay(bag, str(tmp_path / 'slow'), load_robot(), ReplayOptions(params=params))
+    assert fast['messages_out'] == slow['messages_out']
+    assert set(fast['messages_out']) == {resolved_name(t) for t in active_topics(False)}
+    assert _raw_outputs(tmp_path / 'fast') == _raw_outputs(tmp_path / 'slow')
+
+
+def test_bad_input_messages_are_counted_and_change_no_output(tmp_path):
+    from rosbags.typesys import get_typestore, Stores
+    from reduced_dynamics.bag.writer import BagWriter
+    store = get_typestore(Stores.ROS2_JAZZY)
+    clean = os.path.join(DATA, 'paper_constant')
+    with open_bag(clean) as reader:
+        topics = {t: m for t, m in reader.topics().items() if t in ('/joint_states', '/odom')}
+        items = [(m.topic, m.msgtype, m.timestamp_ns, bytes(m.data))
+                 for m in reader.raw_messages(list(topics))]
+    joint = next(i for i in items if i[0] == '/joint_states')
+    odom = next(i for i in items if i[0] == '/odom')
+    bad_sizes = store.deserialize_cdr(joint[3], joint[1])
+    bad_sizes.position = bad_sizes.position[:1]
+    negative = bytearray(odom[3])
+    negative[4:8] = (-5).to_bytes(4, 'little', signed=True)
+    junk = [('/joint_states', joint[3][:20]),  # undecodable
+            ('/odom', odom[3][:50]),  # undecodable
+            ('/joint_states', bytes(store.serialize_cdr(bad_sizes, joint[1]))),  # malformed
+            ('/odom', bytes(negative))]  # malformed: negative stamp
+    damaged = tmp_path / 'damaged'
+    with BagWriter(damaged, topics) as writer:
+        for index, (topic, msgtype, stamp, data) in enumerate(items):
+            if index == 40:  # valid big-endian CDR: the generic decoder takes it
+                data = bytes(store.serialize_cdr(store.deserialize_cdr(data, msgtype), msgtype,
+                                                 little_endian=False))
+            writer.write_raw(topic, stamp, data)
+            if index % 97 == 5 and junk:
+                bad_topic, bad = junk.pop()
+                writer.write_raw(bad_topic, stamp, bad)
+    assert not junk
+    good = replay(clean, str(tmp_path / 'good'), load_robot())
+    summary = replay(str(damaged), str(tmp_path / 'out'), load_robot())
+    assert summary['undecodable_skipped'] == {
+        'deserialization failed: /joint_states (sensor_msgs/msg/JointState)': 1,
+        'deserialization failed: /odom (nav_msgs/msg/Odometry)': 1}
+    assert summary['rejected'] == {'malformed': 2}
+    assert {t: n - good['messages_in'][t] for t, n in summary['messages_in'].items()} == \
+        {'/joint_states': 1, '/odom': 1}
+    # Diagnostics count the rejections; every estimate is the same.
+    assert summary['messages_out'] == good['messages_out']
+    estimates = [m for m in _raw_outputs(tmp_path / 'out') if m[0] != '/diagnostics']
+    assert estimates == [m for m in _raw_outputs(tmp_path / 'good') if m[0] != '/diagnostics']

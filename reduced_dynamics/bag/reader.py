@@ -339,6 +339,43 @@ class BagReader:
                 lambda data, _store=store, _type=msgtype: _store.deserialize_cdr(data, _type))
         return out
 
+    def connection_types(self, topics: Iterable[str]) -> list[tuple[str, str]]:
+        """Return the distinct ``(topic, msgtype)`` pairs of ``topics`` in the bag."""
+        wanted = {topics} if isinstance(topics, str) else set(topics)
+        pairs = {(c.topic, c.msgtype): None for c in self._connections if c.topic in wanted}
+        return list(pairs)
+
+    def _connection(self, topic: str, msgtype: str) -> Connection:
+        """Return the first connection of ``topic`` with ``msgtype`` (BagError if none)."""
+        for conn in self._connections:
+            if conn.topic == topic and conn.msgtype == msgtype:
+                return conn
+        raise BagError(f'bag {self.path} has no topic {topic!r} of type {msgtype!r}')
+
+    def typestore_for(self, topic: str, msgtype: str) -> Any:
+        """Return the typestore that deserializes ``msgtype`` on ``topic`` (see messages())."""
+        return self._store_for(self._connection(topic, msgtype))
+
+    def deserializer(self, topic: str, msgtype: str) -> Callable[[bytes], Optional[Any]]:
+        """
+        Return a function deserializing raw messages of ``topic`` / ``msgtype``.
+
+        For callers that decode :meth:`raw_messages` themselves (e.g. with a
+        faster decoder first): the function returns None for data that does
+        not deserialize and counts it in :attr:`skipped`, as :meth:`messages`
+        does. Type resolution errors raise BagError here, not later.
+        """
+        conn = self._connection(topic, msgtype)
+        deserialize = self._deserializers([conn])[(topic, msgtype)]
+
+        def run(data: bytes) -> Optional[Any]:
+            try:
+                return deserialize(data)
+            except Exception as exc:  # SerdeError, struct.error, ...
+                self._skip(conn, exc)
+                return None
+        return run
+
     def _skip(self, conn: Connection, exc: Exception) -> None:
         """Count a skipped message."""
         reason = f'deserialization failed: {conn.topic} ({conn.msgtype})'
