@@ -32,10 +32,11 @@ For mu = 0 (k = 0, U = 0) the shape follows geodesics of S plus tau
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Union
+from typing import Callable, Optional, Union
 
 import numpy as np
 import pinocchio as pin
+from scipy.linalg.lapack import dgesv, dposv
 
 from reduced_dynamics.geometry.chart import CosetChart
 from reduced_dynamics.geometry.isotropy import isotropy_algebra, IsotropyAlgebra, RANK_RTOL
@@ -80,6 +81,8 @@ class ReducedSystem:
         self.chart = CosetChart(self.group, self.isotropy.complement, pin.SE3(g_ref))
         self.k = self.isotropy.orbit_dim
         self.m = robot.m
+        self._fast = _FastConstants(self.group, self.mu, self.isotropy.complement, self.m)
+        self._fast_chart: Optional[CosetChart] = None
 
     @classmethod
     def from_full_state(cls, robot: RobotModel, state: FreeFloatingState,
@@ -144,6 +147,108 @@ class ReducedSystem:
         return ReducedEvaluation(np.concatenate([q1_dot, qbar_dot, pbar_dot]), terms.xi, pi,
                                  terms.energy, gradient, structure, terms)
 
+    def vector_field(self, z: np.ndarray, tau: Torque) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Return (z_dot, xi): the vector field of :meth:`evaluate`, by a cheaper route.
+
+        Same equations (Theorem 54), with the magnetic terms contracted before
+        they are formed, so no derivative tensor and no U matrix is built. With
+        ``v = [xi; qbar_dot]``, Pinocchio's Coriolis matrix C(q, v) gives
+        ``M_dot = C + C^T`` and ``dT/dqbar|_v = (C^T v)_qbar``. Then, using
+        ``pi_dot = ad_xi^T pi = W^T xi`` (5.27 conserved mu; W the Kirillov form):
+
+        * ``L^T W^T L q~1_dot = L^T pi_dot``: the second equation of Thm 54, since
+          ``U[q~1, q~1] = L^T W L``, ``U[qbar, q~1] = A^T W L`` and
+          ``dH~/dq~1 = -(W L)^T I^-1 pi`` combine to ``(W L)^T xi`` on the right;
+        * ``pbar_dot = dT/dqbar|_v - [-A; 1]^T M_dot [I^-1 pi; 0] - A^T pi_dot
+          - dV/dqbar + tau``: the third equation, written as the bundle form of
+          REDUCED_MODEL.md 7 (``-dH~/dqbar|_pi + C_A qbar_dot = dT/dqbar|_v -
+          (d/dt A)^T pi``, Legendre transform with pbar = p - A^T pi).
+
+        ``tau`` is an array or a function tau(qbar, qbar_dot). The tests check
+        this against :meth:`evaluate` on every momentum class and base group.
+        """
+        k, m = self.k, self.m
+        fast = self._fast
+        n = fast.n
+        q1, qbar, pbar = z[:k], z[k:k + m], z[k + m:]
+        chart_lift, pi, mass, u, connection, qbar_dot = self._momenta(q1, qbar, pbar)
+        v = fast.velocity
+        v[:n] = u - connection @ qbar_dot
+        v[n:] = qbar_dot
+        xi = v[:n].copy()
+        coriolis = self.robot.coriolis_matrix(qbar, v)
+        # M_dot [u; 0] = (C + C^T) [u; 0].
+        mdot_u = coriolis[:, :n] @ u + coriolis[:n].T @ u
+        kirillov_t = (pi @ fast.kirillov_map).reshape(n, n).T
+        pi_dot = kirillov_t @ xi
+        if callable(tau):
+            tau = tau(qbar, qbar_dot)
+        z_dot = np.empty(k + 2 * m)
+        pbar_dot = z_dot[k + m:]
+        np.matmul(v, coriolis[:, n:], out=pbar_dot)
+        pbar_dot -= mdot_u[n:]
+        pbar_dot += connection.T @ (mdot_u[:n] - pi_dot)
+        pbar_dot += tau
+        if self.robot.has_potential:
+            pbar_dot -= self.robot.potential_gradient(qbar)
+        z_dot[k:k + m] = qbar_dot
+        if k:
+            jac = chart_lift @ pin.Jexp6(fast.chart_twist @ q1) @ fast.chart_twist
+            jac_t = jac.T
+            _, _, q1_dot, info = dgesv(jac_t @ (kirillov_t @ jac), jac_t @ pi_dot)
+            if info:
+                raise np.linalg.LinAlgError('orbit form L^T W L is singular')
+            z_dot[:k] = q1_dot
+        return z_dot, xi
+
+    def kinematics(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """
+        Return (pi, xi, qbar_dot, H~) at z: what an observer records, without derivatives.
+
+        ``pi = Ad_chi^T mu``, ``qbar_dot = S^-1 pbar``, ``xi = I^-1 pi - A qbar_dot``
+        (REDUCED_MODEL.md 4) and H~ (5.36).
+        """
+        k, m = self.k, self.m
+        q1, qbar, pbar = z[:k], z[k:k + m], z[k + m:]
+        _, pi, _, u, connection, qbar_dot = self._momenta(q1, qbar, pbar)
+        energy = 0.5 * float(pi @ u) + 0.5 * float(pbar @ qbar_dot) \
+            + self.robot.potential_energy(qbar)
+        return pi, u - connection @ qbar_dot, qbar_dot, energy
+
+    def _momenta(self, q1: np.ndarray, qbar: np.ndarray, pbar: np.ndarray) -> tuple:
+        """Return (chart lift, pi, M upper, I^-1 pi, A, qbar_dot) at one z."""
+        fast = self._fast
+        n = fast.n
+        chart_lift, chi = self._chart_point(q1)
+        pi = fast.body_momentum(chi)
+        mass = self.robot.mass_matrix_upper(qbar)
+        # One Cholesky of I for I^-1 pi and A = I^-1 B (5.29); dposv reads the upper triangle.
+        rhs = fast.locked_rhs
+        rhs[:, 0] = pi
+        rhs[:, 1:] = mass[:n, n:]
+        _, solution, info = dposv(mass[:n, :n], rhs)
+        if info:
+            raise np.linalg.LinAlgError('locked inertia I is not positive definite')
+        connection = solution[:, 1:]
+        if not self.m:
+            return chart_lift, pi, mass, solution[:, 0], connection, np.zeros(0)
+        _, qbar_dot, info = dposv(mass[n:, n:] - mass[:n, n:].T @ connection, pbar)
+        if info:
+            raise np.linalg.LinAlgError('reduced metric S is not positive definite')
+        return chart_lift, pi, mass, solution[:, 0], connection, qbar_dot
+
+    def _chart_point(self, q1: np.ndarray) -> tuple[np.ndarray, pin.SE3]:
+        """Return (Ad(g_ref^-1) restricted, chi(q~1)), caching what depends on the chart only."""
+        fast = self._fast
+        if self._fast_chart is not self.chart:
+            self._fast_chart = self.chart
+            fast.g_ref = pin.SE3(self.chart.g_ref)
+            fast.chart_lift = fast.pinv @ fast.g_ref.inverse().action
+        if not self.k:
+            return fast.chart_lift, fast.g_ref
+        return fast.chart_lift, pin.exp6(fast.chart_twist @ q1) * fast.g_ref
+
     def recentre(self, z: np.ndarray) -> np.ndarray:
         """Move the chart centre to chi(q~1); returns z with q~1 = 0."""
         q1, _, _ = self.split(z)
@@ -157,6 +262,34 @@ class ReducedSystem:
         q1, qbar, pbar = self.split(z)
         terms = shape_terms(self.robot, self.body_momentum(q1), qbar, pbar)
         return FreeFloatingState(pin.SE3(g), terms.xi, qbar.copy(), terms.qbar_dot)
+
+
+class _FastConstants:
+    """Work buffers and group constants of :meth:`ReducedSystem.vector_field`."""
+
+    def __init__(self, group, mu: np.ndarray, complement: np.ndarray, m: int) -> None:
+        basis = group.algebra_basis
+        n = group.dim
+        self.n = n
+        self.basis = basis
+        self.full = n == 6 and bool(np.array_equal(basis, np.eye(6)))
+        self.pinv = np.linalg.pinv(basis)
+        # pi = Ad_chi^T mu = S^T Ad6_chi^T (S+)^T mu: the lift of mu is fixed.
+        self.mu6 = self.pinv.T @ mu
+        # W = (pi @ kirillov_map).reshape(n, n) with W[a, b] = <pi, [e_a, e_b]>.
+        self.kirillov_map = np.ascontiguousarray(
+            group.structure_constants.transpose(1, 0, 2).reshape(n, n * n))
+        # Chart twist S C q~1 (a subalgebra element: Jexp6 keeps it in span(S)).
+        self.chart_twist = basis @ complement
+        self.locked_rhs = np.empty((n, 1 + m), order='F')
+        self.velocity = np.empty(n + m)
+        self.g_ref = pin.SE3.Identity()
+        self.chart_lift = np.eye(n)
+
+    def body_momentum(self, chi: pin.SE3) -> np.ndarray:
+        """Return pi = Ad_chi^T mu in the group's coordinates."""
+        wrench = chi.action.T @ self.mu6
+        return wrench if self.full else self.basis.T @ wrench
 
 
 def bundle_vector_field(robot: RobotModel, pi: np.ndarray, qbar: np.ndarray,

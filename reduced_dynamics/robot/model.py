@@ -170,6 +170,26 @@ class RobotModel:
         mass[lower] = mass.T[lower]
         return mass
 
+    def mass_matrix_upper(self, qbar: np.ndarray) -> np.ndarray:
+        """
+        M(qbar) = crba(e, qbar) with only its upper triangle guaranteed (Lemma 52).
+
+        For LAPACK routines that read one triangle (``dposv``): mirroring costs
+        as much as the call, and Pinocchio versions differ in what they put below.
+        """
+        return pin.crba(self.model, self.data, self.identity_configuration(qbar))
+
+    def coriolis_matrix(self, qbar: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """
+        Pinocchio's Coriolis matrix C(q, v) at the base identity, velocity v = [xi; qbar_dot].
+
+        It satisfies ``M_dot = C + C^T`` (M_dot the derivative of M(qbar) along
+        qbar_dot) and ``dT/dqbar = (C^T v)[n:]`` at fixed v (REDUCED_MODEL.md 8;
+        checked against finite differences in the tests).
+        """
+        return pin.computeCoriolisMatrix(self._kinetic_model, self._kinetic_data,
+                                         self.identity_configuration(qbar), v)
+
     def metric_blocks(self, qbar: np.ndarray) -> MetricBlocks:
         """Blocks I, B, Mr of M(qbar), the connection A (5.29) and reduced metric S."""
         mass = self.mass_matrix(qbar)
