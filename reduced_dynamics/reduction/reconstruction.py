@@ -51,7 +51,6 @@ class ReducedPropagator:
         self.torque = torque or zero_torque(system.m)
         self.g_seg = pin.SE3(g0)
         self.nz = system.k + 2 * system.m
-        self._full_group = self.group.dim == 6
 
     @classmethod
     def from_full_state(cls, robot, state: FreeFloatingState,
@@ -71,17 +70,11 @@ class ReducedPropagator:
     def rhs(self, t: float, y: np.ndarray) -> np.ndarray:
         """dy/dt: Theorem 54 (:meth:`ReducedSystem.vector_field`) and g_dot = g xi."""
         nz = self.nz
-        z_dot, xi = self.system.vector_field(y[:nz], self._torque_at(t))
         out = np.empty(y.shape)
-        out[:nz] = z_dot
-        out[nz:] = self._base_chart_rate(y[nz:], xi)
+        _, xi = self.system.vector_field(y[:nz], self._torque_at(t), out)
+        # g = g_seg exp(eta): eta_dot = Jr(eta)^-1 xi.
+        np.matmul(self.group.right_jacobian_inverse(y[nz:]), xi, out=out[nz:])
         return out
-
-    def _base_chart_rate(self, eta: np.ndarray, xi: np.ndarray) -> np.ndarray:
-        """eta_dot = Jr(eta)^-1 xi for g = g_seg exp(eta) (Jlog6 at exp(eta))."""
-        if self._full_group:
-            return pin.Jlog6(pin.exp6(eta)) @ xi
-        return self.group.right_jacobian_inverse(eta) @ xi
 
     def chart_size(self, y: np.ndarray) -> float:
         """Largest of the orbit-chart and base-chart coordinate norms."""

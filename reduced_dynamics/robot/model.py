@@ -65,6 +65,24 @@ class MetricBlocks:
         return self.locked_inverse @ covector
 
 
+@dataclass
+class KineticWorkspace:
+    """
+    Pinocchio handles for hot loops: M and C at the base identity without wrappers.
+
+    ``q`` is a private configuration buffer (base at identity; write the shape
+    into ``q[nq_base:]``); ``kinetic_model`` has zero gravity (Coriolis terms).
+    The Data objects are the robot's own (one thread at a time, as everywhere).
+    """
+
+    model: pin.Model
+    data: pin.Data
+    kinetic_model: pin.Model
+    kinetic_data: pin.Data
+    q: np.ndarray
+    nq_base: int
+
+
 class RobotModel:
     """A free-floating open-chain robot with base group G = Q1 and shape Q2 x ... x QN."""
 
@@ -178,6 +196,11 @@ class RobotModel:
         as much as the call, and Pinocchio versions differ in what they put below.
         """
         return pin.crba(self.model, self.data, self.identity_configuration(qbar))
+
+    def kinetic_workspace(self) -> KineticWorkspace:
+        """Return handles for :meth:`mass_matrix_upper` / :meth:`coriolis_matrix` in a loop."""
+        return KineticWorkspace(self.model, self.data, self._kinetic_model, self._kinetic_data,
+                                pin.neutral(self.model), self.nq_base)
 
     def coriolis_matrix(self, qbar: np.ndarray, v: np.ndarray) -> np.ndarray:
         """
