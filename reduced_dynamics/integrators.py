@@ -209,12 +209,18 @@ class Dop853:
 
     @staticmethod
     def _dense_value(coeffs: np.ndarray, y: np.ndarray, x: float) -> np.ndarray:
-        """Evaluate the dense output at x = (t - t_old) / h in [0, 1]."""
-        value = np.zeros_like(y)
-        for i, row in enumerate(coeffs[::-1]):
-            value += row
-            value *= x if i % 2 == 0 else 1.0 - x
-        return value + y
+        """
+        Evaluate the dense output at x = (t - t_old) / h in [0, 1].
+
+        ``y + x (F0 + x'(F1 + x (F2 + x'(F3 + x (F4 + x'(F5 + x F6))))))`` with
+        x' = 1 - x (Hairer's CONTD8), expanded into seven scalar weights: one
+        product with F instead of fourteen vector operations.
+        """
+        x1 = 1.0 - x
+        xx1 = x * x1
+        weights = np.array([x, xx1, x * xx1, xx1 * xx1, x * xx1 * xx1, xx1 ** 3,
+                            x * xx1 ** 3])
+        return y + weights @ coeffs
 
     def integrate(self, system: 'ChartedSystem', y0: np.ndarray, times: np.ndarray,
                   max_chart: float) -> np.ndarray:
