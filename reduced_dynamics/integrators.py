@@ -137,8 +137,13 @@ class Dop853:
 
     def __init__(self, rtol: float, atol: float, max_step: float = np.inf,
                  max_evaluations: int = 1_000_000) -> None:
-        """Set tolerances (scale ``atol + rtol |y|``), step bound and evaluation budget."""
-        self.rtol = rtol
+        """
+        Set tolerances (scale ``atol + rtol |y|``), step bound and evaluation budget.
+
+        ``rtol`` is raised to 100 machine epsilons, as scipy does: below that the
+        error estimate is round-off.
+        """
+        self.rtol = max(rtol, 100.0 * np.finfo(float).eps)
         self.atol = atol
         self.max_step = max_step
         self.max_evaluations = max_evaluations
