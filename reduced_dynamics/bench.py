@@ -299,12 +299,18 @@ def bench_prediction(report: Report, robot, settings: Settings) -> None:
     def error_of(qbar: np.ndarray) -> float:
         return float(np.max(np.abs(qbar - reference)))
 
-    def full_run(rtol: float) -> Callable[[], Any]:
-        return lambda: FullDynamics(robot, torque).simulate(state, times, rtol, rtol)
+    def full_run(rtol: float, counter: Optional[list] = None) -> Callable[[], Any]:
+        def run():
+            model = FullDynamics(robot, torque)
+            _count_evaluations(model, counter)
+            return model.simulate(state, times, rtol, rtol)
+        return run
 
-    def reduced_run(integrator: str, tol: float) -> Callable[[], Any]:
+    def reduced_run(integrator: str, tol: float,
+                    counter: Optional[list] = None) -> Callable[[], Any]:
         def run():
             propagator, y0 = ReducedPropagator.from_full_state(robot, state, torque)
+            _count_evaluations(propagator, counter)
             return propagator.propagate(y0, times, integrator, tol, tol, tol)
         return run
 
@@ -315,10 +321,25 @@ def bench_prediction(report: Report, robot, settings: Settings) -> None:
              for rtol in settings.reduced_rtols]
     runs += [('reduced discrete_gradient', step, reduced_run('discrete_gradient', step))
              for step in settings.dg_steps]
-    for method, tol, run in runs:
-        trajectory, seconds = _timed(run, settings.repeats)
+    # Repeats go round-robin over all runs, so a change of machine load during the
+    # section hits the reduced and the full runs alike (ratios stay comparable).
+    seconds = [[] for _ in runs]
+    trajectories = [None] * len(runs)
+    for _ in range(settings.repeats):
+        for index, (_, _, run) in enumerate(runs):
+            trajectories[index], timing = _timed(run, 1)
+            seconds[index] += timing
+    for (method, tol, _), trajectory, timing in zip(runs, trajectories, seconds):
         sweep[method].append({'tolerance': tol, 'error': error_of(trajectory.qbar),
-                              'seconds': seconds})
+                              'seconds': timing})
+    # Right-hand-side evaluations per prediction, counted in one extra untimed run.
+    for method, tol in [(m, row['tolerance']) for m in sweep for row in sweep[m]]:
+        if method.endswith('gradient'):
+            continue
+        counter = [0]
+        (full_run(tol, counter) if method.startswith('full')
+         else reduced_run('dop853', tol, counter))()
+        next(r for r in sweep[method] if r['tolerance'] == tol)['evaluations'] = counter[0]
     report.details['prediction_sweep'] = sweep
     full = sweep['full dop853']
     full_errors = [row['error'] for row in full]
@@ -336,6 +357,8 @@ def bench_prediction(report: Report, robot, settings: Settings) -> None:
             ratios = [s / b for s, b in zip(row['seconds'], baseline)]
             is_default = method.endswith('dop853') and row['tolerance'] == 1e-10
             note = f'error {row["error"]:.1e} rad'
+            if 'evaluations' in row:
+                note += f', {row["evaluations"]} evaluations'
             if not inside:
                 note += ' (outside the full sweep: nearest end)'
             report.add(make_figure(
@@ -353,7 +376,20 @@ def bench_prediction(report: Report, robot, settings: Settings) -> None:
     for row in full:
         report.add(make_figure('prediction', f'full aba dop853 rtol {row["tolerance"]:g}', 'ms',
                                [1e3 * s for s in row['seconds']],
-                               note=f'error {row["error"]:.1e} rad (baseline sweep)'))
+                               note=f'error {row["error"]:.1e} rad, {row["evaluations"]} '
+                                    'evaluations (baseline sweep)'))
+
+
+def _count_evaluations(system: Any, counter: Optional[list]) -> None:
+    """Count ``system.rhs`` calls in ``counter[0]`` (not in timed runs: it costs a call)."""
+    if counter is None:
+        return
+    rhs = system.rhs
+
+    def counted(t: float, y: np.ndarray) -> np.ndarray:
+        counter[0] += 1
+        return rhs(t, y)
+    system.rhs = counted
 
 
 # --------------------------------------------------------------------------- 3. replay

@@ -30,7 +30,7 @@ import pinocchio as pin
 
 from reduced_dynamics.integrators import integrate_adaptive
 from reduced_dynamics.robot.model import RobotModel
-from reduced_dynamics.robot.momentum import body_momentum, momentum_map
+from reduced_dynamics.robot.momentum import momentum_map
 from reduced_dynamics.robot.state import FreeFloatingState, TorqueLaw, zero_torque
 
 #: A base-frame wrench w(t) = (force, torque) on the base body, 6-vector.
@@ -52,6 +52,9 @@ class FullDynamics:
         n, m = robot.n, robot.m
         self._slices = (slice(0, n), slice(n, n + m), slice(n + m, 2 * n + m),
                         slice(2 * n + m, 2 * n + 2 * m))
+        # Joint torques with the unactuated base rows kept at zero (aba's tau).
+        self._tau = np.zeros(n + m)
+        self._q = np.empty(robot.model.nq)
 
     def pose(self, y: np.ndarray) -> pin.SE3:
         """Return base pose g of state y."""
@@ -70,10 +73,15 @@ class FullDynamics:
     def acceleration(self, t: float, g: pin.SE3, qbar: np.ndarray, xi: np.ndarray,
                      qbar_dot: np.ndarray) -> np.ndarray:
         """Generalised acceleration [xi_dot; qbar_ddot] from ABA."""
+        return self._aba(t, g, qbar, np.concatenate([xi, qbar_dot]))
+
+    def _aba(self, t: float, g: pin.SE3, qbar: np.ndarray, v: np.ndarray) -> np.ndarray:
         robot = self.robot
-        q = robot.full_configuration(g, qbar)
-        v = np.concatenate([xi, qbar_dot])
-        tau = np.concatenate([np.zeros(robot.n), self.torque(t, qbar, qbar_dot)])
+        q = self._q
+        q[:robot.nq_base] = robot.base_configuration(g)
+        q[robot.nq_base:] = qbar
+        tau = self._tau
+        tau[robot.n:] = self.torque(t, qbar, v[robot.n:])
         if self.base_wrench is None:
             return pin.aba(robot.model, self._data, q, v, tau)
         self._fext[1] = pin.Force(np.asarray(self.base_wrench(t), dtype=float))
@@ -82,11 +90,14 @@ class FullDynamics:
     def rhs(self, t: float, y: np.ndarray) -> np.ndarray:
         """dy/dt."""
         s = self._slices
-        eta, qbar, xi, qbar_dot = y[s[0]], y[s[1]], y[s[2]], y[s[3]]
-        g = self.pose(y)
-        acc = self.acceleration(t, g, qbar, xi, qbar_dot)
-        eta_dot = self.robot.group.right_jacobian_inverse(eta) @ xi
-        return np.concatenate([eta_dot, qbar_dot, acc])
+        eta, qbar, xi = y[s[0]], y[s[1]], y[s[2]]
+        out = np.empty(y.shape)
+        # y = (eta, qbar, xi, qbar_dot): v = (xi, qbar_dot) is one contiguous slice.
+        v = y[s[2].start:]
+        out[s[2].start:] = self._aba(t, self.pose(y), qbar, v)
+        np.matmul(self.robot.group.right_jacobian_inverse(eta), xi, out=out[s[0]])
+        out[s[1]] = v[self.robot.n:]
+        return out
 
     def chart_size(self, y: np.ndarray) -> float:
         """Norm of the base chart coordinates."""
@@ -101,12 +112,12 @@ class FullDynamics:
 
     def observe(self, t: float, y: np.ndarray) -> np.ndarray:
         """[g (4x4 flattened, 16), xi, qbar, qbar_dot, mu]."""
-        state = self.unpack(y)
-        blocks = self.robot.metric_blocks(state.qbar)
-        mu = momentum_map(self.robot.group, state.g,
-                          body_momentum(blocks, state.xi, state.qbar_dot))
-        return np.concatenate([state.g.homogeneous.ravel(), state.xi, state.qbar,
-                               state.qbar_dot, mu])
+        s = self._slices
+        g = self.pose(y)
+        # pi = (M v)_base = I xi + B qbar_dot (5.27) from the base rows of M alone.
+        pi = self.robot.mass_matrix(y[s[1]])[:self.robot.n] @ y[s[2].start:]
+        return np.concatenate([g.homogeneous.ravel(), y[s[2]], y[s[1]], y[s[3]],
+                               momentum_map(self.robot.group, g, pi)])
 
     def world_wrench(self, t: float, g: pin.SE3) -> np.ndarray:
         """Return the external wrench in the world frame about the origin (= d mu / dt)."""

@@ -46,6 +46,27 @@ def test_metric_blocks(name):
 
 
 @pytest.mark.parametrize('name', sorted(ROBOTS))
+def test_coriolis_matrix_gives_mass_matrix_rate_and_kinetic_gradient(name):
+    # The free-flyer / planar root uses body velocities: check M_dot = C + C^T and
+    # dT/dqbar = (C^T v)_qbar numerically rather than trust the convention.
+    robot = ROBOTS[name]()
+    rng = np.random.default_rng(4)
+    qbar = rng.uniform(-0.5, 0.5, robot.m)
+    v = rng.standard_normal(robot.n + robot.m)
+    n, eps = robot.n, 1e-6
+    coriolis = robot.coriolis_matrix(qbar, v).copy()
+    m_dot = (robot.mass_matrix(qbar + eps * v[n:]) - robot.mass_matrix(qbar - eps * v[n:])) \
+        / (2 * eps)
+    assert np.abs(m_dot - coriolis - coriolis.T).max() <= 1e-7 * (1 + np.abs(m_dot).max())
+    grad = np.array([(v @ robot.mass_matrix(qbar + eps * e) @ v
+                      - v @ robot.mass_matrix(qbar - eps * e) @ v) / (4 * eps)
+                     for e in np.eye(robot.m)])
+    assert np.abs(grad - (coriolis.T @ v)[n:]).max() <= 1e-7 * (1 + np.abs(grad).max())
+    upper = np.triu(robot.mass_matrix_upper(qbar))
+    assert np.array_equal(upper, np.triu(robot.mass_matrix(qbar)))
+
+
+@pytest.mark.parametrize('name', sorted(ROBOTS))
 def test_left_invariance_lemma_52(name):
     robot = ROBOTS[name]()
     g, _, qbar, _ = _random_state(robot, 1)

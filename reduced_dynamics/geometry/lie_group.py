@@ -48,6 +48,7 @@ class BaseGroup:
     algebra_basis: np.ndarray
     _pinv: np.ndarray = field(init=False, repr=False, compare=False)
     _structure: np.ndarray = field(init=False, repr=False, compare=False)
+    _whole: bool = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         basis = np.asarray(self.algebra_basis, dtype=float)
@@ -64,6 +65,8 @@ class BaseGroup:
             if np.abs(residual).max() > 1e-9:
                 raise ValueError(f'{self.name}: span(S) is not a Lie subalgebra of se(3)')
         object.__setattr__(self, '_structure', structure)
+        # SE(3) itself (S = 1): the hot paths skip the products with S and S+.
+        object.__setattr__(self, '_whole', bool(np.array_equal(basis, np.eye(6))))
 
     @property
     def dim(self) -> int:
@@ -93,6 +96,8 @@ class BaseGroup:
 
     def Ad(self, g: pin.SE3) -> np.ndarray:
         """Adjoint Ad_g restricted to the subalgebra (n x n)."""
+        if self._whole:
+            return g.action
         return self._pinv @ g.action @ self.algebra_basis
 
     def ad(self, eta: np.ndarray) -> np.ndarray:
@@ -103,9 +108,19 @@ class BaseGroup:
         """Skew matrix W[a, b] = <covector, [e_a, e_b]> (the Kirillov form at covector)."""
         return np.einsum('acb,c->ab', self._structure, covector)
 
+    @property
+    def algebra_pinv(self) -> np.ndarray:
+        """S+ (n x 6): algebra coordinates of a twist in span(S) (cached)."""
+        return self._pinv
+
+    @property
+    def is_whole(self) -> bool:
+        """Whether the group is SE(3) itself with the identity basis (S = 1)."""
+        return self._whole
+
     def exp(self, eta: np.ndarray) -> pin.SE3:
         """Group exponential of algebra coordinates."""
-        return pin.exp6(self.twist(eta))
+        return pin.exp6(eta if self._whole else self.twist(eta))
 
     def log(self, g: pin.SE3) -> np.ndarray:
         """Group logarithm in algebra coordinates (g must lie in the subgroup)."""
@@ -113,10 +128,14 @@ class BaseGroup:
 
     def right_jacobian(self, eta: np.ndarray) -> np.ndarray:
         """J with exp(eta + d) = exp(eta) exp(J d) to first order (Pinocchio Jexp6)."""
+        if self._whole:
+            return pin.Jexp6(eta)
         return self._pinv @ pin.Jexp6(self.twist(eta)) @ self.algebra_basis
 
     def right_jacobian_inverse(self, eta: np.ndarray) -> np.ndarray:
         """Inverse of :meth:`right_jacobian` (Pinocchio Jlog6 at exp(eta))."""
+        if self._whole:
+            return pin.Jlog6(pin.exp6(eta))
         return self._pinv @ pin.Jlog6(pin.exp6(self.twist(eta))) @ self.algebra_basis
 
     def contains(self, g: pin.SE3, tol: float = 1e-9) -> bool:

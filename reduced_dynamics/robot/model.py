@@ -65,6 +65,24 @@ class MetricBlocks:
         return self.locked_inverse @ covector
 
 
+@dataclass
+class KineticWorkspace:
+    """
+    Pinocchio handles for hot loops: M and C at the base identity without wrappers.
+
+    ``q`` is a private configuration buffer (base at identity; write the shape
+    into ``q[nq_base:]``); ``kinetic_model`` has zero gravity (Coriolis terms).
+    The Data objects are the robot's own (one thread at a time, as everywhere).
+    """
+
+    model: pin.Model
+    data: pin.Data
+    kinetic_model: pin.Model
+    kinetic_data: pin.Data
+    q: np.ndarray
+    nq_base: int
+
+
 class RobotModel:
     """A free-floating open-chain robot with base group G = Q1 and shape Q2 x ... x QN."""
 
@@ -192,6 +210,31 @@ class RobotModel:
         lower = self._lower
         mass[lower] = mass.T[lower]
         return mass
+
+    def mass_matrix_upper(self, qbar: np.ndarray) -> np.ndarray:
+        """
+        M(qbar) = crba(e, qbar) with only its upper triangle guaranteed (Lemma 52).
+
+        For LAPACK routines that read one triangle (``dposv``): mirroring costs
+        as much as the call, and Pinocchio versions differ in what they put below.
+        """
+        return pin.crba(self.model, self.data, self.identity_configuration(qbar))
+
+    def kinetic_workspace(self) -> KineticWorkspace:
+        """Return handles for :meth:`mass_matrix_upper` / :meth:`coriolis_matrix` in a loop."""
+        return KineticWorkspace(self.model, self.data, self._kinetic_model, self._kinetic_data,
+                                pin.neutral(self.model), self.nq_base)
+
+    def coriolis_matrix(self, qbar: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """
+        Pinocchio's Coriolis matrix C(q, v) at the base identity, velocity v = [xi; qbar_dot].
+
+        It satisfies ``M_dot = C + C^T`` (M_dot the derivative of M(qbar) along
+        qbar_dot) and ``dT/dqbar = (C^T v)[n:]`` at fixed v (REDUCED_MODEL.md 8;
+        checked against finite differences in the tests).
+        """
+        return pin.computeCoriolisMatrix(self._kinetic_model, self._kinetic_data,
+                                         self.identity_configuration(qbar), v)
 
     def metric_blocks(self, qbar: np.ndarray) -> MetricBlocks:
         """Blocks I, B, Mr of M(qbar), the connection A (5.29) and reduced metric S."""
