@@ -170,3 +170,18 @@ def test_replay_with_the_second_stage(tmp_path, capsys):
     args[-1] = 'wheel_x,j3'
     assert main(args) == 2
     assert 'joint j3 cannot be reduced: not cyclic' in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('cls', list(MomentumClass))
+def test_coriolis_vector_field_equals_the_magnetic_form_one(cls):
+    robot = wheel_robot()
+    run = scenario(cls, duration=1.0)
+    system, z = SecondStageSystem.from_full_state(robot, run.state, WHEELS)
+    z = z + 0.01 * np.sin(np.arange(len(z)))  # off the chart centre too
+    tau = np.linspace(-1.0, 1.0, robot.m)
+    reference = system.evaluate(z, tau)
+    z_dot, xi, rates = system.vector_field(z, tau)
+    scale = np.abs(reference.z_dot).max()
+    np.testing.assert_allclose(z_dot, reference.z_dot, atol=1e-11 * scale)
+    np.testing.assert_allclose(xi, reference.xi, atol=1e-12)
+    np.testing.assert_allclose(rates, reference.cyclic_rate, atol=1e-12)

@@ -90,6 +90,7 @@ class CyclicSplit:
         #: rows/columns of M for the locked group G x N, and for the kept joints
         self.locked_rows = np.concatenate([np.arange(n), n + self.cyclic])
         self.kept_rows = n + self.kept
+        self.order = np.concatenate([self.locked_rows, self.kept_rows])
 
     def full_shape(self, qhat: np.ndarray, cyclic: np.ndarray) -> np.ndarray:
         """Return qbar with the kept joints ``qhat`` and the cyclic joints ``cyclic``."""
@@ -114,10 +115,10 @@ class SecondStageBlocks:
 def second_stage_blocks(robot: RobotModel, split: CyclicSplit,
                         qbar: np.ndarray) -> SecondStageBlocks:
     """Return I_e, B_e, M_kk, I_e^-1, A_e = I_e^-1 B_e and K^ at qbar."""
-    mass = robot.mass_matrix(qbar)
-    locked = mass[np.ix_(split.locked_rows, split.locked_rows)]
-    coupling = mass[np.ix_(split.locked_rows, split.kept_rows)]
-    shape = mass[np.ix_(split.kept_rows, split.kept_rows)]
+    order = split.order
+    mass = robot.mass_matrix(qbar)[order][:, order]
+    ne = split.n + split.c
+    locked, coupling, shape = mass[:ne, :ne], mass[:ne, ne:], mass[ne:, ne:]
     inverse = np.linalg.inv(locked)
     connection = inverse @ coupling
     reduced = shape - coupling.T @ connection
@@ -242,16 +243,27 @@ class SecondStageSystem:
         """pi(q~1) = Ad_chi(q~1)^T mu."""
         return self.group.Ad(self.chart.point(q1)).T @ self.mu
 
-    def hamiltonian(self, z: np.ndarray) -> float:
-        """H^ (5.47): amended potential of G x N plus the kept-shape kinetic energy."""
+    def kinematics(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """
+        Return (pi, locked twist [xi; cyclic rates], q^_dot, H^) at z, no derivatives.
+
+        ``[xi; theta_dot] = I_e^-1 pi_e - A_e q^_dot``, ``q^_dot = K^-1 p^`` and H^ (5.47).
+        """
         q1, qhat, phat, theta = self.split(z)
-        pi_e = np.concatenate([self.body_momentum(q1), theta])
+        pi = self.body_momentum(q1)
+        pi_e = np.concatenate([pi, theta])
         split = self.split_indices
         qbar = split.full_shape(qhat, np.zeros(self.c))
         blocks = second_stage_blocks(self.robot, split, qbar)
-        return 0.5 * float(pi_e @ blocks.locked_inverse @ pi_e) \
-            + 0.5 * float(phat @ np.linalg.solve(blocks.reduced_metric, phat)) \
+        u = blocks.locked_inverse @ pi_e
+        qhat_dot = np.linalg.solve(blocks.reduced_metric, phat)
+        energy = 0.5 * float(pi_e @ u) + 0.5 * float(phat @ qhat_dot) \
             + self.robot.potential_energy(qbar)
+        return pi, u - blocks.connection @ qhat_dot, qhat_dot, energy
+
+    def hamiltonian(self, z: np.ndarray) -> float:
+        """H^ (5.47): amended potential of G x N plus the kept-shape kinetic energy."""
+        return self.kinematics(z)[3]
 
     def evaluate(self, z: np.ndarray, tau: Torque,
                  cyclic_angles: Optional[np.ndarray] = None) -> SecondStageEvaluation:
@@ -292,6 +304,59 @@ class SecondStageSystem:
         return SecondStageEvaluation(z_dot, terms.locked_twist[:n], cyclic_rate, pi,
                                      terms.energy, terms)
 
+    def vector_field(self, z: np.ndarray, tau: Torque,
+                     cyclic_angles: Optional[np.ndarray] = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """
+        Return (z_dot, xi, cyclic rates): :meth:`evaluate` by the Coriolis route.
+
+        As for the first stage (``ReducedSystem.vector_field``): with ``u~`` the
+        locked velocity ``I_e^-1 pi_e`` on the locked rows, ``w = [-A_e q^_dot;
+        q^_dot]`` and Pinocchio's C(q, v), ``M_dot = C + C^T`` and
+        ``p_dot = C^T v + tau`` give ``p^_dot = [-A_e; 1]^T (C^T w - C u~) + tau_k
+        - A_w^T tau_w - dV/dq^``; the orbit equation is ``L^T W^T L q~1_dot =
+        L^T W^T xi``. No derivative tensor, no magnetic matrix.
+        """
+        k, mk = self.k, self.mk
+        split = self.split_indices
+        q1, qhat, phat, theta = self.split(z)
+        pi = self.body_momentum(q1)
+        pi_e = np.concatenate([pi, theta])
+        qbar = split.full_shape(qhat, np.zeros(self.c))
+        blocks = second_stage_blocks(self.robot, split, qbar)
+        u = blocks.locked_inverse @ pi_e
+        qhat_dot = np.linalg.solve(blocks.reduced_metric, phat)
+        nv = self.robot.model.nv
+        drift = np.zeros(nv)
+        drift[split.locked_rows] = u
+        w = np.empty(nv)
+        w[split.locked_rows] = -blocks.connection @ qhat_dot
+        w[split.kept_rows] = qhat_dot
+        v = drift + w
+        coriolis = self.robot.coriolis_matrix(qbar, v)
+        h = w @ coriolis - coriolis @ drift
+        n = self.robot.n
+        locked_twist = v[split.locked_rows]
+        xi, cyclic_rate = locked_twist[:n], locked_twist[n:]
+        if callable(tau):
+            angles = np.zeros(self.c) if cyclic_angles is None else cyclic_angles
+            tau = tau(split.full_shape(qhat, angles), split.full_shape(qhat_dot, cyclic_rate))
+        tau = np.asarray(tau, dtype=float)
+        wheel_torque = tau[split.cyclic]
+        phat_dot = h[split.kept_rows] - blocks.connection.T @ h[split.locked_rows] \
+            + tau[split.kept] - blocks.connection[n:].T @ wheel_torque
+        if self.robot.has_potential:
+            phat_dot -= self.robot.potential_gradient(qbar)[split.kept]
+        z_dot = np.empty(self.nz)
+        z_dot[k:k + mk] = qhat_dot
+        z_dot[k + mk:k + 2 * mk] = phat_dot
+        z_dot[k + 2 * mk:] = wheel_torque
+        if k:
+            jac = self.chart.body_jacobian(q1)
+            kirillov_t = jac.T @ self.group.coadjoint_form(pi).T
+            z_dot[:k] = np.linalg.solve(kirillov_t @ jac, kirillov_t @ xi)
+        return z_dot, xi, cyclic_rate
+
     def recentre(self, z: np.ndarray) -> np.ndarray:
         """Move the chart centre to chi(q~1); returns z with q~1 = 0."""
         self.chart = self.chart.recentred(z[:self.k])
@@ -302,14 +367,12 @@ class SecondStageSystem:
     def full_state(self, z: np.ndarray, g: pin.SE3,
                    cyclic_angles: np.ndarray) -> FreeFloatingState:
         """Return the full state at z with base pose g and cyclic angles (reconstructed)."""
-        q1, qhat, phat, theta = self.split(z)
-        pi_e = np.concatenate([self.body_momentum(q1), theta])
-        terms = second_stage_terms(self.robot, self.split_indices, pi_e, qhat, phat)
+        _, twist, qhat_dot, _ = self.kinematics(z)
         split = self.split_indices
         n = self.robot.n
-        return FreeFloatingState(pin.SE3(g), terms.locked_twist[:n].copy(),
-                                 split.full_shape(qhat, cyclic_angles),
-                                 split.full_shape(terms.qhat_dot, terms.locked_twist[n:]))
+        return FreeFloatingState(pin.SE3(g), twist[:n].copy(),
+                                 split.full_shape(self.split(z)[1], cyclic_angles),
+                                 split.full_shape(qhat_dot, twist[n:]))
 
 
 class SecondStagePropagator:
@@ -347,10 +410,10 @@ class SecondStagePropagator:
     def rhs(self, t: float, y: np.ndarray) -> np.ndarray:
         """dy/dt: Theorem 57, cyclic angle rates and g_dot = g xi."""
         angles = y[self.nz:self.nz + self.c]
-        evaluation = self.system.evaluate(
+        z_dot, xi, cyclic_rate = self.system.vector_field(
             y[:self.nz], lambda qbar, qbar_dot: self.torque(t, qbar, qbar_dot), angles)
-        eta_dot = self.group.right_jacobian_inverse(y[self.nz + self.c:]) @ evaluation.xi
-        return np.concatenate([evaluation.z_dot, evaluation.cyclic_rate, eta_dot])
+        eta_dot = self.group.right_jacobian_inverse(y[self.nz + self.c:]) @ xi
+        return np.concatenate([z_dot, cyclic_rate, eta_dot])
 
     def chart_size(self, y: np.ndarray) -> float:
         """Largest of the orbit-chart and base-chart coordinate norms."""
@@ -368,10 +431,13 @@ class SecondStagePropagator:
     def observe(self, t: float, y: np.ndarray) -> np.ndarray:
         """[g (16), pi(q~1), qbar, qbar_dot, theta, H^]: qbar with reconstructed angles."""
         z = y[:self.nz]
-        state = self.system.full_state(z, self.pose(y), y[self.nz:self.nz + self.c])
-        evaluation = self.system.evaluate(z, np.zeros(self.system.robot.m))
-        return np.concatenate([state.g.homogeneous.ravel(), evaluation.pi, state.qbar,
-                               state.qbar_dot, self.system.split(z)[3], [evaluation.energy]])
+        system, split = self.system, self.system.split_indices
+        pi, twist, qhat_dot, energy = system.kinematics(z)
+        n = system.robot.n
+        qbar = split.full_shape(system.split(z)[1], y[self.nz:self.nz + self.c])
+        qbar_dot = split.full_shape(qhat_dot, twist[n:])
+        return np.concatenate([self.pose(y).homogeneous.ravel(), pi, qbar, qbar_dot,
+                               system.split(z)[3], [energy]])
 
     def propagate(self, y0: np.ndarray, times: Sequence[float], rtol: float = 1e-11,
                   atol: float = 1e-12) -> 'SecondStageTrajectory':
