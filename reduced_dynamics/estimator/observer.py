@@ -144,6 +144,8 @@ class MomentumObserver:
         differently depending on the chunk length.
         """
         count, n = mus.shape
+        if count == 1:
+            return self._filter_one(int(stamps_ns[0]), mus)
         previous = np.empty_like(stamps_ns)
         previous[1:] = stamps_ns[:-1]
         # Without a predecessor the first "previous" is the sample itself: invalid.
@@ -168,57 +170,75 @@ class MomentumObserver:
             columns.append(out)
         return np.array(columns).T.copy()
 
+    def _filter_one(self, stamp: int, mus: np.ndarray) -> np.ndarray:
+        """Do :meth:`_filter` for one sample: the same operations, fewer numpy calls."""
+        rate = [0.0] * mus.shape[1] if self.rate is None else self.rate.tolist()
+        if self._last_mu is not None and stamp > self._last_ns:
+            dt = (stamp - self._last_ns) * 1e-9
+            decay = math.exp(-self.bandwidth * dt)
+            terms = ((1.0 - decay) * (mus[0] - self._last_mu) / dt).tolist()
+            rate = [decay * r + t for r, t in zip(rate, terms)]
+        else:
+            # No usable predecessor: d = 1 and a zero input, exactly as the chunked
+            # form computes them (down to the sign of a zero).
+            last_mu = mus[0] if self._last_mu is None else self._last_mu
+            terms = ((0.0 * (mus[0] - last_mu)) / 1.0).tolist()
+            rate = [1.0 * r + t for r, t in zip(rate, terms)]
+        return np.array([rate])
+
     def _detect_many(self, stamps: list, mus: np.ndarray, rates: np.ndarray, sizes: list,
                      after: Optional[Callable[[int], None]]) -> None:
         """Start and end events sample by sample; quiet samples join the level."""
         threshold, half, hold = self.threshold, 0.5 * self.threshold, self.hold
         events = self.events
-        in_event = self.in_event
-        # Quiet rows k are not summed here: they extend the run [start, stop) of
-        # this chunk, which _fold adds to the level sum when the level is needed.
-        self._run, self._run_start, self._run_stop = mus, 0, 0
+        event = events[-1] if self.in_event else None
+        quiet_since = self._quiet_since
+        # Quiet rows are not summed here: rows run_start.. of this chunk join the
+        # level when _fold runs (when the level is read, and at the chunk's end).
+        self._run = mus
+        run_start = None if event is not None else 0
         for k, size in enumerate(sizes):
-            if not in_event:
+            stamp = stamps[k]
+            if event is None:
                 if size > threshold:
+                    self._run_start, self._run_stop = run_start, k
                     level = self.level
                     before = level if level is not None else \
                         (mus[k - 1] if k else self._last_mu)
-                    events.append(MomentumEvent(stamps[k], mu_before=None if before is None
-                                                else before.copy(), peak_wrench=size))
-                    self._quiet_since = None
-                    in_event = True
-                    self._run_start = self._run_stop = k + 1
-                else:
-                    self._run_stop = k + 1
+                    event = MomentumEvent(stamp, mu_before=None if before is None
+                                          else before.copy(), peak_wrench=size)
+                    events.append(event)
+                    quiet_since = run_start = None
             else:
-                in_event = self._in_event_step(stamps[k], size, half, hold, mus[k])
-                if in_event:
-                    self._run_start = self._run_stop = k + 1
+                if size > event.peak_wrench:
+                    event.peak_wrench = size
+                if size > half:
+                    quiet_since = None
                 else:
-                    # The event ended: the level restarts from this sample.
-                    self._level_sum, self._level_count = None, 0
-                    self._run_start, self._run_stop = k, k + 1
+                    if quiet_since is None:
+                        quiet_since = stamp
+                    if (stamp - quiet_since) * 1e-9 >= hold:
+                        event.end_ns = stamp
+                        event.mu_after = mus[k].copy()
+                        self._changed = True
+                        # The level restarts from this sample.
+                        self._level_sum, self._level_count = None, 0
+                        event = None
+                        run_start = k
             if after is not None:
+                # Leave the observer as a one-by-one run would, for predictions.
+                self._run_start, self._run_stop = \
+                    (k + 1, k + 1) if run_start is None else (run_start, k + 1)
+                self._quiet_since = quiet_since
                 self.rate = rates[k]
-                self._last_mu, self._last_ns = mus[k], stamps[k]
+                self._last_mu, self._last_ns = mus[k], stamp
                 after(k)
-
-    def _in_event_step(self, stamp: int, size: float, half: float, hold: float,
-                       mu: np.ndarray) -> bool:
-        """Track the event peak and its quiet time; return whether it goes on."""
-        event = self.events[-1]
-        event.peak_wrench = max(event.peak_wrench, size)
-        if size > half:
-            self._quiet_since = None
-            return True
-        if self._quiet_since is None:
-            self._quiet_since = stamp
-        if (stamp - self._quiet_since) * 1e-9 < hold:
-            return True
-        event.end_ns = stamp
-        event.mu_after = mu.copy()
-        self._changed = True
-        return False
+                if run_start is not None:
+                    run_start = self._run_start  # the level may have been folded
+        count = len(sizes)
+        self._run_start, self._run_stop = (count, count) if run_start is None \
+            else (run_start, count)
+        self._quiet_since = quiet_since
 
     def _fold(self) -> None:
         """Add the pending run of quiet rows to the level sum, in order."""
