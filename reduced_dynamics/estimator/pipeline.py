@@ -36,6 +36,7 @@ from __future__ import annotations
 
 from collections import Counter, deque
 from dataclasses import dataclass
+from itertools import chain
 import math
 from typing import Iterable, Optional, Union
 
@@ -46,7 +47,7 @@ from reduced_dynamics.estimator.config import EstimatorConfig
 from reduced_dynamics.estimator.kernel import UpdateKernel
 from reduced_dynamics.estimator.observer import MomentumEvent, MomentumObserver
 from reduced_dynamics.estimator.prediction import Prediction, Predictor
-from reduced_dynamics.estimator.sync import BaseBuffer, BasePoint
+from reduced_dynamics.estimator.sync import BaseBuffer
 from reduced_dynamics.geometry.isotropy import isotropy_algebra
 from reduced_dynamics.messages.samples import (
     BaseStateSample, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample, JointStateSample,
@@ -207,7 +208,8 @@ class Estimator:
         self.config = config or EstimatorConfig()
         self.use_odometry = use_odometry
         self.base_driven = robot.m == 0 if base_driven is None else base_driven
-        self.received: Counter = Counter()
+        # Inputs taken, by kind (see :attr:`received`): plain ints on the hot path.
+        self._received_joints = self._received_bases = 0
         self.rejected: Counter = Counter()
         self.last_rejection: Optional[str] = None
         self.processed = 0
@@ -218,6 +220,7 @@ class Estimator:
         self._last_joint_ns: Optional[int] = None
         self._last_base_ns: Optional[int] = None
         self._empty = np.zeros(0)
+        self._m = robot.m
         self._zeros_m = np.zeros(robot.m)
         self._held = (0, self._zeros_m, self._zeros_m, self._zeros_m)
         self._have_shape = robot.m == 0
@@ -226,7 +229,9 @@ class Estimator:
         self._floating = robot.base_joint_type == 'floating'
         self._last_prediction_ns: Optional[int] = None
         self._last_diagnostics_ns: Optional[int] = None
-        self._period_counts: Counter = Counter()
+        # Inputs since the last diagnostics: joint states, base states, rejections
+        # (plain ints, not a Counter: they change on every sample).
+        self._period_joints = self._period_bases = self._period_rejected = 0
         self._mu_mean = np.zeros(robot.n)
         self._mu_m2 = np.zeros(robot.n)
         self._last_mu: Optional[np.ndarray] = None
@@ -262,6 +267,16 @@ class Estimator:
             self.predictor.finished = old_predictor.finished
             self.predictor.made = old_predictor.made
 
+    @property
+    def received(self) -> Counter:
+        """Return how many joint-state and base samples came in (a fresh Counter)."""
+        counts = Counter()
+        if self._received_joints:
+            counts['joint_states'] = self._received_joints
+        if self._received_bases:
+            counts['base'] = self._received_bases
+        return counts
+
     # --- input -----------------------------------------------------------------------
     def reject(self, reason: str, detail: str) -> list[EstimatorOutput]:
         """Count an input rejected before it reached the pipeline (e.g. malformed)."""
@@ -269,7 +284,7 @@ class Estimator:
 
     def _reject(self, reason: str, detail: str) -> list[EstimatorOutput]:
         self.rejected[reason] += 1
-        self._period_counts['rejected'] += 1
+        self._period_rejected += 1
         self.last_rejection = f'{reason}: {detail}'
         self._rejected_at = len(self._chunk.rows)
         return []
@@ -296,7 +311,7 @@ class Estimator:
         self._chunk_limit = self._batch_limit
         try:
             for sample in samples:
-                if isinstance(sample, JointStateSample):
+                if sample.__class__ is JointStateSample or isinstance(sample, JointStateSample):
                     take_joint(sample)
                 else:
                     take_base(sample)
@@ -329,8 +344,8 @@ class Estimator:
         return EstimatorBatch(done)
 
     def _take_joint(self, sample: JointStateSample) -> None:
-        self.received['joint_states'] += 1
-        self._period_counts['joint_states'] += 1
+        self._received_joints += 1
+        self._period_joints += 1
         mapping = self._name_maps.get(sample.names)
         if mapping is None:
             mapping = self._map_names(sample.names)
@@ -339,7 +354,7 @@ class Estimator:
             reason, _, detail = mapping.partition(':')
             self._reject(reason, detail.strip())
             return
-        m = self.robot.m
+        m = self._m
         position, velocity, effort = sample.position, sample.velocity, sample.effort
         if m and velocity.size == 0:
             self._reject('missing_velocity', 'joint state has no velocities')
@@ -369,7 +384,12 @@ class Estimator:
         if self.base_driven:
             self._held, self._have_shape = pending, True
             return
-        self._pending.append(pending)
+        pending_samples = self._pending
+        pending_samples.append(pending)
+        latest = self._buffer.latest_ns
+        if len(pending_samples) == 1 and (latest is None or latest < sample.stamp_ns):
+            # Alone and newer than every base state: it waits (what _drain would find).
+            return
         self._drain(final=False)
 
     def _map_names(self, names: tuple[str, ...]):
@@ -387,8 +407,8 @@ class Estimator:
         return np.array([order[n] for n in self.robot.shape_joint_names], dtype=int)
 
     def _take_base(self, sample: BaseStateSample) -> None:
-        self.received['base'] += 1
-        self._period_counts['base'] += 1
+        self._received_bases += 1
+        self._period_bases += 1
         # Plain floats: these checks and the row below cost less than numpy calls.
         row = sample.position.tolist()
         x, y, z, w = quaternion = sample.orientation_xyzw.tolist()
@@ -421,7 +441,7 @@ class Estimator:
                 twist = self.kernel.twists(self.kernel.coordinates(np.array([twist])))
                 twist = twist[0].tolist()
             row += twist
-        self._buffer.append(BasePoint(sample.stamp_ns, row))
+        self._buffer.append(sample.stamp_ns, row)
         if self.base_driven:
             self._pending.append((sample.stamp_ns,) + self._held[1:])
         self._drain(final=False)
@@ -436,7 +456,7 @@ class Estimator:
         while pending:
             head = pending[0]
             stamp = head[0]
-            gap, ready = buffer.status(stamp, needs_successor)
+            gap, ready, index = buffer.status(stamp, needs_successor)
             if not ready and not final:
                 newest_joint = self._last_joint_ns or stamp
                 waited = max(newest_joint, buffer.latest_ns or 0) - stamp
@@ -449,7 +469,7 @@ class Estimator:
                 detail = f'nearest base pose {gap * 1e-9:.3f} s from joint state {stamp}'
                 self._reject('stale_base_state', detail)
             else:
-                self._resolve(head + (buffer.query(stamp),))
+                self._resolve(head + (buffer.query(stamp, index),))
 
     def _resolve(self, row: tuple) -> None:
         """Queue a synchronised sample for the update (processing it where it must be)."""
@@ -479,9 +499,11 @@ class Estimator:
         m = self.robot.m
         stamp_list, qbar, qbar_dot, taus, bases = zip(*chunk.rows)
         stamps = np.array(stamp_list, dtype=np.int64)
-        qbar = np.array(qbar, dtype=float).reshape(count, m)
-        qbar_dot = np.array(qbar_dot, dtype=float).reshape(count, m)
-        result = self.kernel.evaluate(qbar, qbar_dot, np.array(bases, dtype=float))
+        # The cheapest ways to stack these rows (arrays; lists of 13 floats).
+        qbar = np.concatenate(qbar).reshape(count, m)
+        qbar_dot = np.concatenate(qbar_dot).reshape(count, m)
+        bases = np.fromiter(chain.from_iterable(bases), float, count * 13).reshape(count, 13)
+        result = self.kernel.evaluate(qbar, qbar_dot, bases)
         mu = result.mu
         extras: dict = {}
         after = None
@@ -579,16 +601,18 @@ class Estimator:
         """Return the estimator's status (and reset the per-period rates)."""
         period = max((stamp_ns - (self._last_diagnostics_ns or stamp_ns)) * 1e-9, 1e-9)
         self._last_diagnostics_ns = stamp_ns
-        counts, self._period_counts = self._period_counts, Counter()
-        inputs = {'joint_state_rate_hz': f'{counts["joint_states"] / period:.1f}',
-                  'base_rate_hz': f'{counts["base"] / period:.1f}',
+        joints, bases, rejected = \
+            self._period_joints, self._period_bases, self._period_rejected
+        self._period_joints = self._period_bases = self._period_rejected = 0
+        inputs = {'joint_state_rate_hz': f'{joints / period:.1f}',
+                  'base_rate_hz': f'{bases / period:.1f}',
                   'received_joint_states': str(self.received['joint_states']),
                   'received_base': str(self.received['base']),
                   'processed': str(self.processed),
                   'rejected_total': str(sum(self.rejected.values()))}
         inputs.update({f'rejected_{k}': str(v) for k, v in sorted(self.rejected.items())})
-        level = DIAG_WARN if counts['rejected'] else DIAG_OK
-        message = self.last_rejection if counts['rejected'] else 'inputs nominal'
+        level = DIAG_WARN if rejected else DIAG_OK
+        message = self.last_rejection if rejected else 'inputs nominal'
         statuses = [DiagnosticStatusSample(level, 'reduced_dynamics: inputs', message or '',
                                            self.robot.model.name, inputs)]
         if self._last_mu is not None:
