@@ -447,8 +447,14 @@ class Estimator:
                 twist = twist[0].tolist()
             row += twist
         self._buffer.append(sample.stamp_ns, row)
+        pending = self._pending
         if self.base_driven:
-            self._pending.append((sample.stamp_ns,) + self._held[1:])
+            pending.append((sample.stamp_ns,) + self._held[1:])
+        if self.use_odometry and len(pending) == 1 and pending[0][0] == sample.stamp_ns:
+            # The one waiting shape sample has this very stamp (simulators, drivers on
+            # one clock tick): _drain would find gap 0, ready, and this row. Skip it.
+            self._resolve(pending.popleft() + (row,))
+            return
         self._drain(final=False)
 
     # --- processing ------------------------------------------------------------------
