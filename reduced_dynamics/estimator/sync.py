@@ -77,6 +77,7 @@ class BaseBuffer:
         self._rows: deque[Sequence[float]] = deque(maxlen=keep)
         self._stamps: deque[int] = deque(maxlen=keep)
         self._poses: dict[int, pin.SE3] = {}
+        self._around: dict[int, tuple] = {}
 
     def __len__(self) -> int:
         """Return the number of samples held."""
@@ -99,7 +100,7 @@ class BaseBuffer:
         if pose is None:
             if len(self._poses) >= 2 * self._keep:
                 self._poses.clear()  # older poses are no longer held anyway
-            pose = self._poses[stamp] = pin.XYZQUATToSE3(np.array(row[:7]))
+            pose = self._poses[stamp] = pin.XYZQUATToSE3(row[:7])
         return BasePoint(stamp, row, pose)
 
     def status(self, stamp_ns: int,
@@ -159,8 +160,11 @@ class BaseBuffer:
             return _row(edge.pose * pin.exp6(edge.twist * dt), edge.twist)
         a, b = self.point(index - 1), self.point(index)
         s = (stamp_ns - a.stamp_ns) / (b.stamp_ns - a.stamp_ns)
-        delta = pin.log6(a.pose.inverse() * b.pose).vector
-        return _row(a.pose * pin.exp6(s * delta), (1 - s) * a.twist + s * b.twist)
+        # Along the geodesic a exp(s log(a^-1 b)): one Pinocchio call. The twist
+        # linearly, in plain floats (13-value rows throughout).
+        pose = pin.SE3.Interpolate(a.pose, b.pose, s)
+        return pin.SE3ToXYZQUAT(pose).tolist() + [
+            (1 - s) * u + s * v for u, v in zip(a.row[7:], b.row[7:])]
 
     def _differentiate(self, index: int, stamp_ns: int) -> np.ndarray:
         count = len(self._rows)
@@ -177,11 +181,8 @@ class BaseBuffer:
             rate = delta / ((b.stamp_ns - a.stamp_ns) * 1e-9)
             s = (stamp_ns - a.stamp_ns) * 1e-9
             return _row(a.pose * pin.exp6(rate * s), pin.Jexp6(rate * s) @ rate)
-        points = [self.point(centre + j) for j in (-1, 0, 1)]
-        mid = points[1]
-        times = np.array([(point.stamp_ns - mid.stamp_ns) * 1e-9 for point in points])
-        etas = np.array([pin.log6(mid.pose.inverse() * point.pose).vector
-                         for point in points])
+        mid = self.point(centre)
+        times, etas = self._neighbourhood(centre, mid)
         tau = (stamp_ns - mid.stamp_ns) * 1e-9
         t0, t1, t2 = times
         # Lagrange basis values and derivatives at tau.
@@ -194,3 +195,17 @@ class BaseBuffer:
         eta = weights @ etas
         eta_dot = slopes @ etas
         return _row(mid.pose * pin.exp6(eta), pin.Jexp6(eta) @ eta_dot)
+
+    def _neighbourhood(self, centre: int, mid: BasePoint) -> tuple[list, np.ndarray]:
+        """Return times and exponential coordinates of the three poses about ``mid``."""
+        # Points are only appended, so a point's neighbours never change: cache them.
+        cached = self._around.get(mid.stamp_ns)
+        if cached is None:
+            points = [self.point(centre - 1), mid, self.point(centre + 1)]
+            inverse = mid.pose.inverse()
+            cached = ([(point.stamp_ns - mid.stamp_ns) * 1e-9 for point in points],
+                      np.array([pin.log6(inverse * point.pose).vector for point in points]))
+            if len(self._around) >= 2 * self._keep:
+                self._around.clear()
+            self._around[mid.stamp_ns] = cached
+        return cached
