@@ -390,3 +390,12 @@ def test_rotation_formula_scalar_and_vector_branches_agree():
     assert np.array_equal(stacked, one_by_one)
     assert np.allclose(stacked, [pin.Quaternion(q[3], *q[:3]).toRotationMatrix()
                                  for q in quaternions], rtol=0, atol=1e-15)
+
+
+def test_singular_locked_inertia_fails_alike_on_both_paths():
+    kernel = UpdateKernel(paper_robot())
+    locked = np.zeros((3, 6, 6))
+    locked[:, :3, :3] = 2.0 * np.eye(3)  # mass, no rotational inertia at all
+    for count in (1, 3):
+        with pytest.raises(np.linalg.LinAlgError, match='positive definite'):
+            kernel.solve_locked(locked[:count], np.ones((count, 6)))

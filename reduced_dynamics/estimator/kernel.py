@@ -106,7 +106,7 @@ def _spatial_solve_columns(m, hx, hy, hz, ixx, ixy, ixz, iyy, iyz, izz,
     wy = (a01 * yx + a11 * yy + a12 * yz) / det
     wz = (a02 * yx + a12 * yy + a22 * yz) / det
     return (fx / m + (cy * wz - cz * wy), fy / m + (cz * wx - cx * wz),
-            fz / m + (cx * wy - cy * wx), wx, wy, wz)
+            fz / m + (cx * wy - cy * wx), wx, wy, wz, det)
 
 
 #: Entries of a 6 x 6 spatial inertia (row-major) that _spatial_solve_columns reads:
@@ -204,7 +204,15 @@ class UpdateKernel:
             # inverse costs a third of a stacked LU solve.
             columns = np.concatenate((locked.reshape(len(locked), 36)[:, _SPATIAL_ENTRIES],
                                       covectors), axis=1)
-            return _columnwise(_spatial_solve_columns, columns)
+            try:
+                with np.errstate(divide='ignore', invalid='ignore'):
+                    solved = _columnwise(_spatial_solve_columns, columns)
+            except ZeroDivisionError:  # Python floats: m or det is zero
+                solved = None
+            # Same failure on both paths, as Cholesky gave: I must be positive definite.
+            if solved is None or not (np.all(columns[:, 0] > 0.0) and np.all(solved[:, 6] > 0.0)):
+                raise np.linalg.LinAlgError('locked inertia is not positive definite')
+            return solved[:, :6]
         return np.linalg.solve(locked, covectors[:, :, None])[:, :, 0]
 
     def evaluate(self, qbar: np.ndarray, qbar_dot: np.ndarray,
