@@ -232,6 +232,7 @@ class Estimator:
         self._name_maps: dict[tuple[str, ...], object] = {}
         self._index = {name: i for i, name in enumerate(robot.shape_joint_names)}
         self._floating = robot.base_joint_type == 'floating'
+        self._project_twists = self.kernel.projects_twists
         self._last_prediction_ns: Optional[int] = None
         self._last_diagnostics_ns: Optional[int] = None
         # Inputs since the last diagnostics: joint states, base states, rejections
@@ -349,19 +350,21 @@ class Estimator:
         return EstimatorBatch(done)
 
     def _take_joint(self, sample: JointStateSample) -> None:
+        # Hot path (every message): locals over repeated attribute lookups.
         self._received_joints += 1
         self._period_joints += 1
-        mapping = self._name_maps.get(sample.names)
+        names = sample.names
+        mapping = self._name_maps.get(names)
         if mapping is None:
-            mapping = self._map_names(sample.names)
-            self._name_maps[sample.names] = mapping
+            mapping = self._name_maps[names] = self._map_names(names)
         if mapping.__class__ is str:
             reason, _, detail = mapping.partition(':')
             self._reject(reason, detail.strip())
             return
         m = self._m
+        stamp = sample.stamp_ns
         position, velocity, effort = sample.position, sample.velocity, sample.effort
-        if m and velocity.size == 0:
+        if m and not velocity.size:
             self._reject('missing_velocity', 'joint state has no velocities')
             return
         # Names match the model one to one, so checking whole arrays is checking qbar.
@@ -370,31 +373,32 @@ class Estimator:
         if m and not math.isfinite(sum(position.tolist()) + sum(velocity.tolist())
                                    + sum(effort.tolist())) \
                 and not _all_finite(position, velocity, effort):
-            self._reject('non_finite', f'NaN or inf in joint state at {sample.stamp_ns}')
+            self._reject('non_finite', f'NaN or inf in joint state at {stamp}')
             return
-        if self._last_joint_ns is not None and sample.stamp_ns <= self._last_joint_ns:
-            self._reject('stamp_backwards', f'joint state stamp {sample.stamp_ns} <= '
-                                            f'previous {self._last_joint_ns}')
+        last = self._last_joint_ns
+        if last is not None and stamp <= last:
+            self._reject('stamp_backwards', f'joint state stamp {stamp} <= previous {last}')
             return
-        self._last_joint_ns = sample.stamp_ns
+        self._last_joint_ns = stamp
         if not m:
-            pending = (sample.stamp_ns, self._empty, self._empty, self._empty)
+            empty = self._empty
+            pending = (stamp, empty, empty, empty)
         elif mapping is _IDENTITY:
             # Kept by reference: the chunk copies them when it stacks its rows.
-            pending = (sample.stamp_ns, position, velocity,
-                       effort if effort.size else self._zeros_m)
+            pending = (stamp, position, velocity, effort if effort.size else self._zeros_m)
         else:
-            pending = (sample.stamp_ns, position[mapping], velocity[mapping],
+            pending = (stamp, position[mapping], velocity[mapping],
                        effort[mapping] if effort.size else self._zeros_m)
         if self.base_driven:
             self._held, self._have_shape = pending, True
             return
-        pending_samples = self._pending
-        pending_samples.append(pending)
-        latest = self._buffer.latest_ns
-        if len(pending_samples) == 1 and (latest is None or latest < sample.stamp_ns):
-            # Alone and newer than every base state: it waits (what _drain would find).
-            return
+        waiting = self._pending
+        waiting.append(pending)
+        if len(waiting) == 1:
+            latest = self._buffer.latest_ns
+            if latest is None or latest < stamp:
+                # Alone and newer than every base state: it waits (as _drain would find).
+                return
         self._drain(final=False)
 
     def _map_names(self, names: tuple[str, ...]):
@@ -412,45 +416,46 @@ class Estimator:
         return np.array([order[n] for n in self.robot.shape_joint_names], dtype=int)
 
     def _take_base(self, sample: BaseStateSample) -> None:
+        # Hot path (every message): plain floats and locals, few numpy calls.
         self._received_bases += 1
         self._period_bases += 1
-        # Plain floats: these checks and the row below cost less than numpy calls.
+        stamp = sample.stamp_ns
         row = sample.position.tolist()
         x, y, z, w = quaternion = sample.orientation_xyzw.tolist()
-        has_twist = sample.twist_linear is not None
-        twist = sample.twist_linear.tolist() + sample.twist_angular.tolist() \
-            if has_twist else []
+        linear = sample.twist_linear
+        twist = [] if linear is None else linear.tolist() + sample.twist_angular.tolist()
         if not math.isfinite(sum(row) + sum(quaternion) + sum(twist)) \
                 and not all(map(math.isfinite, row + quaternion + twist)):
-            self._reject('non_finite_base', f'NaN or inf in base state at {sample.stamp_ns}')
+            self._reject('non_finite_base', f'NaN or inf in base state at {stamp}')
             return
         norm = math.sqrt(x * x + y * y + z * z + w * w)
         if norm < 1e-6:
-            self._reject('invalid_quaternion', f'zero quaternion at {sample.stamp_ns}')
+            self._reject('invalid_quaternion', f'zero quaternion at {stamp}')
             return
-        if self.use_odometry and not has_twist:
+        odometry = self.use_odometry
+        if odometry and linear is None:
             self._reject('missing_twist', 'base sample without twist (use pose mode)')
             return
-        if self._last_base_ns is not None and sample.stamp_ns <= self._last_base_ns:
-            self._reject('base_stamp_backwards', f'base stamp {sample.stamp_ns} <= '
-                                                 f'previous {self._last_base_ns}')
+        last = self._last_base_ns
+        if last is not None and stamp <= last:
+            self._reject('base_stamp_backwards', f'base stamp {stamp} <= previous {last}')
             return
-        self._last_base_ns = sample.stamp_ns
+        self._last_base_ns = stamp
         row += (x / norm, y / norm, z / norm, w / norm)
         if not self._floating:
             pose = self.robot.project_pose(pin.XYZQUATToSE3(np.array(row)))
             row = pin.SE3ToXYZQUAT(pose).tolist()
-        if self.use_odometry:
-            if self.kernel.projects_twists:
+        if odometry:
+            if self._project_twists:
                 # Only the part of the twist inside the base group's algebra is kept.
-                twist = self.kernel.twists(self.kernel.coordinates(np.array([twist])))
-                twist = twist[0].tolist()
+                kernel = self.kernel
+                twist = kernel.twists(kernel.coordinates(np.array([twist])))[0].tolist()
             row += twist
-        self._buffer.append(sample.stamp_ns, row)
+        self._buffer.append(stamp, row)
         pending = self._pending
         if self.base_driven:
-            pending.append((sample.stamp_ns,) + self._held[1:])
-        if self.use_odometry and len(pending) == 1 and pending[0][0] == sample.stamp_ns:
+            pending.append((stamp,) + self._held[1:])
+        if odometry and len(pending) == 1 and pending[0][0] == stamp:
             # The one waiting shape sample has this very stamp (simulators, drivers on
             # one clock tick): _drain would find gap 0, ready, and this row. Skip it.
             self._resolve(pending.popleft() + (row,))
