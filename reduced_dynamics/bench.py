@@ -20,7 +20,11 @@ its spread (interquartile range) and as a ratio to a baseline measured in the
 same run (machines are noisy: ratios, not absolutes):
 
 1. ``update``: the per-sample estimator update (mu, pi, pbar, drift observer;
-   prediction off) against one Pinocchio ``crba`` call on the same robot.
+   prediction off) against one Pinocchio ``crba`` call on the same robot, for
+   both paths: streaming (``add_joint_state``/``add_base_state`` per message,
+   per-sample outputs, as the node runs) and batched (``add_samples`` on
+   slices of the message stream, column outputs; also with the per-sample
+   outputs built).
 2. ``prediction``: a 2 s prediction of the paper robot by the reduced model
    (DOP853 and the discrete gradient) against full dynamics (Pinocchio ``aba``,
    DOP853) at equal accuracy: each method is swept over tolerances (steps), the
@@ -30,8 +34,9 @@ same run (machines are noisy: ratios, not absolutes):
 3. ``replay``: replay throughput of a simulated 1 kHz bag (prediction off)
    against bare read-and-decode of the same topics; peak resident memory of
    replay subprocesses on a short and a long (10-minute) bag.
-4. ``scaling``: random trees with 6, 12, 24 and 48 shape joints: update and
-   reduced-vector-field cost, with exponents fitted by log-log least squares.
+4. ``scaling``: random trees with 6, 12, 24 and 48 shape joints: update (both
+   paths) and reduced-vector-field cost, with exponents fitted by log-log least
+   squares.
 """
 
 from __future__ import annotations
@@ -54,6 +59,8 @@ import pinocchio as pin
 
 NS = 1_000_000_000
 SHAPE_JOINTS = (6, 12, 24, 48)
+#: Input messages per ``add_samples`` call in the batched update (as a replay would read).
+UPDATE_FEED = 1000
 HORIZON = 2.0
 
 
@@ -214,45 +221,78 @@ def time_crba(robot, calls: int) -> float:
     return (time.perf_counter() - start) / calls
 
 
-def time_update(robot, joints: list, bases: list, warmup: int = 20) -> float:
-    """Return seconds per processed sample (joint state + base state, prediction off)."""
+UPDATE_PATHS = ('streaming', 'batched', 'batched+outputs')
+
+
+def time_update(robot, joints: list, bases: list, warmup: int = 20,
+                path: str = 'streaming') -> float:
+    """
+    Return seconds per processed sample (joint state + base state, prediction off).
+
+    ``streaming``: one ``add_joint_state`` and one ``add_base_state`` call per
+    sample, per-sample outputs (the node). ``batched``: the same messages in
+    arrival order, :data:`UPDATE_FEED` per ``add_samples`` call, column outputs;
+    ``batched+outputs`` also builds the per-sample outputs from the columns.
+    """
     from reduced_dynamics.estimator.config import EstimatorConfig
     from reduced_dynamics.estimator.pipeline import Estimator
     estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0))
-    add_joint, add_base = estimator.add_joint_state, estimator.add_base_state
-    for joint, base in zip(joints[:warmup], bases[:warmup]):
-        add_joint(joint)
-        add_base(base)
-    before = estimator.processed
-    start = time.perf_counter()
-    for joint, base in zip(joints[warmup:], bases[warmup:]):
-        add_joint(joint)
-        add_base(base)
-    elapsed = time.perf_counter() - start
+    if path == 'streaming':
+        add_joint, add_base = estimator.add_joint_state, estimator.add_base_state
+        for joint, base in zip(joints[:warmup], bases[:warmup]):
+            add_joint(joint)
+            add_base(base)
+        before = estimator.processed
+        start = time.perf_counter()
+        for joint, base in zip(joints[warmup:], bases[warmup:]):
+            add_joint(joint)
+            add_base(base)
+        elapsed = time.perf_counter() - start
+    else:
+        messages = [m for pair in zip(joints, bases) for m in pair]
+        estimator.add_samples(messages[:2 * warmup])
+        outputs = path == 'batched+outputs'
+        before = estimator.processed
+        start = time.perf_counter()
+        for first in range(2 * warmup, len(messages), UPDATE_FEED):
+            batch = estimator.add_samples(messages[first:first + UPDATE_FEED])
+            if outputs:
+                batch.outputs()
+        elapsed = time.perf_counter() - start
     processed = estimator.processed - before
     if processed <= 0:
         raise RuntimeError('the estimator processed no sample')
     return elapsed / processed
 
 
-def measure_update(robot, settings: Settings, samples: int) -> tuple[list, list]:
-    """Interleave update and crba timings over the repeats; return (update, crba) in s."""
+def measure_update(robot, settings: Settings, samples: int,
+                   paths: Sequence[str] = UPDATE_PATHS) -> tuple[dict, list]:
+    """Interleave update and crba timings over the repeats; return ({path: s}, crba s)."""
     joints, bases = update_samples(robot, samples)
-    updates, crbas = [], []
+    updates: dict = {path: [] for path in paths}
+    crbas = []
     for _ in range(settings.repeats):
         crbas.append(time_crba(robot, settings.crba_calls))
-        updates.append(time_update(robot, joints, bases))
+        for path in paths:
+            updates[path].append(time_update(robot, joints, bases, path=path))
     return updates, crbas
 
 
 def bench_update(report: Report, robot, settings: Settings) -> None:
-    """Section 1: per-sample estimator update against one crba call."""
+    """Section 1: per-sample estimator update (both paths) against one crba call."""
     updates, crbas = measure_update(robot, settings, settings.update_samples)
-    ratios = [u / c for u, c in zip(updates, crbas)]
-    report.add(make_figure('update', 'estimator update (paper robot)', 'us/sample',
-                           [1e6 * u for u in updates], 'crba',
-                           [1e6 * c for c in crbas], ratios, 'ratio <= 10',
-                           lambda r: r <= 10.0))
+    names = {'streaming': 'estimator update (paper robot)',
+             'batched': 'estimator update, batched (paper robot)',
+             'batched+outputs': 'estimator update, batched + outputs (paper robot)'}
+    notes = {'streaming': 'add_joint_state/add_base_state per sample, outputs built',
+             'batched': f'add_samples, {UPDATE_FEED} messages per call, column outputs',
+             'batched+outputs': 'as batched, then EstimatorOutput per sample'}
+    for path, values in updates.items():
+        ratios = [u / c for u, c in zip(values, crbas)]
+        report.add(make_figure('update', names[path], 'us/sample',
+                               [1e6 * u for u in values], 'crba',
+                               [1e6 * c for c in crbas], ratios, 'ratio <= 10',
+                               lambda r: r <= 10.0, note=notes[path]))
     report.add(make_figure('update', 'crba (paper robot)', 'us/call',
                            [1e6 * c for c in crbas], note='baseline'))
 
@@ -575,31 +615,44 @@ def bench_scaling(report: Report, settings: Settings) -> None:
     from reduced_dynamics.robot.model import load_robot
     from reduced_dynamics.robot.random_tree import random_tree_urdf
     sizes, update_costs, evaluation_costs, crba_costs = [], [], [], []
+    streaming_costs = []
     for m in settings.shape_joints:
         robot = load_robot(random_tree_urdf(m, seed=1))
-        updates, crbas = measure_update(robot, settings, settings.scaling_samples)
+        timings, crbas = measure_update(robot, settings, settings.scaling_samples,
+                                        ('batched', 'streaming'))
+        updates = timings['batched']
         evaluations = time_evaluation(robot, settings.scaling_evaluations, settings.repeats)
         sizes.append(m)
         update_costs.append(spread(updates)[0])
+        streaming_costs.append(spread(timings['streaming'])[0])
         crba_costs.append(spread(crbas)[0])
         evaluation_costs.append(spread(evaluations)[0])
         report.add(make_figure('scaling', f'update, random tree m={m}', 'us/sample',
                                [1e6 * u for u in updates], 'crba', [1e6 * c for c in crbas],
-                               [u / c for u, c in zip(updates, crbas)]))
+                               [u / c for u, c in zip(updates, crbas)], note='batched'))
+        report.add(make_figure('scaling', f'update streaming, random tree m={m}', 'us/sample',
+                               [1e6 * u for u in timings['streaming']], 'crba',
+                               [1e6 * c for c in crbas],
+                               [u / c for u, c in zip(timings['streaming'], crbas)]))
         report.add(make_figure('scaling', f'reduced evaluation, random tree m={m}', 'us/call',
                                [1e6 * e for e in evaluations], 'crba',
                                [1e6 * c for c in crbas],
                                [e / c for e, c in zip(evaluations, crbas)]))
     exponents = {'update': fit_exponent(sizes, update_costs),
+                 'update_streaming': fit_exponent(sizes, streaming_costs),
                  'reduced_evaluation': fit_exponent(sizes, evaluation_costs),
                  'crba': fit_exponent(sizes, crba_costs)}
     report.details['scaling'] = {'shape_joints': sizes, 'update_s': update_costs,
+                                 'update_streaming_s': streaming_costs,
                                  'evaluation_s': evaluation_costs, 'crba_s': crba_costs,
                                  'exponents': exponents}
     sizes_text = ','.join(str(m) for m in sizes)
     report.add(make_figure('scaling', 'update cost exponent', 'p in m^p', [exponents['update']],
                            target='<= 2', check=lambda p: p <= 2.0,
-                           note=f'log-log fit over m={sizes_text}'))
+                           note=f'batched; log-log fit over m={sizes_text}'))
+    report.add(make_figure('scaling', 'update cost exponent, streaming', 'p in m^p',
+                           [exponents['update_streaming']], target='<= 2',
+                           check=lambda p: p <= 2.0, note=f'm={sizes_text}'))
     report.add(make_figure('scaling', 'reduced evaluation exponent', 'p in m^p',
                            [exponents['reduced_evaluation']], note=f'm={sizes_text}'))
     report.add(make_figure('scaling', 'crba exponent', 'p in m^p', [exponents['crba']],

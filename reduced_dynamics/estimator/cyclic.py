@@ -51,8 +51,33 @@ def resolve_cyclic_joints(robot: RobotModel, setting: str) -> tuple[str, ...]:
     return CyclicSplit(robot, names).names
 
 
+class CyclicColumns:
+    """
+    Second-stage columns of one chunk: row k belongs to sample k.
+
+    Kept joints: ``qhat``, ``qhat_dot``, ``phat = K^ q^_dot``; cyclic joints:
+    ``angles``, ``rates`` and their momenta ``theta``.
+    """
+
+    __slots__ = ('kept_names', 'cyclic_names', 'qhat', 'qhat_dot', 'phat', 'angles',
+                 'rates', 'theta')
+
+    def __init__(self, view: 'CyclicView', qhat: np.ndarray, qhat_dot: np.ndarray,
+                 phat: np.ndarray, angles: np.ndarray, rates: np.ndarray,
+                 theta: np.ndarray) -> None:
+        """Hold contiguous (K, .) columns."""
+        self.kept_names, self.cyclic_names = view.kept_names, view.cyclic_names
+        self.qhat, self.qhat_dot, self.phat = qhat, qhat_dot, phat
+        self.angles, self.rates, self.theta = angles, rates, theta
+
+    def sample(self, k: int, stamp_ns: int) -> JointStateSample:
+        """Return the cyclic-momenta sample of row k (angles, rates, theta as effort)."""
+        return trusted_sample(JointStateSample, stamp_ns, '', self.cyclic_names,
+                              self.angles[k], self.rates[k], self.theta[k])
+
+
 class CyclicView:
-    """Splits each estimate into the kept shape state and the cyclic momenta."""
+    """Splits the estimates of a chunk into the kept shape state and the cyclic momenta."""
 
     def __init__(self, robot: RobotModel, cyclic_joints: tuple[str, ...]) -> None:
         """Prepare the index split for ``cyclic_joints`` (all must be cyclic)."""
@@ -63,24 +88,32 @@ class CyclicView:
         self.kept_names = self.split.kept_names
         self.cyclic_names = self.split.names
 
-    def samples(self, stamp_ns: int, mass_matrix: np.ndarray, momentum: np.ndarray,
-                qbar: np.ndarray, qbar_dot: np.ndarray
-                ) -> tuple[JointStateSample, JointStateSample]:
+    def columns(self, mass: np.ndarray, xi: np.ndarray, qbar: np.ndarray,
+                qbar_dot: np.ndarray) -> CyclicColumns:
         """
-        Return (kept shape state, cyclic state) from one sample's ``M`` and ``M v``.
+        Return the second-stage columns from a chunk's mass matrices (K, nv, nv).
 
-        Kept: ``q^, q^_dot, p^ = K^ q^_dot``; cyclic: angles, rates and ``theta``.
+        ``theta = (M v)`` on the cyclic rows, ``p^ = (M_kk - B_e^T I_e^-1 B_e) q^_dot``
+        with the locked group G x N of Theorem 57.
         """
         split = self.split
-        locked = mass_matrix[np.ix_(split.locked_rows, split.locked_rows)]
-        coupling = mass_matrix[np.ix_(split.locked_rows, split.kept_rows)]
-        shape = mass_matrix[np.ix_(split.kept_rows, split.kept_rows)]
-        kept_rate = qbar_dot[split.kept]
-        # p^ = (M_kk - B_e^T I_e^-1 B_e) q^_dot, the metric K^ of Theorem 57.
-        phat = shape @ kept_rate - coupling.T @ np.linalg.solve(locked, coupling @ kept_rate)
-        kept = trusted_sample(JointStateSample, stamp_ns, '', self.kept_names,
-                              qbar[split.kept], kept_rate, phat)
-        cyclic = trusted_sample(JointStateSample, stamp_ns, '', self.cyclic_names,
-                                qbar[split.cyclic], qbar_dot[split.cyclic],
-                                momentum[self.n + split.cyclic])
-        return kept, cyclic
+        order = split.order
+        ne = split.n + split.c
+        count = len(mass)
+        velocity = np.concatenate([xi, qbar_dot], axis=1)[:, order]
+        theta = np.empty((count, split.c))
+        phat = np.empty((count, split.mk))
+        # Row by row with the same operations whatever the chunk size, so batched and
+        # one-by-one updates agree to the last bit (stacked matmul/einsum kernels do not).
+        for k in range(count):
+            permuted = mass[k][order][:, order]
+            rate = velocity[k]
+            theta[k] = permuted[split.n:ne] @ rate
+            kept_rate = rate[ne:]
+            coupling = permuted[:ne, ne:]
+            connection_qd = np.linalg.solve(permuted[:ne, :ne], coupling @ kept_rate)
+            phat[k] = permuted[ne:, ne:] @ kept_rate - coupling.T @ connection_qd
+        return CyclicColumns(self, np.ascontiguousarray(qbar[:, split.kept]),
+                             np.ascontiguousarray(velocity[:, ne:]), phat,
+                             np.ascontiguousarray(qbar[:, split.cyclic]),
+                             np.ascontiguousarray(qbar_dot[:, split.cyclic]), theta)

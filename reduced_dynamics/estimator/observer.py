@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -57,7 +57,14 @@ class MomentumEvent:
 
 @dataclass
 class MomentumObserver:
-    """External-wrench observer, event detector and momentum level."""
+    """
+    External-wrench observer, event detector and momentum level.
+
+    :meth:`update_many` takes a chunk of samples: the filter inputs are formed
+    for the whole chunk at once and only the scalar recursion and the event
+    logic loop in Python. The running level sum is folded lazily (one
+    accumulate per run of quiet samples). :meth:`update` is a chunk of one.
+    """
 
     bandwidth: float
     threshold: float
@@ -70,6 +77,10 @@ class MomentumObserver:
     _level_count: int = 0
     _quiet_since: Optional[int] = None
     _changed: bool = False
+    # Rows of the current chunk accumulated into the level but not yet summed.
+    _run: Optional[np.ndarray] = None
+    _run_start: int = 0
+    _run_stop: int = 0
 
     @property
     def in_event(self) -> bool:
@@ -77,8 +88,14 @@ class MomentumObserver:
         return bool(self.events) and self.events[-1].end_ns is None
 
     @property
+    def has_level(self) -> bool:
+        """Return whether a momentum level exists (without computing it)."""
+        return self._level_count > 0 or self._run_stop > self._run_start
+
+    @property
     def level(self) -> Optional[np.ndarray]:
         """Return the momentum level the reduced model uses (mean since the last event)."""
+        self._fold()
         if self._level_count == 0:
             return None
         return self._level_sum / self._level_count
@@ -90,41 +107,153 @@ class MomentumObserver:
 
     def update(self, stamp_ns: int, mu: np.ndarray) -> np.ndarray:
         """Feed mu at a stamp; return the external-wrench estimate r."""
-        if self._last_mu is None or stamp_ns <= self._last_ns:
-            self.rate = np.zeros_like(mu) if self.rate is None else self.rate
-        else:
-            dt = (stamp_ns - self._last_ns) * 1e-9
-            decay = math.exp(-self.bandwidth * dt)
-            self.rate = decay * self.rate + (1.0 - decay) * (mu - self._last_mu) / dt
-        self._detect(stamp_ns, mu)
-        self._last_mu, self._last_ns = mu.copy(), stamp_ns
+        self.update_many(np.array([stamp_ns], dtype=np.int64), np.asarray(mu)[None, :])
         return self.rate
 
-    def _detect(self, stamp_ns: int, mu: np.ndarray) -> None:
-        size = float(np.linalg.norm(self.rate))
-        if not self.in_event:
-            if size > self.threshold:
-                before = self.level if self.level is not None else self._last_mu
-                self.events.append(MomentumEvent(stamp_ns, mu_before=None if before is None
-                                                 else before.copy(), peak_wrench=size))
-                self._quiet_since = None
-                return
-            self._accumulate(mu)
-            return
-        event = self.events[-1]
-        event.peak_wrench = max(event.peak_wrench, size)
-        if size > 0.5 * self.threshold:
-            self._quiet_since = None
-            return
-        if self._quiet_since is None:
-            self._quiet_since = stamp_ns
-        if (stamp_ns - self._quiet_since) * 1e-9 >= self.hold:
-            event.end_ns = stamp_ns
-            event.mu_after = mu.copy()
-            self._level_sum, self._level_count = None, 0
-            self._accumulate(mu)
-            self._changed = True
+    def update_many(self, stamps_ns: np.ndarray, mus: np.ndarray,
+                    after: Optional[Callable[[int], None]] = None) -> np.ndarray:
+        """
+        Feed a chunk of mu (K, n) at increasing stamps; return the estimates r (K, n).
 
-    def _accumulate(self, mu: np.ndarray) -> None:
-        self._level_sum = mu.copy() if self._level_sum is None else self._level_sum + mu
-        self._level_count += 1
+        ``after(k)`` is called once sample k is taken, with the observer in the
+        state a sample-by-sample run would have there (for predictions). The
+        rows are bit-identical to feeding the samples one at a time.
+        """
+        count = len(stamps_ns)
+        if count == 0:
+            return np.empty_like(mus)
+        stamps = stamps_ns.tolist()
+        rates = self._filter(stamps_ns, mus)
+        # |r| row by row with a fixed summation order (independent of the chunk length).
+        sizes = np.sqrt(np.matmul(rates[:, None, :], rates[:, :, None])[:, 0, 0]).tolist()
+        self._detect_many(stamps, mus, rates, sizes, after)
+        self.rate = rates[-1].copy()
+        self._last_mu, self._last_ns = mus[-1].copy(), stamps[-1]
+        self._fold()
+        self._run = None
+        return rates
+
+    def _filter(self, stamps_ns: np.ndarray, mus: np.ndarray) -> np.ndarray:
+        """
+        Run r_k = d_k r_{k-1} + (1 - d_k) (mu_k - mu_{k-1}) / dt_k, d_k = exp(-K dt_k).
+
+        The inputs are formed for the whole chunk; only the scalar recursion
+        loops, one column at a time. A sample without a usable predecessor
+        (the first, or a stamp not after the previous) keeps r: d = 1 and a
+        zero input. math.exp, not np.exp: numpy's SIMD exp may round
+        differently depending on the chunk length.
+        """
+        count, n = mus.shape
+        if count == 1:
+            return self._filter_one(int(stamps_ns[0]), mus)
+        previous = np.empty_like(stamps_ns)
+        previous[1:] = stamps_ns[:-1]
+        # Without a predecessor the first "previous" is the sample itself: invalid.
+        previous[0] = stamps_ns[0] if self._last_mu is None else self._last_ns
+        valid = stamps_ns > previous
+        steps = np.where(valid, (stamps_ns - previous) * 1e-9, 1.0)
+        decays = np.array(list(map(math.exp, (-self.bandwidth * steps).tolist())))
+        decays[~valid] = 1.0
+        gains = np.where(valid, 1.0 - decays, 0.0)
+        last_mu = mus[0] if self._last_mu is None else self._last_mu
+        differences = mus - np.concatenate((last_mu[None, :], mus[:-1]))
+        terms = (gains[:, None] * differences) / steps[:, None]
+        start = [0.0] * n if self.rate is None else self.rate.tolist()
+        decay_list = decays.tolist()
+        columns = []
+        for rate, column in zip(start, terms.T.tolist()):
+            out = []
+            append = out.append
+            for decay, term in zip(decay_list, column):
+                rate = decay * rate + term
+                append(rate)
+            columns.append(out)
+        return np.array(columns).T.copy()
+
+    def _filter_one(self, stamp: int, mus: np.ndarray) -> np.ndarray:
+        """Do :meth:`_filter` for one sample: the same operations, fewer numpy calls."""
+        rate = [0.0] * mus.shape[1] if self.rate is None else self.rate.tolist()
+        if self._last_mu is not None and stamp > self._last_ns:
+            dt = (stamp - self._last_ns) * 1e-9
+            decay = math.exp(-self.bandwidth * dt)
+            terms = ((1.0 - decay) * (mus[0] - self._last_mu) / dt).tolist()
+            rate = [decay * r + t for r, t in zip(rate, terms)]
+        else:
+            # No usable predecessor: d = 1 and a zero input, exactly as the chunked
+            # form computes them (down to the sign of a zero).
+            last_mu = mus[0] if self._last_mu is None else self._last_mu
+            terms = ((0.0 * (mus[0] - last_mu)) / 1.0).tolist()
+            rate = [1.0 * r + t for r, t in zip(rate, terms)]
+        return np.array([rate])
+
+    def _detect_many(self, stamps: list, mus: np.ndarray, rates: np.ndarray, sizes: list,
+                     after: Optional[Callable[[int], None]]) -> None:
+        """Start and end events sample by sample; quiet samples join the level."""
+        threshold, half, hold = self.threshold, 0.5 * self.threshold, self.hold
+        events = self.events
+        event = events[-1] if self.in_event else None
+        quiet_since = self._quiet_since
+        # Quiet rows are not summed here: rows run_start.. of this chunk join the
+        # level when _fold runs (when the level is read, and at the chunk's end).
+        self._run = mus
+        run_start = None if event is not None else 0
+        for k, size in enumerate(sizes):
+            stamp = stamps[k]
+            if event is None:
+                if size > threshold:
+                    self._run_start, self._run_stop = run_start, k
+                    level = self.level
+                    before = level if level is not None else \
+                        (mus[k - 1] if k else self._last_mu)
+                    event = MomentumEvent(stamp, mu_before=None if before is None
+                                          else before.copy(), peak_wrench=size)
+                    events.append(event)
+                    quiet_since = run_start = None
+            else:
+                if size > event.peak_wrench:
+                    event.peak_wrench = size
+                if size > half:
+                    quiet_since = None
+                else:
+                    if quiet_since is None:
+                        quiet_since = stamp
+                    if (stamp - quiet_since) * 1e-9 >= hold:
+                        event.end_ns = stamp
+                        event.mu_after = mus[k].copy()
+                        self._changed = True
+                        # The level restarts from this sample.
+                        self._level_sum, self._level_count = None, 0
+                        event = None
+                        run_start = k
+            if after is not None:
+                # Leave the observer as a one-by-one run would, for predictions.
+                self._run_start, self._run_stop = \
+                    (k + 1, k + 1) if run_start is None else (run_start, k + 1)
+                self._quiet_since = quiet_since
+                self.rate = rates[k]
+                self._last_mu, self._last_ns = mus[k], stamp
+                after(k)
+                if run_start is not None:
+                    run_start = self._run_start  # the level may have been folded
+        count = len(sizes)
+        self._run_start, self._run_stop = (count, count) if run_start is None \
+            else (run_start, count)
+        self._quiet_since = quiet_since
+
+    def _fold(self) -> None:
+        """Add the pending run of quiet rows to the level sum, in order."""
+        start, stop = self._run_start, self._run_stop
+        if stop <= start:
+            return
+        rows = self._run[start:stop]
+        total = self._level_sum
+        if total is None:
+            total, rows = rows[0].copy(), rows[1:]
+        if len(rows) == 1:
+            total = total + rows[0]
+        elif len(rows):
+            # accumulate adds row after row: the same sums as one sample at a time.
+            total = np.add.accumulate(np.concatenate((total[None, :], rows)), axis=0)[-1]
+        self._level_sum = total
+        self._level_count += stop - start
+        self._run_start = stop

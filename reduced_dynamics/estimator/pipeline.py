@@ -17,28 +17,39 @@ The estimator pipeline: samples in, momentum, shape state, drift and predictions
 
 One class serves the replay tool and the node. Per joint-state sample it pairs
 the shape with the base state at the same stamp (:mod:`.sync`), evaluates the
-metric once and computes mu (5.27), pi, qbar, qbar_dot, pbar (5.35), the drift
-twist I^-1 pi and the geometric phase -A qbar_dot; it updates the momentum
-observer (:mod:`.observer`), predicts with the reduced model at a set rate
+metric once and computes mu (5.27), pi, qbar, qbar_dot, pbar (5.35) and the
+drift twist I^-1 pi (:mod:`.kernel`); it updates the momentum observer
+(:mod:`.observer`), predicts with the reduced model at a set rate
 (:mod:`.prediction`) and reports diagnostics. Bad input is rejected with a
 reason and counted; it never raises.
+
+Work happens in two passes. Validation and synchronisation run per sample, in
+arrival order; synchronised samples collect in a chunk, which the vectorised
+kernel and the observer then process together. ``add_joint_state`` and
+``add_base_state`` close the chunk at every call (streaming, one sample);
+``add_samples`` closes it every few hundred samples (batched). A chunk is also
+closed where a diagnostics message is due, so that its counters are those a
+sample-by-sample run would report; the two paths give bit-identical outputs.
 """
 
 from __future__ import annotations
 
 from collections import Counter, deque
 from dataclasses import dataclass
+from itertools import chain
 import math
-from typing import Optional, Sequence, Union
+from typing import Iterable, Optional, Sequence, Union
 
 import numpy as np
 import pinocchio as pin
 
 from reduced_dynamics.estimator.config import EstimatorConfig
-from reduced_dynamics.estimator.cyclic import CYCLIC_OFF, CyclicView, resolve_cyclic_joints
+from reduced_dynamics.estimator.cyclic import (CYCLIC_OFF, CyclicColumns, CyclicView,
+                                               resolve_cyclic_joints)
+from reduced_dynamics.estimator.kernel import UpdateKernel
 from reduced_dynamics.estimator.observer import MomentumEvent, MomentumObserver
 from reduced_dynamics.estimator.prediction import Prediction, Predictor
-from reduced_dynamics.estimator.sync import BaseBuffer, BasePoint
+from reduced_dynamics.estimator.sync import BaseBuffer
 from reduced_dynamics.geometry.isotropy import isotropy_algebra
 from reduced_dynamics.messages.samples import (
     BaseStateSample, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample, JointStateSample,
@@ -47,6 +58,9 @@ from reduced_dynamics.reduction.second_stage import CyclicSplit
 from reduced_dynamics.robot.model import RobotModel
 
 NS = 1_000_000_000
+#: Synchronised samples per chunk of the batched path: enough to amortise the
+#: numpy calls, few enough that the stack of mass matrices stays in cache.
+CHUNK_BYTES = 512 * 1024
 
 
 @dataclass
@@ -68,17 +82,136 @@ class EstimatorOutput:
     cyclic_state: Optional[JointStateSample] = None
 
 
-class _Pending:
-    """A validated shape sample waiting for its base state."""
+class OutputChunk:
+    """
+    The outputs of one processed chunk, column-wise: row k is the k-th sample.
 
-    __slots__ = ('stamp_ns', 'qbar', 'qbar_dot', 'tau')
+    ``mu``, ``pi``, ``momentum_rate``, ``drift`` (K, n) in algebra coordinates;
+    ``qbar``, ``qbar_dot``, ``pbar`` (K, m); ``energy`` (K,); ``extras`` maps a
+    row to its prediction, prediction path and diagnostics, where there are any.
+    """
 
-    def __init__(self, stamp_ns: int, qbar: np.ndarray, qbar_dot: np.ndarray,
-                 tau: np.ndarray) -> None:
-        self.stamp_ns = stamp_ns
-        self.qbar = qbar
-        self.qbar_dot = qbar_dot
-        self.tau = tau
+    __slots__ = ('stamps_ns', 'mu', 'pi', 'momentum_rate', 'drift', 'qbar', 'qbar_dot',
+                 'pbar', 'energy', 'extras', 'cyclic', '_kernel', '_world', '_base',
+                 '_names')
+
+    def __init__(self, estimator: 'Estimator', stamps_ns: np.ndarray, mu: np.ndarray,
+                 pi: np.ndarray, rate: np.ndarray, drift: np.ndarray, qbar: np.ndarray,
+                 qbar_dot: np.ndarray, pbar: np.ndarray, energy: np.ndarray,
+                 extras: dict, cyclic: Optional[CyclicColumns] = None) -> None:
+        """
+        Hold the columns of a chunk (the arrays are owned by the chunk).
+
+        ``cyclic`` (second stage): the kept-shape and cyclic columns that replace
+        the shape state in :meth:`outputs`.
+        """
+        self.stamps_ns, self.mu, self.pi, self.momentum_rate = stamps_ns, mu, pi, rate
+        self.drift, self.qbar, self.qbar_dot, self.pbar = drift, qbar, qbar_dot, pbar
+        self.energy, self.extras = energy, extras
+        self._kernel = estimator.kernel
+        self._world = estimator.config.world_frame
+        self._base = estimator.robot.base_link
+        self._names = estimator.robot.shape_joint_names
+        self.cyclic = cyclic
+
+    def __len__(self) -> int:
+        """Return the number of samples."""
+        return len(self.stamps_ns)
+
+    def outputs(self) -> list[EstimatorOutput]:
+        """Return one :class:`EstimatorOutput` per row (message-ready samples)."""
+        kernel = self._kernel
+        # Rows of the chunk's own contiguous float64 arrays: the samples skip their
+        # validation (hot path).
+        momentum = kernel.wrenches(self.mu)
+        body = kernel.wrenches(self.pi)
+        rate = kernel.wrenches(self.momentum_rate)
+        drift = kernel.twists(self.drift)
+        world, base, names = self._world, self._base, self._names
+        wrench, twist, joint = WrenchSample, TwistSample, JointStateSample
+        extras = self.extras
+        out = []
+        cyclic = self.cyclic
+        shape_columns = (self.qbar, self.qbar_dot, self.pbar) if cyclic is None \
+            else (cyclic.qhat, cyclic.qhat_dot, cyclic.phat)
+        if cyclic is not None:
+            names = cyclic.kept_names
+        # Row views by iteration: cheaper than indexing each column per sample.
+        rows = zip(self.stamps_ns.tolist(), self.energy.tolist(), self.mu,
+                   momentum[:, :3], momentum[:, 3:], body[:, :3], body[:, 3:],
+                   *shape_columns, rate[:, :3], rate[:, 3:],
+                   drift[:, :3], drift[:, 3:])
+        for k, (stamp, energy, mu, force, torque, body_force, body_torque, qbar, qbar_dot,
+                pbar, rate_force, rate_torque, linear, angular) in enumerate(rows):
+            output = EstimatorOutput(
+                stamp,
+                trusted_sample(wrench, stamp, world, force, torque),
+                trusted_sample(wrench, stamp, base, body_force, body_torque),
+                trusted_sample(joint, stamp, '', names, qbar, qbar_dot, pbar),
+                trusted_sample(wrench, stamp, world, rate_force, rate_torque),
+                trusted_sample(twist, stamp, base, linear, angular),
+                mu, energy)
+            extra = extras.get(k) if extras else None
+            if extra:
+                output.prediction, output.prediction_path, output.diagnostics = extra
+            if cyclic is not None:
+                output.cyclic_state = cyclic.sample(k, stamp)
+            out.append(output)
+        return out
+
+
+class EstimatorBatch:
+    """The outputs of a call of :meth:`Estimator.add_samples`: a list of chunks."""
+
+    __slots__ = ('chunks',)
+
+    def __init__(self, chunks: list[OutputChunk]) -> None:
+        """Hold the processed chunks in order."""
+        self.chunks = chunks
+
+    def __len__(self) -> int:
+        """Return the number of processed samples."""
+        return sum(len(c) for c in self.chunks)
+
+    def outputs(self) -> list[EstimatorOutput]:
+        """Return the per-sample outputs, as the streaming calls would have."""
+        return [o for chunk in self.chunks for o in chunk.outputs()]
+
+    def column(self, name: str) -> np.ndarray:
+        """Return one column over all chunks, by name: ``'mu'``, ``'stamps_ns'``..."""
+        parts = [getattr(c, name) for c in self.chunks]
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+
+class _Chunk:
+    """
+    Synchronised samples waiting for the vectorised update.
+
+    Rows are tuples (stamp_ns, qbar, qbar_dot, tau, base row), like the pending
+    shape samples (stamp_ns, qbar, qbar_dot, tau): tuples, because one object
+    per sample is a measurable part of the per-sample cost.
+    """
+
+    __slots__ = ('rows', 'diagnose')
+
+    def __init__(self) -> None:
+        self.rows: list[tuple] = []
+        self.diagnose = False
+
+
+class _Identity:
+    """Name-mapping marker: the joint state lists the joints in model order."""
+
+
+_IDENTITY = _Identity()
+
+
+def _all_finite(*arrays: np.ndarray) -> bool:
+    """Return whether every entry is finite (the exact test behind a non-finite sum)."""
+    return all(bool(np.isfinite(array).all()) for array in arrays)
+
+
+Sample = Union[JointStateSample, BaseStateSample]
 
 
 class Estimator:
@@ -105,29 +238,47 @@ class Estimator:
             else None
         self.shape_names = self._cyclic_view.kept_names if self._cyclic_view \
             else robot.shape_joint_names
+        self._last_theta: Optional[np.ndarray] = None
+        self.kernel = UpdateKernel(robot)
         self.config = config or EstimatorConfig()
         self.use_odometry = use_odometry
         self.base_driven = robot.m == 0 if base_driven is None else base_driven
-        self.received: Counter = Counter()
+        # Inputs taken, by kind (see :attr:`received`): plain ints on the hot path.
+        self._received_joints = self._received_bases = 0
         self.rejected: Counter = Counter()
         self.last_rejection: Optional[str] = None
         self.processed = 0
         self.prediction_failures: Counter = Counter()
         self.first_stamp_ns: Optional[int] = None
         self._buffer = BaseBuffer()
-        self._pending: deque[_Pending] = deque()
+        self._pending: deque[tuple] = deque()
         self._last_joint_ns: Optional[int] = None
         self._last_base_ns: Optional[int] = None
-        self._held = _Pending(0, np.zeros(robot.m), np.zeros(robot.m), np.zeros(robot.m))
+        self._empty = np.zeros(0)
+        self._m = robot.m
+        self._zeros_m = np.zeros(robot.m)
+        self._held = (0, self._zeros_m, self._zeros_m, self._zeros_m)
         self._have_shape = robot.m == 0
         self._name_maps: dict[tuple[str, ...], object] = {}
         self._index = {name: i for i, name in enumerate(robot.shape_joint_names)}
+        self._floating = robot.base_joint_type == 'floating'
+        self._project_twists = self.kernel.projects_twists
         self._last_prediction_ns: Optional[int] = None
         self._last_diagnostics_ns: Optional[int] = None
-        self._period_counts: Counter = Counter()
+        # Inputs since the last diagnostics: joint states, base states, rejections
+        # (plain ints, not a Counter: they change on every sample).
+        self._period_joints = self._period_bases = self._period_rejected = 0
         self._mu_mean = np.zeros(robot.n)
         self._mu_m2 = np.zeros(robot.n)
-        self._last_output: Optional[EstimatorOutput] = None
+        self._last_mu: Optional[np.ndarray] = None
+        self._last_energy = 0.0
+        self._chunk = _Chunk()
+        self._chunk_limit = 1  # streaming; add_samples raises it
+        self._batch_limit = max(16, CHUNK_BYTES // (8 * robot.model.nv ** 2))
+        # Resolved samples in the open chunk when the last rejection was counted
+        # (a failed prediction must not hide a later rejection, nor the reverse).
+        self._rejected_at = 0
+        self._done: list[OutputChunk] = []
         self.apply_config(self.config)
 
     # --- configuration -------------------------------------------------------------
@@ -135,6 +286,9 @@ class Estimator:
         """Adopt new settings (validated by EstimatorConfig); the state is kept."""
         old_observer = getattr(self, 'observer', None)
         self.config = config
+        self._tolerance_ns = int(config.sync_tolerance * NS)
+        rate = config.diagnostics_rate
+        self._diagnostics_period_ns = int(NS / rate) if rate > 0.0 else None
         self.observer = MomentumObserver(config.observer_bandwidth, config.event_threshold,
                                          config.event_hold)
         if old_observer is not None:
@@ -149,6 +303,16 @@ class Estimator:
             self.predictor.finished = old_predictor.finished
             self.predictor.made = old_predictor.made
 
+    @property
+    def received(self) -> Counter:
+        """Return how many joint-state and base samples came in (a fresh Counter)."""
+        counts = Counter()
+        if self._received_joints:
+            counts['joint_states'] = self._received_joints
+        if self._received_bases:
+            counts['base'] = self._received_bases
+        return counts
+
     # --- input -----------------------------------------------------------------------
     def reject(self, reason: str, detail: str) -> list[EstimatorOutput]:
         """Count an input rejected before it reached the pipeline (e.g. malformed)."""
@@ -156,39 +320,116 @@ class Estimator:
 
     def _reject(self, reason: str, detail: str) -> list[EstimatorOutput]:
         self.rejected[reason] += 1
-        self._period_counts['rejected'] += 1
+        self._period_rejected += 1
         self.last_rejection = f'{reason}: {detail}'
+        self._rejected_at = len(self._chunk.rows)
         return []
 
     def add_joint_state(self, sample: JointStateSample) -> list[EstimatorOutput]:
         """Take a joint-state sample; return the outputs that became ready."""
-        self.received['joint_states'] += 1
-        self._period_counts['joint_states'] += 1
-        mapping = self._name_maps.get(sample.names)
+        self._take_joint(sample)
+        return self._close_streaming()
+
+    def add_base_state(self, sample: BaseStateSample) -> list[EstimatorOutput]:
+        """Take a base pose (with twist for Odometry); return outputs that became ready."""
+        self._take_base(sample)
+        return self._close_streaming()
+
+    def add_samples(self, samples: Iterable[Sample]) -> EstimatorBatch:
+        """
+        Take joint-state and base samples in arrival order (the batched path).
+
+        Equivalent to calling :meth:`add_joint_state` / :meth:`add_base_state`
+        on each in turn, with the same outputs, rejections and events, but the
+        update is vectorised over chunks of samples.
+        """
+        take_joint, take_base = self._take_joint, self._take_base
+        self._chunk_limit = self._batch_limit
+        try:
+            for sample in samples:
+                if sample.__class__ is JointStateSample or isinstance(sample, JointStateSample):
+                    take_joint(sample)
+                else:
+                    take_base(sample)
+            self._process_chunk()
+        finally:
+            self._chunk_limit = 1
+        return self._take_done()
+
+    def flush(self) -> list[EstimatorOutput]:
+        """Process what is still waiting (end of input) and close open predictions."""
+        return self.flush_batch().outputs()
+
+    def flush_batch(self) -> EstimatorBatch:
+        """Like :meth:`flush`, returning the outputs column-wise."""
+        self._drain(final=True)
+        self._process_chunk()
+        self.predictor.finish()
+        return self._take_done()
+
+    def _close_streaming(self) -> list[EstimatorOutput]:
+        self._process_chunk()
+        done = self._done
+        if not done:
+            return []
+        self._done = []
+        return done[0].outputs() if len(done) == 1 else [o for c in done for o in c.outputs()]
+
+    def _take_done(self) -> EstimatorBatch:
+        done, self._done = self._done, []
+        return EstimatorBatch(done)
+
+    def _take_joint(self, sample: JointStateSample) -> None:
+        # Hot path (every message): locals over repeated attribute lookups.
+        self._received_joints += 1
+        self._period_joints += 1
+        names = sample.names
+        mapping = self._name_maps.get(names)
         if mapping is None:
-            mapping = self._map_names(sample.names)
-            self._name_maps[sample.names] = mapping
-        if isinstance(mapping, str):
+            mapping = self._name_maps[names] = self._map_names(names)
+        if mapping.__class__ is str:
             reason, _, detail = mapping.partition(':')
-            return self._reject(reason, detail.strip())
-        if sample.velocity.size == 0 and self.robot.m:
-            return self._reject('missing_velocity', 'joint state has no velocities')
-        qbar = sample.position[mapping]
-        qbar_dot = sample.velocity[mapping] if self.robot.m else np.zeros(0)
-        tau = sample.effort[mapping] if sample.effort.size else np.zeros(self.robot.m)
-        if not (np.isfinite(qbar).all() and np.isfinite(qbar_dot).all()
-                and np.isfinite(tau).all()):
-            return self._reject('non_finite', f'NaN or inf in joint state at {sample.stamp_ns}')
-        if self._last_joint_ns is not None and sample.stamp_ns <= self._last_joint_ns:
-            return self._reject('stamp_backwards', f'joint state stamp {sample.stamp_ns} <= '
-                                                   f'previous {self._last_joint_ns}')
-        self._last_joint_ns = sample.stamp_ns
-        pending = _Pending(sample.stamp_ns, qbar, qbar_dot, tau)
+            self._reject(reason, detail.strip())
+            return
+        m = self._m
+        stamp = sample.stamp_ns
+        position, velocity, effort = sample.position, sample.velocity, sample.effort
+        if m and not velocity.size:
+            self._reject('missing_velocity', 'joint state has no velocities')
+            return
+        # Names match the model one to one, so checking whole arrays is checking qbar.
+        # A finite sum proves every entry finite; otherwise the exact test decides
+        # (finite values can overflow the sum).
+        if m and not math.isfinite(sum(position.tolist()) + sum(velocity.tolist())
+                                   + sum(effort.tolist())) \
+                and not _all_finite(position, velocity, effort):
+            self._reject('non_finite', f'NaN or inf in joint state at {stamp}')
+            return
+        last = self._last_joint_ns
+        if last is not None and stamp <= last:
+            self._reject('stamp_backwards', f'joint state stamp {stamp} <= previous {last}')
+            return
+        self._last_joint_ns = stamp
+        if not m:
+            empty = self._empty
+            pending = (stamp, empty, empty, empty)
+        elif mapping is _IDENTITY:
+            # Kept by reference: the chunk copies them when it stacks its rows.
+            pending = (stamp, position, velocity, effort if effort.size else self._zeros_m)
+        else:
+            pending = (stamp, position[mapping], velocity[mapping],
+                       effort[mapping] if effort.size else self._zeros_m)
         if self.base_driven:
             self._held, self._have_shape = pending, True
-            return []
-        self._pending.append(pending)
-        return self._drain(final=False)
+            return
+        waiting = self._pending
+        waiting.append(pending)
+        if len(waiting) == 1:
+            latest = self._buffer.latest_ns
+            if latest is None or latest < stamp:
+                # Alone and newer than every base state: it waits (as _drain would find).
+                return
+        self._drain(final=False)
 
     def _map_names(self, names: tuple[str, ...]):
         if len(set(names)) != len(names):
@@ -199,150 +440,205 @@ class Estimator:
         missing = [n for n in self.robot.shape_joint_names if n not in names]
         if missing:
             return f'missing_joint: {", ".join(missing[:5])} absent from the joint state'
+        if names == self.robot.shape_joint_names:
+            return _IDENTITY
         order = {n: i for i, n in enumerate(names)}
         return np.array([order[n] for n in self.robot.shape_joint_names], dtype=int)
 
-    def add_base_state(self, sample: BaseStateSample) -> list[EstimatorOutput]:
-        """Take a base pose (with twist for Odometry); return outputs that became ready."""
-        self.received['base'] += 1
-        self._period_counts['base'] += 1
-        values = (sample.position, sample.orientation_xyzw, sample.twist_linear,
-                  sample.twist_angular) if sample.has_twist \
-            else (sample.position, sample.orientation_xyzw)
-        if not np.isfinite(np.concatenate(values)).all():
-            return self._reject('non_finite_base', f'NaN or inf in base state at '
-                                                   f'{sample.stamp_ns}')
-        x, y, z, w = sample.orientation_xyzw.tolist()
+    def _take_base(self, sample: BaseStateSample) -> None:
+        # Hot path (every message): plain floats and locals, few numpy calls.
+        self._received_bases += 1
+        self._period_bases += 1
+        stamp = sample.stamp_ns
+        row = sample.position.tolist()
+        x, y, z, w = quaternion = sample.orientation_xyzw.tolist()
+        linear = sample.twist_linear
+        twist = [] if linear is None else linear.tolist() + sample.twist_angular.tolist()
+        if not math.isfinite(sum(row) + sum(quaternion) + sum(twist)) \
+                and not all(map(math.isfinite, row + quaternion + twist)):
+            self._reject('non_finite_base', f'NaN or inf in base state at {stamp}')
+            return
         norm = math.sqrt(x * x + y * y + z * z + w * w)
         if norm < 1e-6:
-            return self._reject('invalid_quaternion', f'zero quaternion at {sample.stamp_ns}')
-        if self.use_odometry and not sample.has_twist:
-            return self._reject('missing_twist', 'base sample without twist (use pose mode)')
-        if self._last_base_ns is not None and sample.stamp_ns <= self._last_base_ns:
-            return self._reject('base_stamp_backwards', f'base stamp {sample.stamp_ns} <= '
-                                                        f'previous {self._last_base_ns}')
-        self._last_base_ns = sample.stamp_ns
-        quat = pin.Quaternion(w / norm, x / norm, y / norm, z / norm)
-        pose = self.robot.project_pose(pin.SE3(quat.toRotationMatrix(), sample.position))
-        twist = None
-        if self.use_odometry:
-            twist6 = np.concatenate([sample.twist_linear, sample.twist_angular])
-            twist = self.robot.group.twist(self.robot.group.coordinates(twist6))
-        self._buffer.append(BasePoint(sample.stamp_ns, pose, twist))
+            self._reject('invalid_quaternion', f'zero quaternion at {stamp}')
+            return
+        odometry = self.use_odometry
+        if odometry and linear is None:
+            self._reject('missing_twist', 'base sample without twist (use pose mode)')
+            return
+        last = self._last_base_ns
+        if last is not None and stamp <= last:
+            self._reject('base_stamp_backwards', f'base stamp {stamp} <= previous {last}')
+            return
+        self._last_base_ns = stamp
+        row += (x / norm, y / norm, z / norm, w / norm)
+        if not self._floating:
+            pose = self.robot.project_pose(pin.XYZQUATToSE3(np.array(row)))
+            row = pin.SE3ToXYZQUAT(pose).tolist()
+        if odometry:
+            if self._project_twists:
+                # Only the part of the twist inside the base group's algebra is kept.
+                kernel = self.kernel
+                twist = kernel.twists(kernel.coordinates(np.array([twist])))[0].tolist()
+            row += twist
+        self._buffer.append(stamp, row)
+        pending = self._pending
         if self.base_driven:
-            self._pending.append(_Pending(sample.stamp_ns, self._held.qbar,
-                                          self._held.qbar_dot, self._held.tau))
-        return self._drain(final=False)
-
-    def flush(self) -> list[EstimatorOutput]:
-        """Process what is still waiting (end of input) and close open predictions."""
-        outputs = self._drain(final=True)
-        self.predictor.finish()
-        return outputs
+            pending.append((stamp,) + self._held[1:])
+        if odometry and len(pending) == 1 and pending[0][0] == stamp:
+            # The one waiting shape sample has this very stamp (simulators, drivers on
+            # one clock tick): _drain would find gap 0, ready, and this row. Skip it.
+            self._resolve(pending.popleft() + (row,))
+            return
+        self._drain(final=False)
 
     # --- processing ------------------------------------------------------------------
-    def _drain(self, final: bool) -> list[EstimatorOutput]:
-        outputs = []
-        tolerance_ns = int(self.config.sync_tolerance * NS)
+    def _drain(self, final: bool) -> None:
+        pending = self._pending
+        if not pending:
+            return
+        buffer, tolerance_ns = self._buffer, self._tolerance_ns
         needs_successor = not self.use_odometry
-        while self._pending:
-            head = self._pending[0]
-            gap = self._buffer.nearest_gap_ns(head.stamp_ns)
-            ready = self._buffer.ready(head.stamp_ns, needs_successor)
-            latest = self._buffer.latest_ns
+        while pending:
+            head = pending[0]
+            stamp = head[0]
+            gap, ready, index = buffer.status(stamp, needs_successor)
             if not ready and not final:
-                newest_joint = self._last_joint_ns or head.stamp_ns
-                waited = max(newest_joint, latest or 0) - head.stamp_ns
+                newest_joint = self._last_joint_ns or stamp
+                waited = max(newest_joint, buffer.latest_ns or 0) - stamp
                 if waited <= 4 * tolerance_ns:
                     break
-            self._pending.popleft()
+            pending.popleft()
             if gap is None:
-                self._reject('no_base_state', f'no base pose near {head.stamp_ns}')
+                self._reject('no_base_state', f'no base pose near {stamp}')
             elif gap > tolerance_ns:
-                detail = f'nearest base pose {gap * 1e-9:.3f} s from joint state {head.stamp_ns}'
+                detail = f'nearest base pose {gap * 1e-9:.3f} s from joint state {stamp}'
                 self._reject('stale_base_state', detail)
             else:
-                outputs.append(self._process(head))
-        return outputs
+                self._resolve(head + (buffer.query(stamp, index),))
 
-    def _process(self, sample: _Pending) -> EstimatorOutput:
-        robot, group, config = self.robot, self.robot.group, self.config
-        base = self._buffer.query(sample.stamp_ns)
-        g = base.pose
-        xi = group.coordinates(base.twist)
-        qbar, qbar_dot = sample.qbar, sample.qbar_dot
-        blocks = robot.metric_blocks(qbar)
-        n = robot.n
-        velocity = np.concatenate((xi, qbar_dot))
-        momentum = blocks.mass_matrix @ velocity  # [pi; p] = M [xi; qbar_dot]
-        pi = momentum[:n]
-        mu = group.Ad(g.inverse()).T @ pi
-        pbar = blocks.reduced_metric @ qbar_dot
-        drift = blocks.solve_locked(pi)
-        energy = 0.5 * float(velocity @ momentum)
-        if robot.has_potential:
-            energy += robot.potential_energy(qbar)
-        rate = self.observer.update(sample.stamp_ns, mu)
-        self.processed += 1
-        if self.first_stamp_ns is None:
-            self.first_stamp_ns = sample.stamp_ns
-        delta = mu - self._mu_mean  # Welford: no cancellation for a near-constant mu
-        self._mu_mean += delta / self.processed
-        self._mu_m2 += delta * (mu - self._mu_mean)
-        stamp, world, base_frame = sample.stamp_ns, config.world_frame, robot.base_link
-        # One product lifts mu, pi and the rate to 6-D; rows are contiguous (3,) halves.
-        wrenches = group.dual_to_wrench(np.stack((mu, pi, rate), axis=1)).T.copy()
-        drift6 = group.twist(drift)
-        # Every array below is a fresh contiguous float64 of the right shape, so
-        # the samples skip their constructors' validation (the hot path).
-        output = EstimatorOutput(
-            stamp_ns=stamp,
-            momentum=trusted_sample(WrenchSample, stamp, world, wrenches[0, :3],
-                                    wrenches[0, 3:]),
-            body_momentum=trusted_sample(WrenchSample, stamp, base_frame, wrenches[1, :3],
-                                         wrenches[1, 3:]),
-            shape_state=trusted_sample(JointStateSample, stamp, '', robot.shape_joint_names,
-                                       qbar, qbar_dot, pbar),
-            momentum_rate=trusted_sample(WrenchSample, stamp, world, wrenches[2, :3],
-                                         wrenches[2, 3:]),
-            drift_twist=trusted_sample(TwistSample, stamp, base_frame, drift6[:3], drift6[3:]),
-            mu=mu, energy=energy)
+    def _resolve(self, row: tuple) -> None:
+        """Queue a synchronised sample for the update (processing it where it must be)."""
+        chunk = self._chunk
+        chunk.rows.append(row)
+        period = self._diagnostics_period_ns
+        if period is not None:
+            # Diagnostics report the counters at their sample: close the chunk there.
+            last = self._last_diagnostics_ns
+            if last is None:
+                self._last_diagnostics_ns = row[0]
+            elif row[0] - last >= period:
+                chunk.diagnose = True
+                self._process_chunk()
+                return
+        if len(chunk.rows) >= self._chunk_limit:
+            self._process_chunk()
+
+    def _process_chunk(self) -> None:
+        chunk = self._chunk
+        count = len(chunk.rows)
+        if not count:
+            return
+        # A new chunk first: if the update raises, these samples are lost, not retried.
+        self._chunk = _Chunk()
+        rejected_at, self._rejected_at = self._rejected_at, 0
+        m = self.robot.m
+        stamp_list, qbar, qbar_dot, taus, bases = zip(*chunk.rows)
+        stamps = np.array(stamp_list, dtype=np.int64)
+        # The cheapest ways to stack these rows (arrays; lists of 13 floats).
+        qbar = np.concatenate(qbar).reshape(count, m)
+        qbar_dot = np.concatenate(qbar_dot).reshape(count, m)
+        bases = np.fromiter(chain.from_iterable(bases), float, count * 13).reshape(count, 13)
+        result = self.kernel.evaluate(qbar, qbar_dot, bases)
+        mu = result.mu
+        extras: dict = {}
+        after = None
+        cyclic = None
         if self._cyclic_view is not None:
-            output.shape_state, output.cyclic_state = self._cyclic_view.samples(
-                stamp, blocks.mass_matrix, momentum, qbar, qbar_dot)
-        self.predictor.compare(stamp, qbar, g)
-        if self._prediction_due(stamp):
-            self._predict(output, g, sample)
-        if self._diagnostics_due(stamp):
-            output.diagnostics = self.diagnostics(stamp)
-        self._last_output = output
-        return output
+            cyclic = self._cyclic_view.columns(result.mass, result.xi, qbar, qbar_dot)
+            self._last_theta = cyclic.theta[-1]
+        if self.predictor.active or self._prediction_enabled():
+            after = self._per_sample(stamp_list, qbar, qbar_dot, taus, result, extras,
+                                     rejected_at, cyclic)
+        rate = self.observer.update_many(stamps, mu, after)
+        if self.first_stamp_ns is None:
+            self.first_stamp_ns = stamp_list[0]
+        self._accumulate_statistics(mu)
+        self._last_mu, self._last_energy = mu[-1], float(result.energy[-1])
+        if chunk.diagnose:
+            stamp = stamp_list[-1]
+            previous = extras.get(count - 1, (None, None, None))
+            extras[count - 1] = previous[:2] + (self.diagnostics(stamp),)
+        self._done.append(OutputChunk(self, stamps, mu, result.pi, rate, result.drift, qbar,
+                                      qbar_dot, result.pbar, result.energy, extras, cyclic))
+
+    def _accumulate_statistics(self, mu: np.ndarray) -> None:
+        """Update the running mean and squared deviations of mu (Welford; Chan et al.)."""
+        count = len(mu)
+        before = self.processed
+        self.processed = total = before + count
+        if count == 1:
+            # No cancellation for a near-constant mu.
+            delta = mu[0] - self._mu_mean
+            self._mu_mean += delta / total
+            self._mu_m2 += delta * (mu[0] - self._mu_mean)
+            return
+        mean = mu.mean(axis=0)
+        m2 = np.square(mu - mean).sum(axis=0)
+        delta = mean - self._mu_mean
+        self._mu_mean += delta * (count / total)
+        self._mu_m2 += m2 + np.square(delta) * (before * count / total)
+
+    def _per_sample(self, stamp_list: tuple, qbar: np.ndarray, qbar_dot: np.ndarray,
+                    taus: tuple, result, extras: dict, rejected_at: int,
+                    cyclic: Optional[CyclicColumns] = None):
+        """Return the per-sample step (comparison, prediction) run inside the observer loop."""
+        predictor = self.predictor
+
+        def after(k: int) -> None:
+            stamp = stamp_list[k]
+            g = None
+            if predictor.active:
+                g = pin.SE3(result.rotation[k], result.translation[k])
+                predictor.compare(stamp, qbar[k], g)
+            if self._prediction_due(stamp):
+                if g is None:
+                    g = pin.SE3(result.rotation[k], result.translation[k])
+                messages = self._predict(stamp, g, qbar[k], qbar_dot[k], taus[k],
+                                         k >= rejected_at,
+                                         None if cyclic is None else cyclic.theta[k])
+                if messages is not None:
+                    extras[k] = messages + (None,)
+        return after
+
+    def _prediction_enabled(self) -> bool:
+        config = self.config
+        return config.prediction_rate > 0.0 and config.prediction_horizon > 0.0 \
+            and (self.robot.m > 0 or self.robot.n > 0)
 
     def _prediction_due(self, stamp: int) -> bool:
-        rate = self.config.prediction_rate
-        if rate <= 0.0 or self.config.prediction_horizon <= 0.0:
+        if not self._prediction_enabled():
             return False
-        if self.observer.in_event or self.observer.level is None:
-            return False
-        if self.robot.m == 0 and self.robot.n == 0:
+        if self.observer.in_event or not self.observer.has_level:
             return False
         last = self._last_prediction_ns
-        return last is None or stamp - last >= int(NS / rate) - 1
+        return last is None or stamp - last >= int(NS / self.config.prediction_rate) - 1
 
-    def _predict(self, output: EstimatorOutput, g: pin.SE3, sample: _Pending) -> None:
-        self._last_prediction_ns = sample.stamp_ns
+    def _predict(self, stamp: int, g: pin.SE3, qbar: np.ndarray, qbar_dot: np.ndarray,
+                 tau: np.ndarray, report: bool, theta: Optional[np.ndarray] = None
+                 ) -> Optional[tuple[ShapePrediction, PosePath]]:
+        self._last_prediction_ns = stamp
         self.observer.take_level_change()
         try:
-            theta = None if output.cyclic_state is None else output.cyclic_state.effort
-            prediction = self.predictor.predict(sample.stamp_ns, g, sample.qbar,
-                                                sample.qbar_dot, self.observer.level,
-                                                sample.tau, theta)
+            prediction = self.predictor.predict(stamp, g, qbar, qbar_dot, self.observer.level,
+                                                tau, theta)
         except (RuntimeError, ValueError, ArithmeticError, np.linalg.LinAlgError) as error:
             # A failed prediction (e.g. a singular chart) must not stop the estimates.
             self.prediction_failures[type(error).__name__] += 1
-            self.last_rejection = f'prediction failed: {error}'
-            return
-        output.prediction, output.prediction_path = self._prediction_messages(prediction)
+            if report:
+                self.last_rejection = f'prediction failed: {error}'
+            return None
+        return self._prediction_messages(prediction)
 
     def _prediction_messages(self, prediction: Prediction) -> tuple[ShapePrediction, PosePath]:
         offsets = np.round(prediction.times * NS).astype(np.int64)
@@ -353,36 +649,27 @@ class Estimator:
                         prediction.start_ns + offsets, prediction.poses[:, :3, 3], quats)
         return shape, path
 
-    def _diagnostics_due(self, stamp: int) -> bool:
-        rate = self.config.diagnostics_rate
-        if rate <= 0.0:
-            return False
-        last = self._last_diagnostics_ns
-        if last is None:
-            self._last_diagnostics_ns = stamp
-            return False
-        return stamp - last >= int(NS / rate)
-
     # --- reporting -------------------------------------------------------------------
     def diagnostics(self, stamp_ns: int) -> Diagnostics:
         """Return the estimator's status (and reset the per-period rates)."""
         period = max((stamp_ns - (self._last_diagnostics_ns or stamp_ns)) * 1e-9, 1e-9)
         self._last_diagnostics_ns = stamp_ns
-        counts, self._period_counts = self._period_counts, Counter()
-        inputs = {'joint_state_rate_hz': f'{counts["joint_states"] / period:.1f}',
-                  'base_rate_hz': f'{counts["base"] / period:.1f}',
+        joints, bases, rejected = \
+            self._period_joints, self._period_bases, self._period_rejected
+        self._period_joints = self._period_bases = self._period_rejected = 0
+        inputs = {'joint_state_rate_hz': f'{joints / period:.1f}',
+                  'base_rate_hz': f'{bases / period:.1f}',
                   'received_joint_states': str(self.received['joint_states']),
                   'received_base': str(self.received['base']),
                   'processed': str(self.processed),
                   'rejected_total': str(sum(self.rejected.values()))}
         inputs.update({f'rejected_{k}': str(v) for k, v in sorted(self.rejected.items())})
-        level = DIAG_WARN if counts['rejected'] else DIAG_OK
-        message = self.last_rejection if counts['rejected'] else 'inputs nominal'
+        level = DIAG_WARN if rejected else DIAG_OK
+        message = self.last_rejection if rejected else 'inputs nominal'
         statuses = [DiagnosticStatusSample(level, 'reduced_dynamics: inputs', message or '',
                                            self.robot.model.name, inputs)]
-        out = self._last_output
-        if out is not None:
-            mu = out.mu
+        if self._last_mu is not None:
+            mu = self._last_mu
             iso = isotropy_algebra(self.robot.group, mu)
             wrench = float(np.linalg.norm(self.observer.rate))
             in_event = self.observer.in_event
@@ -395,8 +682,8 @@ class Estimator:
                  'isotropy_dim': str(iso.dim),
                  'external_wrench_norm': f'{wrench:.6g}',
                  'events': str(len(self.observer.events)),
-                 'kinetic_plus_potential_energy': f'{out.energy:.9g}',
-                 **self._cyclic_diagnostics(out)}))
+                 'kinetic_plus_potential_energy': f'{self._last_energy:.9g}',
+                 **self._cyclic_diagnostics()}))
         residual = self.predictor.last_residual
         statuses.append(DiagnosticStatusSample(
             DIAG_OK, 'reduced_dynamics: prediction',
@@ -407,13 +694,14 @@ class Estimator:
              'horizon_s': f'{self.config.prediction_horizon:g}'}))
         return Diagnostics(stamp_ns, statuses)
 
-    def _cyclic_diagnostics(self, out: EstimatorOutput) -> dict[str, str]:
+    def _cyclic_diagnostics(self) -> dict[str, str]:
         """Second-stage key-values: the cyclic joints and their momenta theta."""
-        if out.cyclic_state is None:
+        if self._cyclic_view is None:
             return {'second_stage': 'off'}
+        theta = self._last_theta
         return {'second_stage': 'on (Theorem 57)',
-                'cyclic_joints': ' '.join(out.cyclic_state.names),
-                'theta': ' '.join(f'{v:.6g}' for v in out.cyclic_state.effort)}
+                'cyclic_joints': ' '.join(self.cyclic_joints),
+                'theta': 'n/a' if theta is None else ' '.join(f'{v:.6g}' for v in theta)}
 
     @property
     def events(self) -> list[MomentumEvent]:

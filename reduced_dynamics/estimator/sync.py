@@ -26,110 +26,163 @@ from __future__ import annotations
 
 from bisect import bisect_left
 from collections import deque
-from typing import NamedTuple, Optional
+from typing import Optional, Sequence
 
 import numpy as np
 import pinocchio as pin
 
 
-class BasePoint(NamedTuple):
-    """A validated base sample: stamp, pose, body twist (None without Odometry)."""
+class BasePoint:
+    """
+    A held base sample as the interpolation sees it: stamp, row and ``pin.SE3`` pose.
 
-    stamp_ns: int
-    pose: pin.SE3
-    twist: Optional[np.ndarray]
+    ``row`` is pose7 (translation, unit quaternion x, y, z, w) then, with
+    Odometry, the body twist (linear first).
+    """
+
+    __slots__ = ('stamp_ns', 'row', 'pose')
+
+    def __init__(self, stamp_ns: int, row: Sequence[float], pose: pin.SE3) -> None:
+        """Hold a sample and its pose."""
+        self.stamp_ns = stamp_ns
+        self.row = row
+        self.pose = pose
+
+    @property
+    def pose7(self) -> np.ndarray:
+        """Return translation and quaternion (x, y, z, w)."""
+        return np.array(self.row[:7])
+
+    @property
+    def twist(self) -> Optional[np.ndarray]:
+        """Return the body twist, or None without Odometry."""
+        return np.array(self.row[7:]) if len(self.row) > 7 else None
 
 
-class BaseQuery(NamedTuple):
-    """Result of a lookup: pose and body twist (6-D, linear first) at a stamp."""
-
-    pose: pin.SE3
-    twist: np.ndarray
+def _row(pose: pin.SE3, twist: np.ndarray) -> np.ndarray:
+    return np.concatenate((pin.SE3ToXYZQUAT(pose), twist))
 
 
 class BaseBuffer:
-    """A short history of base samples, strictly increasing in stamp."""
+    """
+    A short history of base samples, strictly increasing in stamp.
+
+    Samples are held as rows of plain floats (what the update stacks for a whole
+    chunk); a ``pin.SE3`` is built, once, only when an interpolation needs it.
+    """
 
     def __init__(self, keep: int = 64) -> None:
         """Keep at most ``keep`` samples."""
-        self._points: deque[BasePoint] = deque(maxlen=keep)
+        self._keep = keep
+        self._rows: deque[Sequence[float]] = deque(maxlen=keep)
         self._stamps: deque[int] = deque(maxlen=keep)
+        self._poses: dict[int, pin.SE3] = {}
+        self._around: dict[int, tuple] = {}
 
     def __len__(self) -> int:
         """Return the number of samples held."""
-        return len(self._points)
+        return len(self._rows)
 
     @property
     def latest_ns(self) -> Optional[int]:
         """Return the newest stamp, or None when empty."""
         return self._stamps[-1] if self._stamps else None
 
-    def append(self, point: BasePoint) -> None:
-        """Add a sample newer than every held one."""
-        self._points.append(point)
-        self._stamps.append(point.stamp_ns)
+    def append(self, stamp_ns: int, row: Sequence[float]) -> None:
+        """Add a sample newer than every held one: 7 values (pose) or 13 (with twist)."""
+        self._rows.append(row)
+        self._stamps.append(stamp_ns)
+
+    def point(self, index: int) -> BasePoint:
+        """Return held sample ``index`` with its pose (cached by stamp)."""
+        stamp, row = self._stamps[index], self._rows[index]
+        pose = self._poses.get(stamp)
+        if pose is None:
+            if len(self._poses) >= 2 * self._keep:
+                self._poses.clear()  # older poses are no longer held anyway
+            pose = self._poses[stamp] = pin.XYZQUATToSE3(row[:7])
+        return BasePoint(stamp, row, pose)
+
+    def status(self, stamp_ns: int,
+               needs_successor: bool) -> tuple[Optional[int], bool, int]:
+        """
+        Return the nearest-stamp distance (None when empty), :meth:`ready` and an index.
+
+        One search serves all three; pass the index on to :meth:`query`.
+        """
+        stamps = self._stamps
+        if not stamps:
+            return None, False, 0
+        index = bisect_left(stamps, stamp_ns)
+        count = len(stamps)
+        if index == 0:
+            gap = stamps[0] - stamp_ns
+        elif index == count:
+            gap = stamp_ns - stamps[-1]
+        else:
+            gap = min(stamp_ns - stamps[index - 1], stamps[index] - stamp_ns)
+        latest = stamps[-1]
+        if not needs_successor:
+            return gap, latest >= stamp_ns, index
+        # Differentiation uses three samples; at the start of a stream wait for them.
+        return gap, latest > stamp_ns and count >= 3, index
 
     def nearest_gap_ns(self, stamp_ns: int) -> Optional[int]:
         """Return the distance to the nearest held stamp (None when empty)."""
-        if not self._stamps:
-            return None
-        index = bisect_left(self._stamps, stamp_ns)
-        gaps = [abs(self._stamps[i] - stamp_ns) for i in (index - 1, index)
-                if 0 <= i < len(self._stamps)]
-        return min(gaps)
+        return self.status(stamp_ns, False)[0]
 
     def ready(self, stamp_ns: int, needs_successor: bool) -> bool:
         """Return whether a lookup at ``stamp_ns`` has all the samples it will use."""
-        latest = self.latest_ns
-        if latest is None:
-            return False
-        if not needs_successor:
-            return latest >= stamp_ns
-        # Differentiation uses three samples; at the start of a stream wait for them.
-        return latest > stamp_ns and len(self._stamps) >= 3
+        return self.status(stamp_ns, needs_successor)[1]
 
-    def query(self, stamp_ns: int) -> BaseQuery:
-        """Return pose and twist at ``stamp_ns`` (the buffer must not be empty)."""
-        points, stamps = self._points, self._stamps
-        index = bisect_left(stamps, stamp_ns)
-        if index < len(stamps) and stamps[index] == stamp_ns and points[index].twist is not None:
-            return BaseQuery(points[index].pose, points[index].twist)
-        if points[0].twist is not None:
+    def query(self, stamp_ns: int, index: Optional[int] = None) -> Sequence[float]:
+        """
+        Return pose7 and body twist at ``stamp_ns`` as one row of 13 values.
+
+        The buffer must not be empty; ``index`` is the one :meth:`status` gave
+        (the buffer unchanged since). At a held stamp with Odometry the held row
+        itself is returned: do not modify it.
+        """
+        rows, stamps = self._rows, self._stamps
+        if index is None:
+            index = bisect_left(stamps, stamp_ns)
+        if index < len(stamps) and stamps[index] == stamp_ns and len(rows[index]) > 7:
+            return rows[index]
+        if len(rows[0]) > 7:
             return self._interpolate(index, stamp_ns)
         return self._differentiate(index, stamp_ns)
 
-    def _interpolate(self, index: int, stamp_ns: int) -> BaseQuery:
-        points = self._points
-        if index <= 0 or index >= len(points):
-            edge = points[0] if index <= 0 else points[-1]
+    def _interpolate(self, index: int, stamp_ns: int) -> np.ndarray:
+        count = len(self._rows)
+        if index <= 0 or index >= count:
+            edge = self.point(0 if index <= 0 else count - 1)
             dt = (stamp_ns - edge.stamp_ns) * 1e-9
-            return BaseQuery(edge.pose * pin.exp6(edge.twist * dt), edge.twist)
-        a, b = points[index - 1], points[index]
+            return _row(edge.pose * pin.exp6(edge.twist * dt), edge.twist)
+        a, b = self.point(index - 1), self.point(index)
         s = (stamp_ns - a.stamp_ns) / (b.stamp_ns - a.stamp_ns)
-        delta = pin.log6(a.pose.inverse() * b.pose).vector
-        return BaseQuery(a.pose * pin.exp6(s * delta), (1 - s) * a.twist + s * b.twist)
+        # Along the geodesic a exp(s log(a^-1 b)): one Pinocchio call. The twist
+        # linearly, in plain floats (13-value rows throughout).
+        pose = pin.SE3.Interpolate(a.pose, b.pose, s)
+        return pin.SE3ToXYZQUAT(pose).tolist() + [
+            (1 - s) * u + s * v for u, v in zip(a.row[7:], b.row[7:])]
 
-    def _differentiate(self, index: int, stamp_ns: int) -> BaseQuery:
-        points = self._points
-        count = len(points)
+    def _differentiate(self, index: int, stamp_ns: int) -> np.ndarray:
+        count = len(self._rows)
         if count == 1:
-            return BaseQuery(points[0].pose, np.zeros(6))
+            return np.concatenate((self._rows[0][:7], np.zeros(6)))
         # The three samples around the nearest one.
         stamps = self._stamps
         nearest = min((i for i in (index - 1, index) if 0 <= i < count),
                       key=lambda i: abs(stamps[i] - stamp_ns))
         centre = min(max(nearest, 1), count - 2)
         if count == 2:
-            a, b = points[0], points[1]
+            a, b = self.point(0), self.point(1)
             delta = pin.log6(a.pose.inverse() * b.pose).vector
             rate = delta / ((b.stamp_ns - a.stamp_ns) * 1e-9)
             s = (stamp_ns - a.stamp_ns) * 1e-9
-            return BaseQuery(a.pose * pin.exp6(rate * s), pin.Jexp6(rate * s) @ rate)
-        mid = points[centre]
-        times = np.array([(points[centre + j].stamp_ns - mid.stamp_ns) * 1e-9
-                          for j in (-1, 0, 1)])
-        etas = np.array([pin.log6(mid.pose.inverse() * points[centre + j].pose).vector
-                         for j in (-1, 0, 1)])
+            return _row(a.pose * pin.exp6(rate * s), pin.Jexp6(rate * s) @ rate)
+        mid = self.point(centre)
+        times, etas = self._neighbourhood(centre, mid)
         tau = (stamp_ns - mid.stamp_ns) * 1e-9
         t0, t1, t2 = times
         # Lagrange basis values and derivatives at tau.
@@ -141,4 +194,18 @@ class BaseBuffer:
                            (2 * tau - t0 - t1) / ((t2 - t0) * (t2 - t1))])
         eta = weights @ etas
         eta_dot = slopes @ etas
-        return BaseQuery(mid.pose * pin.exp6(eta), pin.Jexp6(eta) @ eta_dot)
+        return _row(mid.pose * pin.exp6(eta), pin.Jexp6(eta) @ eta_dot)
+
+    def _neighbourhood(self, centre: int, mid: BasePoint) -> tuple[list, np.ndarray]:
+        """Return times and exponential coordinates of the three poses about ``mid``."""
+        # Points are only appended, so a point's neighbours never change: cache them.
+        cached = self._around.get(mid.stamp_ns)
+        if cached is None:
+            points = [self.point(centre - 1), mid, self.point(centre + 1)]
+            inverse = mid.pose.inverse()
+            cached = ([(point.stamp_ns - mid.stamp_ns) * 1e-9 for point in points],
+                      np.array([pin.log6(inverse * point.pose).vector for point in points]))
+            if len(self._around) >= 2 * self._keep:
+                self._around.clear()
+            self._around[mid.stamp_ns] = cached
+        return cached
