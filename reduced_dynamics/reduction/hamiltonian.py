@@ -27,10 +27,14 @@ come from two RNEA-derivative calls (REDUCED_MODEL.md 8): with
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Union
 
 import numpy as np
 
 from reduced_dynamics.robot.model import MetricBlocks, RobotModel
+
+#: Rows or columns of M: a slice or an index array.
+IndexLike = Union[slice, np.ndarray]
 
 
 @dataclass
@@ -56,6 +60,32 @@ def reduced_hamiltonian(robot: RobotModel, pi: np.ndarray, qbar: np.ndarray,
         + robot.potential_energy(qbar)
 
 
+def kinetic_shape_derivatives(robot: RobotModel, qbar: np.ndarray, locked_rows: IndexLike,
+                              shape_rows: IndexLike, shape_columns: IndexLike,
+                              connection: np.ndarray, locked_velocity: np.ndarray,
+                              shape_rate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Return (d(kinetic H)/dq_shape, curvature C) from two RNEA-derivative calls.
+
+    The rows of M split into a locked group (G, or G x N for the second stage)
+    and shape coordinates; ``shape_columns`` picks the shape coordinates among
+    qbar. With ``u~`` the locked velocity on the locked rows and
+    ``w = [-A qdot; qdot]`` (REDUCED_MODEL.md 8): ``dH = -1/2 u~^T dM u~ -
+    1/2 w^T dM w`` and ``C[i, j] = pi^T d_i A_j - pi^T d_j A_i`` with
+    ``pi^T d_i A_j = ([-A; 1]^T dM_i u~)_j``.
+    """
+    nv = robot.model.nv
+    u_full = np.zeros(nv)
+    u_full[locked_rows] = locked_velocity
+    w_full = np.empty(nv)
+    w_full[locked_rows] = -(connection @ shape_rate)
+    w_full[shape_rows] = shape_rate
+    d_mu, d_mw = robot.mass_matrix_derivative_action(qbar, (u_full, w_full))[:, :, shape_columns]
+    p_mat = d_mu[shape_rows] - connection.T @ d_mu[locked_rows]
+    gradient = -0.5 * (locked_velocity @ d_mu[locked_rows]) - 0.5 * (w_full @ d_mw)
+    return gradient, p_mat.T - p_mat
+
+
 def shape_terms(robot: RobotModel, pi: np.ndarray, qbar: np.ndarray,
                 pbar: np.ndarray) -> ShapeTerms:
     """Evaluate H~, dH~/dqbar (pi, pbar fixed), qbar_dot = S^-1 pbar, xi and C."""
@@ -64,18 +94,11 @@ def shape_terms(robot: RobotModel, pi: np.ndarray, qbar: np.ndarray,
     u = blocks.solve_locked(pi)
     # numpy rather than scipy's cho_factor/cho_solve: their wrappers dominate at this size.
     qbar_dot = np.linalg.solve(blocks.reduced_metric, pbar)
-    a_qdot = blocks.connection @ qbar_dot
-    u_full = np.zeros(n + robot.m)
-    u_full[:n] = u
-    w_full = np.empty(n + robot.m)
-    w_full[:n] = -a_qdot
-    w_full[n:] = qbar_dot
-    d_mu, d_mw = robot.mass_matrix_derivative_action(qbar, (u_full, w_full))
-    # p_mat[j, i] = pi^T d_i A_j = ([-A; 1]^T d_mu)[j, i]
-    p_mat = d_mu[n:] - blocks.connection.T @ d_mu[:n]
-    dH = -0.5 * (u @ d_mu[:n]) - 0.5 * (w_full @ d_mw)
+    dH, curvature = kinetic_shape_derivatives(robot, qbar, slice(0, n), slice(n, None),
+                                              slice(None), blocks.connection, u, qbar_dot)
     energy = 0.5 * float(pi @ u) + 0.5 * float(pbar @ qbar_dot)
     if robot.has_potential:
         dH += robot.potential_gradient(qbar)
         energy += robot.potential_energy(qbar)
-    return ShapeTerms(blocks, pi, u, qbar_dot, u - a_qdot, energy, dH, p_mat.T - p_mat)
+    return ShapeTerms(blocks, pi, u, qbar_dot, u - blocks.connection @ qbar_dot, energy, dH,
+                      curvature)

@@ -47,6 +47,7 @@ import pinocchio as pin
 from reduced_dynamics.geometry.chart import CosetChart
 from reduced_dynamics.geometry.isotropy import isotropy_algebra, IsotropyAlgebra, RANK_RTOL
 from reduced_dynamics.integrators import integrate_adaptive
+from reduced_dynamics.reduction.hamiltonian import kinetic_shape_derivatives
 from reduced_dynamics.reduction.magnetic import magnetic_form
 from reduced_dynamics.robot.model import ModelError, RobotModel
 from reduced_dynamics.robot.momentum import momentum_map
@@ -152,23 +153,15 @@ def second_stage_terms(robot: RobotModel, split: CyclicSplit, pi_e: np.ndarray,
     blocks = second_stage_blocks(robot, split, qbar)
     u = blocks.locked_inverse @ pi_e
     qhat_dot = np.linalg.solve(blocks.reduced_metric, phat)
-    a_qdot = blocks.connection @ qhat_dot
-    nv = robot.model.nv
-    u_full = np.zeros(nv)
-    u_full[split.locked_rows] = u
-    w_full = np.empty(nv)
-    w_full[split.locked_rows] = -a_qdot
-    w_full[split.kept_rows] = qhat_dot
-    derivative = robot.mass_matrix_derivative_action(qbar, (u_full, w_full))[:, :, split.kept]
-    d_mu, d_mw = derivative
-    # p_mat[j, i] = pi_e^T d_i A_e,j: Xi^_mu + Xi_theta from one RNEA-derivative call.
-    p_mat = d_mu[split.kept_rows] - blocks.connection.T @ d_mu[split.locked_rows]
-    dH = -0.5 * (u @ d_mu[split.locked_rows]) - 0.5 * (w_full @ d_mw)
+    # The curvature with pi_e = [pi; theta] fixed is Xi^_mu + Xi_theta together.
+    dH, curvature = kinetic_shape_derivatives(robot, qbar, split.locked_rows, split.kept_rows,
+                                              split.kept, blocks.connection, u, qhat_dot)
     energy = 0.5 * float(pi_e @ u) + 0.5 * float(phat @ qhat_dot)
     if robot.has_potential:
         dH += robot.potential_gradient(qbar)[split.kept]
         energy += robot.potential_energy(qbar)
-    return SecondStageTerms(blocks, u, qhat_dot, u - a_qdot, energy, dH, p_mat.T - p_mat)
+    return SecondStageTerms(blocks, u, qhat_dot, u - blocks.connection @ qhat_dot, energy, dH,
+                            curvature)
 
 
 @dataclass
