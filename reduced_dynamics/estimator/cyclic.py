@@ -23,10 +23,12 @@ are published apart with their conserved momenta ``theta`` (rows of ``M v``).
 
 from __future__ import annotations
 
+from typing import Sequence, Union
+
 import numpy as np
 
 from reduced_dynamics.messages.samples import JointStateSample, trusted_sample
-from reduced_dynamics.reduction.second_stage import CyclicSplit
+from reduced_dynamics.reduction.second_stage import CyclicSplit, SecondStageBlocks
 from reduced_dynamics.robot.model import ModelError, RobotModel
 
 #: Values of the ``cyclic_joints`` setting besides a comma-separated list of names.
@@ -34,21 +36,23 @@ CYCLIC_OFF = ''
 CYCLIC_AUTO = 'auto'
 
 
-def resolve_cyclic_joints(robot: RobotModel, setting: str) -> tuple[str, ...]:
+def resolve_cyclic_joints(robot: RobotModel,
+                          setting: Union[str, Sequence[str]]) -> tuple[str, ...]:
     """
     Return the cyclic joints a ``cyclic_joints`` setting selects for this robot.
 
     ``''``: none (first stage only); ``'auto'``: every joint section 5.1 finds
-    cyclic; otherwise comma-separated names, each of which must be cyclic
-    (ModelError with the reason otherwise).
+    cyclic; otherwise comma-separated names (or a list of names), each of which
+    must be cyclic (ModelError with the reason otherwise). Returned in shape order.
     """
-    setting = setting.strip()
-    if setting == CYCLIC_OFF:
-        return ()
-    if setting == CYCLIC_AUTO:
-        return robot.symmetry_report().cyclic_joints
-    names = tuple(name.strip() for name in setting.split(',') if name.strip())
-    return CyclicSplit(robot, names).names
+    if isinstance(setting, str):
+        setting = setting.strip()
+        if setting == CYCLIC_OFF:
+            return ()
+        if setting == CYCLIC_AUTO:
+            return robot.symmetry_report().cyclic_joints
+        setting = [name.strip() for name in setting.split(',') if name.strip()]
+    return CyclicSplit(robot, tuple(setting)).names
 
 
 class CyclicColumns:
@@ -97,23 +101,18 @@ class CyclicView:
         with the locked group G x N of Theorem 57.
         """
         split = self.split
-        order = split.order
         ne = split.n + split.c
         count = len(mass)
-        velocity = np.concatenate([xi, qbar_dot], axis=1)[:, order]
+        velocity = np.concatenate([xi, qbar_dot], axis=1)[:, split.order]
+        kept_rate = np.ascontiguousarray(velocity[:, ne:])
         theta = np.empty((count, split.c))
         phat = np.empty((count, split.mk))
-        # Row by row with the same operations whatever the chunk size, so batched and
-        # one-by-one updates agree to the last bit (stacked matmul/einsum kernels do not).
+        # Row by row with the same operations whatever the chunk size (stacked BLAS
+        # kernels round differently with the stack size).
         for k in range(count):
-            permuted = mass[k][order][:, order]
-            rate = velocity[k]
-            theta[k] = permuted[split.n:ne] @ rate
-            kept_rate = rate[ne:]
-            coupling = permuted[:ne, ne:]
-            connection_qd = np.linalg.solve(permuted[:ne, :ne], coupling @ kept_rate)
-            phat[k] = permuted[ne:, ne:] @ kept_rate - coupling.T @ connection_qd
-        return CyclicColumns(self, np.ascontiguousarray(qbar[:, split.kept]),
-                             np.ascontiguousarray(velocity[:, ne:]), phat,
+            blocks = SecondStageBlocks.from_mass(split, mass[k])
+            theta[k] = blocks.locked_momentum(velocity[k, :ne], kept_rate[k])[split.n:]
+            phat[k] = blocks.reduced_metric @ kept_rate[k]
+        return CyclicColumns(self, np.ascontiguousarray(qbar[:, split.kept]), kept_rate, phat,
                              np.ascontiguousarray(qbar[:, split.cyclic]),
                              np.ascontiguousarray(qbar_dot[:, split.cyclic]), theta)

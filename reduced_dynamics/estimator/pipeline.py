@@ -54,7 +54,6 @@ from reduced_dynamics.geometry.isotropy import isotropy_algebra
 from reduced_dynamics.messages.samples import (
     BaseStateSample, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample, JointStateSample,
     PosePath, ShapePrediction, trusted_sample, TwistSample, WrenchSample)
-from reduced_dynamics.reduction.second_stage import CyclicSplit
 from reduced_dynamics.robot.model import RobotModel
 
 NS = 1_000_000_000
@@ -232,8 +231,7 @@ class Estimator:
                  cyclic_joints: Union[str, Sequence[str]] = CYCLIC_OFF) -> None:
         """Set up the pipeline for ``robot`` (ModelError for unusable cyclic joints)."""
         self.robot = robot
-        self.cyclic_joints = resolve_cyclic_joints(robot, cyclic_joints) \
-            if isinstance(cyclic_joints, str) else CyclicSplit(robot, tuple(cyclic_joints)).names
+        self.cyclic_joints = resolve_cyclic_joints(robot, cyclic_joints)
         self._cyclic_view = CyclicView(robot, self.cyclic_joints) if self.cyclic_joints \
             else None
         self.shape_names = self._cyclic_view.kept_names if self._cyclic_view \

@@ -32,8 +32,8 @@ import numpy as np
 import pinocchio as pin
 
 from reduced_dynamics.reduction.reconstruction import ReducedPropagator
-from reduced_dynamics.reduction.second_stage import (second_stage_blocks, SecondStagePropagator,
-                                                     SecondStageSystem)
+from reduced_dynamics.reduction.second_stage import (CyclicSplit, second_stage_blocks,
+                                                     SecondStagePropagator, SecondStageSystem)
 from reduced_dynamics.reduction.vector_field import ReducedSystem
 from reduced_dynamics.robot.model import RobotModel
 
@@ -132,8 +132,7 @@ class Predictor:
         self.cyclic_joints = tuple(cyclic_joints)
         self.kept: Optional[np.ndarray] = None
         if self.cyclic_joints:
-            self.kept = np.array([i for i, name in enumerate(robot.shape_joint_names)
-                                  if name not in self.cyclic_joints], dtype=int)
+            self.kept = CyclicSplit(robot, self.cyclic_joints).kept
         self.horizon = horizon
         self.step = step
         self.integrator = integrator

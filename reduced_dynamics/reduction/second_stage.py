@@ -112,19 +112,29 @@ class SecondStageBlocks:
     connection: np.ndarray
     reduced_metric: np.ndarray
 
+    @classmethod
+    def from_mass(cls, split: CyclicSplit, mass: np.ndarray) -> 'SecondStageBlocks':
+        """Split a joint-space inertia M (Pinocchio order) by G x N."""
+        order = split.order
+        permuted = mass[order][:, order]
+        ne = split.n + split.c
+        locked, coupling = permuted[:ne, :ne], permuted[:ne, ne:]
+        shape = permuted[ne:, ne:]
+        inverse = np.linalg.inv(locked)
+        connection = inverse @ coupling
+        reduced = shape - coupling.T @ connection
+        return cls(locked, coupling, shape, inverse, connection, 0.5 * (reduced + reduced.T))
+
+    def locked_momentum(self, locked_velocity: np.ndarray,
+                        shape_rate: np.ndarray) -> np.ndarray:
+        """pi_e = I_e [xi; theta_dot] + B_e q^_dot: [pi; theta] (rows of M v)."""
+        return self.locked_inertia @ locked_velocity + self.coupling @ shape_rate
+
 
 def second_stage_blocks(robot: RobotModel, split: CyclicSplit,
                         qbar: np.ndarray) -> SecondStageBlocks:
     """Return I_e, B_e, M_kk, I_e^-1, A_e = I_e^-1 B_e and K^ at qbar."""
-    order = split.order
-    mass = robot.mass_matrix(qbar)[order][:, order]
-    ne = split.n + split.c
-    locked, coupling, shape = mass[:ne, :ne], mass[:ne, ne:], mass[ne:, ne:]
-    inverse = np.linalg.inv(locked)
-    connection = inverse @ coupling
-    reduced = shape - coupling.T @ connection
-    return SecondStageBlocks(locked, coupling, shape, inverse, connection,
-                             0.5 * (reduced + reduced.T))
+    return SecondStageBlocks.from_mass(split, robot.mass_matrix(qbar))
 
 
 @dataclass
@@ -218,9 +228,8 @@ class SecondStageSystem:
         split = CyclicSplit(robot, cyclic_joints)
         blocks = second_stage_blocks(robot, split, state.qbar)
         velocity = np.concatenate([state.xi, state.qbar_dot])
-        locked_velocity = velocity[split.locked_rows]
         qhat_dot = velocity[split.kept_rows]
-        pi_e = blocks.locked_inertia @ locked_velocity + blocks.coupling @ qhat_dot
+        pi_e = blocks.locked_momentum(velocity[split.locked_rows], qhat_dot)
         mu = momentum_map(robot.group, state.g, pi_e[:robot.n])
         system = cls(robot, cyclic_joints, mu, state.g, rank_rtol)
         z = np.concatenate([np.zeros(system.k), state.qbar[split.kept],
