@@ -145,28 +145,12 @@ class RobotModel:
         """Whether a (G-invariant) gravitational potential is present."""
         return self._has_potential
 
-    def radius_of_gyration(self) -> float:
-        """Return sqrt(trace of the locked rotational inertia about the CoM / mass), metres."""
-        data = self.model.createData()
-        q = pin.neutral(self.model)
-        pin.ccrba(self.model, data, q, self._zero_v)
-        rotational = data.Ig.inertia
-        return float(np.sqrt(np.trace(rotational) / self.total_mass))
-
     def symmetry_report(self):
         """Return the cyclic-joint analysis of section 5.1 (computed once, then cached)."""
         if getattr(self, '_symmetry_report', None) is None:
             from reduced_dynamics.robot.symmetry import detect_symmetries
             self._symmetry_report = detect_symmetries(self)
         return self._symmetry_report
-
-    def length_scales(self) -> np.ndarray:
-        """Per shape joint: 1 for angles, the radius of gyration for slides (m)."""
-        scales = np.ones(self.m)
-        for index in range(self.m):
-            if self.model.joints[index + 2].shortname().startswith('JointModelP'):
-                scales[index] = self.radius_of_gyration()
-        return scales
 
     # --- configurations -------------------------------------------------------------
     def full_configuration(self, g: pin.SE3, qbar: np.ndarray) -> np.ndarray:

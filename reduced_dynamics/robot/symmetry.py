@@ -37,7 +37,7 @@ The cyclic joints form the group ``N`` of the second-stage reduction (Theorem 57
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 import pinocchio as pin
@@ -187,42 +187,61 @@ def _proposition56(robot: RobotModel, joint_id: int, twist: np.ndarray,
     return bool(np.linalg.norm(brackets) <= rtol * np.linalg.norm(varpi))
 
 
-def _sample_configurations(robot: RobotModel, count: int, seed: int) -> list[np.ndarray]:
+class JointScales(NamedTuple):
+    """What makes the residuals dimensionless: slides are measured in radii of gyration."""
+
+    slides: np.ndarray
+    radius: float
+    per_joint: np.ndarray
+
+    @classmethod
+    def of(cls, robot: RobotModel) -> 'JointScales':
+        """Return the scales of a robot (one ccrba at the home pose)."""
+        model = robot.model
+        slides = np.array([model.joints[j].shortname().startswith('JointModelP')
+                           for j in range(2, model.njoints)], dtype=bool)
+        data = model.createData()
+        pin.ccrba(model, data, pin.neutral(model), np.zeros(model.nv))
+        radius = float(np.sqrt(np.trace(data.Ig.inertia) / robot.total_mass))
+        return cls(slides, radius, np.where(slides, radius, 1.0))
+
+
+def _sample_configurations(robot: RobotModel, slides: np.ndarray, count: int,
+                           seed: int) -> list[np.ndarray]:
     """Home plus seeded random shapes (angles in [-pi, pi], slides in [-0.5, 0.5] m)."""
     rng = np.random.default_rng(seed)
-    prismatic = np.array([robot.model.joints[j].shortname().startswith('JointModelP')
-                          for j in range(2, robot.model.njoints)])
     samples = [np.zeros(robot.m)]
     for _ in range(count):
         sample = rng.uniform(-np.pi, np.pi, robot.m)
-        sample[prismatic] = rng.uniform(-0.5, 0.5, int(prismatic.sum()))
+        sample[slides] = rng.uniform(-0.5, 0.5, int(slides.sum()))
         samples.append(sample)
     return samples
 
 
-def mass_matrix_sensitivity(robot: RobotModel, qbar: np.ndarray) -> np.ndarray:
+def mass_matrix_sensitivity(robot: RobotModel, qbar: np.ndarray,
+                            scales: Optional[JointScales] = None) -> np.ndarray:
     """
     Return ``max_kl |dM_kl/dq_i| / sqrt(M_kk M_ll)`` for each shape joint i.
 
     Slides are scaled by the robot's radius of gyration so the residual is
     dimensionless for both joint kinds.
     """
+    scales = scales or JointScales.of(robot)
     mass = robot.mass_matrix(qbar)
     identity = np.eye(robot.model.nv)
     derivative = robot.mass_matrix_derivative_action(qbar, identity)  # (k, nv, i)
     scale = np.sqrt(np.diag(mass))
     normalised = np.abs(derivative) / (scale[:, None, None] * scale[None, :, None])
-    residual = normalised.max(axis=(0, 1))
-    return residual * robot.length_scales()
+    return normalised.max(axis=(0, 1)) * scales.per_joint
 
 
-def _potential_sensitivity(robot: RobotModel, qbar: np.ndarray) -> np.ndarray:
+def _potential_sensitivity(robot: RobotModel, qbar: np.ndarray,
+                           scales: JointScales) -> np.ndarray:
     """``|dV/dq_i|`` relative to ``m g L`` (zero without gravity)."""
     if not robot.has_potential:
         return np.zeros(robot.m)
     weight = robot.total_mass * float(np.linalg.norm(robot.gravity))
-    return np.abs(robot.potential_gradient(qbar)) * robot.length_scales() \
-        / (weight * robot.radius_of_gyration())
+    return np.abs(robot.potential_gradient(qbar)) * scales.per_joint / (weight * scales.radius)
 
 
 def detect_symmetries(robot: RobotModel, rtol: float = SYMMETRY_RTOL,
@@ -239,16 +258,17 @@ def detect_symmetries(robot: RobotModel, rtol: float = SYMMETRY_RTOL,
     pin.forwardKinematics(model, data, pin.neutral(model))
     invariance = np.zeros(robot.m)
     potential = np.zeros(robot.m)
-    samples = _sample_configurations(robot, configurations, seed)
+    scales = JointScales.of(robot)
+    samples = _sample_configurations(robot, scales.slides, configurations, seed)
     for qbar in samples:
-        invariance = np.maximum(invariance, mass_matrix_sensitivity(robot, qbar))
-        potential = np.maximum(potential, _potential_sensitivity(robot, qbar))
+        invariance = np.maximum(invariance, mass_matrix_sensitivity(robot, qbar, scales))
+        potential = np.maximum(potential, _potential_sensitivity(robot, qbar, scales))
     report = SymmetryReport(model.name, robot.group.name, configurations=len(samples),
                             rtol=rtol)
     for index, name in enumerate(robot.shape_joint_names):
         joint_id = index + 2
         twist = _joint_twist(model, data, joint_id)
-        kind = 'prismatic' if np.allclose(twist[3:], 0.0) else 'revolute'
+        kind = 'prismatic' if scales.slides[index] else 'revolute'
         extremity = len(model.subtrees[joint_id]) == 1
         rotor = rotor_residual(model.inertias[joint_id], twist) if extremity else None
         prop56 = _proposition56(robot, joint_id, twist, rtol)
