@@ -232,6 +232,10 @@ class ReducedDynamicsNode(Node):
         try:
             robot = load_robot(urdf, self._value('base_joint'),
                                np.array(self._value('gravity'), dtype=float))
+            # cyclic_joints that the robot cannot be reduced by fail here, with the reason.
+            self._estimator = Estimator(robot, self._config,
+                                        use_odometry=self._value('base_input') == 'odom',
+                                        cyclic_joints=self._value('cyclic_joints'))
         except (ModelError, OSError) as error:
             self._estimator = None
             self._model_error = f'cannot use the robot model from {source}: {error}'
@@ -239,16 +243,6 @@ class ReducedDynamicsNode(Node):
                                                         'model is given')
             return
         self._model_error = None
-        try:
-            self._estimator = Estimator(robot, self._config,
-                                        use_odometry=self._value('base_input') == 'odom',
-                                        cyclic_joints=self._value('cyclic_joints'))
-        except ModelError as error:
-            self._estimator = None
-            self._model_error = f'cannot reduce {robot.model.name} by cyclic_joints: {error}'
-            self.get_logger().error(self._model_error + '; not estimating until a usable '
-                                                        'model is given')
-            return
         self.get_logger().info(
             f'robot {robot.model.name} from {source}: base {robot.group.name} '
             f'({robot.base_link}), {robot.m} shape joints {list(robot.shape_joint_names)}')
