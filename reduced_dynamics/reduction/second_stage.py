@@ -251,17 +251,31 @@ class SecondStageSystem:
 
         ``[xi; theta_dot] = I_e^-1 pi_e - A_e q^_dot``, ``q^_dot = K^-1 p^`` and H^ (5.47).
         """
+        pi, pi_e, qbar, blocks, u, qhat_dot = self._momenta(z)
+        energy = 0.5 * float(pi_e @ u) + 0.5 * float(self.split(z)[2] @ qhat_dot) \
+            + self.robot.potential_energy(qbar)
+        return pi, u - blocks.connection @ qhat_dot, qhat_dot, energy
+
+    def _momenta(self, z: np.ndarray) -> tuple:
+        """(pi, pi_e, qbar, blocks, u = I_e^-1 pi_e, q^_dot = K^-1 p^) at z."""
         q1, qhat, phat, theta = self.split(z)
         pi = self.body_momentum(q1)
         pi_e = np.concatenate([pi, theta])
+        qbar = self.split_indices.full_shape(qhat, np.zeros(self.c))
+        blocks = second_stage_blocks(self.robot, self.split_indices, qbar)
+        return (pi, pi_e, qbar, blocks, blocks.locked_inverse @ pi_e,
+                np.linalg.solve(blocks.reduced_metric, phat))
+
+    def _torques(self, tau: Torque, qhat: np.ndarray, qhat_dot: np.ndarray,
+                 cyclic_rate: np.ndarray, cyclic_angles: Optional[np.ndarray]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """Return (torques on the kept joints, wheel-motor torques) from an array or a law."""
         split = self.split_indices
-        qbar = split.full_shape(qhat, np.zeros(self.c))
-        blocks = second_stage_blocks(self.robot, split, qbar)
-        u = blocks.locked_inverse @ pi_e
-        qhat_dot = np.linalg.solve(blocks.reduced_metric, phat)
-        energy = 0.5 * float(pi_e @ u) + 0.5 * float(phat @ qhat_dot) \
-            + self.robot.potential_energy(qbar)
-        return pi, u - blocks.connection @ qhat_dot, qhat_dot, energy
+        if callable(tau):
+            angles = np.zeros(self.c) if cyclic_angles is None else cyclic_angles
+            tau = tau(split.full_shape(qhat, angles), split.full_shape(qhat_dot, cyclic_rate))
+        tau = np.asarray(tau, dtype=float)
+        return tau[split.kept], tau[split.cyclic]
 
     def hamiltonian(self, z: np.ndarray) -> float:
         """H^ (5.47): amended potential of G x N plus the kept-shape kinetic energy."""
@@ -293,14 +307,10 @@ class SecondStageSystem:
         else:
             q1_dot = np.zeros(0)
         cyclic_rate = terms.locked_twist[n:]
-        if callable(tau):
-            angles = np.zeros(self.c) if cyclic_angles is None else cyclic_angles
-            qbar = split.full_shape(qhat, angles)
-            tau = tau(qbar, split.full_shape(qhat_dot, cyclic_rate))
-        tau = np.asarray(tau, dtype=float)
-        wheel_torque = tau[split.cyclic]
+        kept_torque, wheel_torque = self._torques(tau, qhat, qhat_dot, cyclic_rate,
+                                                  cyclic_angles)
         x_dot = np.concatenate([q1_dot, qhat_dot])
-        phat_dot = -terms.dH_dqhat - form[:, k:].T @ x_dot + tau[split.kept] \
+        phat_dot = -terms.dH_dqhat - form[:, k:].T @ x_dot + kept_torque \
             - connection[n:].T @ wheel_torque
         z_dot = np.concatenate([q1_dot, qhat_dot, phat_dot, wheel_torque])
         return SecondStageEvaluation(z_dot, terms.locked_twist[:n], cyclic_rate, pi,
@@ -321,13 +331,8 @@ class SecondStageSystem:
         """
         k, mk = self.k, self.mk
         split = self.split_indices
-        q1, qhat, phat, theta = self.split(z)
-        pi = self.body_momentum(q1)
-        pi_e = np.concatenate([pi, theta])
-        qbar = split.full_shape(qhat, np.zeros(self.c))
-        blocks = second_stage_blocks(self.robot, split, qbar)
-        u = blocks.locked_inverse @ pi_e
-        qhat_dot = np.linalg.solve(blocks.reduced_metric, phat)
+        q1, qhat = z[:k], z[k:k + mk]
+        pi, _, qbar, blocks, u, qhat_dot = self._momenta(z)
         nv = self.robot.model.nv
         drift = np.zeros(nv)
         drift[split.locked_rows] = u
@@ -340,13 +345,10 @@ class SecondStageSystem:
         n = self.robot.n
         locked_twist = v[split.locked_rows]
         xi, cyclic_rate = locked_twist[:n], locked_twist[n:]
-        if callable(tau):
-            angles = np.zeros(self.c) if cyclic_angles is None else cyclic_angles
-            tau = tau(split.full_shape(qhat, angles), split.full_shape(qhat_dot, cyclic_rate))
-        tau = np.asarray(tau, dtype=float)
-        wheel_torque = tau[split.cyclic]
+        kept_torque, wheel_torque = self._torques(tau, qhat, qhat_dot, cyclic_rate,
+                                                  cyclic_angles)
         phat_dot = h[split.kept_rows] - blocks.connection.T @ h[split.locked_rows] \
-            + tau[split.kept] - blocks.connection[n:].T @ wheel_torque
+            + kept_torque - blocks.connection[n:].T @ wheel_torque
         if self.robot.has_potential:
             phat_dot -= self.robot.potential_gradient(qbar)[split.kept]
         z_dot = np.empty(self.nz)
