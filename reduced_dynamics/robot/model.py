@@ -53,15 +53,12 @@ class MetricBlocks:
     locked_inertia: np.ndarray
     coupling: np.ndarray
     shape_inertia: np.ndarray
-    locked_inertia_factor: tuple
     connection: np.ndarray
     reduced_metric: np.ndarray
-    locked_inverse: Optional[np.ndarray] = None
+    locked_inverse: np.ndarray
 
     def solve_locked(self, covector: np.ndarray) -> np.ndarray:
         """I^-1 covector (e.g. the drift twist I^-1 pi)."""
-        if self.locked_inverse is None:
-            self.locked_inverse = np.linalg.inv(self.locked_inertia)
         return self.locked_inverse @ covector
 
 
@@ -228,12 +225,11 @@ class RobotModel:
         coupling = mass[:n, n:]
         shape = mass[n:, n:]
         # numpy on these small blocks: scipy's cho_factor/cho_solve wrappers cost more
-        # than the factorisation. Cholesky checks that I is positive definite.
-        factor = (np.linalg.cholesky(locked), True)
+        # than the factorisation. inv raises LinAlgError for a singular I.
         inverse = np.linalg.inv(locked)
         connection = inverse @ coupling
         reduced = shape - coupling.T @ connection
-        return MetricBlocks(mass, locked, coupling, shape, factor, connection,
+        return MetricBlocks(mass, locked, coupling, shape, connection,
                             0.5 * (reduced + reduced.T), inverse)
 
     def potential_energy(self, qbar: np.ndarray) -> float:
