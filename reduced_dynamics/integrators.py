@@ -19,9 +19,7 @@ Integrators for systems that live partly on Lie groups through re-centred charts
   default) is :class:`Dop853`, scipy's tableau and step control without the
   per-step overhead of ``solve_ivp``; after an accepted step that ends with the
   chart coordinates past ``max_chart`` the system re-centres its charts and the
-  integration goes on with the same step size. RK45 and Radau run through
-  scipy's ``solve_ivp`` in segments ending where the charts grow past
-  ``max_chart``.
+  integration goes on with the same step size.
 * :class:`DiscreteGradient`: a fixed-step, energy-preserving scheme for
   ``z_dot = K(z) (grad H(z) - f)`` with ``K = Omega^-1`` skew
   (Gonzalez' midpoint discrete gradient): without forcing ``H(z1) = H(z0)`` up
@@ -35,12 +33,11 @@ from dataclasses import dataclass
 from typing import Callable, Protocol, Sequence
 
 import numpy as np
-from scipy.integrate import solve_ivp
 # The published DOP853 tableau (Hairer, Norsett & Wanner; Fortran DOP853) as scipy
 # ships it: reused rather than retyped, so the two implementations cannot differ.
 from scipy.integrate._ivp import dop853_coefficients as _dop853
 
-ADAPTIVE_METHODS = ('DOP853', 'RK45', 'Radau')
+ADAPTIVE_METHODS = ('DOP853',)
 
 
 class ChartedSystem(Protocol):
@@ -75,42 +72,7 @@ def integrate_adaptive(system: ChartedSystem, y0: np.ndarray, t_eval: Sequence[f
     times = np.asarray(t_eval, dtype=float)
     if times.ndim != 1 or times.size == 0 or np.any(np.diff(times) < 0):
         raise ValueError('t_eval must be a non-empty, non-decreasing sequence')
-    if method == 'DOP853':
-        stepper = Dop853(rtol, atol, max_step, max_evaluations)
-        return stepper.integrate(system, y0, times, max_chart)
-    y = system.recentre(np.asarray(y0, dtype=float))
-    t = float(times[0])
-    records = [system.observe(t, y)]
-    index = 1
-
-    def leaves_chart(_t: float, state: np.ndarray) -> float:
-        return max_chart - system.chart_size(state)
-    leaves_chart.terminal = True
-    leaves_chart.direction = -1
-
-    evaluations = 0
-
-    def rhs(t_now: float, state: np.ndarray) -> np.ndarray:
-        nonlocal evaluations
-        evaluations += 1
-        if evaluations > max_evaluations:
-            raise RuntimeError(f'integration stalled at t={t_now:.6g} after {evaluations} '
-                               'evaluations (a coordinate singularity?)')
-        return system.rhs(t_now, state)
-
-    while index < times.size:
-        end = float(times[-1])
-        solution = solve_ivp(rhs, (t, end), y, method=method, rtol=rtol, atol=atol,
-                             dense_output=True, events=leaves_chart, max_step=max_step)
-        if solution.status < 0:
-            raise RuntimeError(f'integration failed at t={t}: {solution.message}')
-        t_reached = float(solution.t[-1])
-        while index < times.size and times[index] <= t_reached:
-            records.append(system.observe(times[index], solution.sol(times[index])))
-            index += 1
-        t = t_reached
-        y = system.recentre(solution.y[:, -1])
-    return np.array(records)
+    return Dop853(rtol, atol, max_step, max_evaluations).integrate(system, y0, times, max_chart)
 
 
 def _rms(x: np.ndarray) -> float:
