@@ -45,6 +45,7 @@ from reduced_dynamics.bag.reader import BagReader
 from reduced_dynamics.messages import cdr
 from reduced_dynamics.messages.convert import (
     joint_state_from_ros, odometry_from_ros, pose_stamped_from_ros)
+from reduced_dynamics.messages.samples import with_receive_time
 from reduced_dynamics.messages.types import RosbagsTypes
 from reduced_dynamics.params import defaults, load_params_file
 from reduced_dynamics.robot.model import load_robot, RobotModel
@@ -235,7 +236,9 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                     sample = decode(message.data)
                     if sample is not None:  # None: undecodable, in reader.skipped
                         read[message.topic] += 1
-                        batch.append(sample)
+                        # The record time is the receive time the stamp policy compares
+                        # header stamps with (estimator/stamps.py).
+                        batch.append(with_receive_time(sample, message.timestamp_ns))
                 except (ValueError, TypeError) as error:
                     if sample is None:  # deserialized, but not into a valid sample
                         read[message.topic] += 1

@@ -257,12 +257,13 @@ def test_bad_input_inside_a_batch_is_rejected_like_one_by_one():
     config = EstimatorConfig(prediction_rate=0.0, diagnostics_rate=30.0)
     expected, reference = _compare_paths(lambda: Estimator(robot, config),
                                          _hostile_stream(robot), sizes=(1, 2, 5, 40, None))
-    # Nothing valid lost: 12 good samples, the permuted one and the huge one.
-    assert len(expected) == 14
+    # Nothing valid lost: 12 good samples and the permuted one; the huge one (1e308, far
+    # beyond the URDF limits) is implausible.
+    assert len(expected) == 13
     assert reference.rejected == {
         'non_finite': 12, 'unknown_joint': 12, 'missing_joint': 12, 'missing_velocity': 12,
         'stamp_backwards': 12, 'invalid_quaternion': 12, 'base_stamp_backwards': 12,
-        'non_finite_base': 12, 'stale_base_state': 1}
+        'non_finite_base': 12, 'joint_position_limit': 1, 'stale_base_state': 1}
     assert reference.last_rejection.startswith('stale_base_state')
 
 

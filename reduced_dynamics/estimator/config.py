@@ -65,6 +65,42 @@ PARAMETERS: dict[str, ParameterSpec] = {
                                           'relative and absolute tolerance of DOP853'),
     'diagnostics_rate': ParameterSpec(1.0, 0.0, 100.0, (),
                                       'diagnostics messages per second of stamp time (0: off)'),
+    # Input gates (estimator/stamps.py, estimator/plausibility.py); README "Bad input".
+    'stamp_outlier_tolerance': ParameterSpec(
+        1.0, 1e-3, 3600.0, (),
+        'largest departure [s] of a header stamp from its stream\'s clock (the receive time '
+        'when known, else the previous stamp; at least 4 local periods) before it is held '
+        'as an outlier; 3 consistent outliers in a row are a clock jump and are followed'),
+    'joint_limit_margin': ParameterSpec(
+        0.5, 0.0, 1e6, (),
+        'joint positions beyond the URDF limits by more than this [rad or m] are rejected'),
+    'limit_factor': ParameterSpec(
+        10.0, 1.0, 1e6, (),
+        'joint velocities and efforts above this multiple of the URDF velocity and effort '
+        'limits are rejected'),
+    'joint_position_bound': ParameterSpec(
+        1e6, 1.0, 1e12, (),
+        'largest absolute position [rad or m] of a joint without URDF position limits '
+        '(continuous joints: unwrapped angles)'),
+    'joint_velocity_bound': ParameterSpec(
+        1e3, 1e-3, 1e9, (),
+        'largest absolute velocity [rad/s or m/s] of a joint without a URDF velocity limit'),
+    'joint_effort_bound': ParameterSpec(
+        1e5, 1e-3, 1e12, (),
+        'largest absolute effort [N m or N] of a joint without a URDF effort limit'),
+    'quaternion_norm_tolerance': ParameterSpec(
+        0.01, 1e-9, 1.0, (),
+        'largest deviation from 1 of the base orientation quaternion\'s norm; within it '
+        'the quaternion is normalised, beyond it the base sample is rejected'),
+    'base_position_bound': ParameterSpec(
+        1e9, 1.0, 1e15, (),
+        'largest distance [m] of the base from the world origin'),
+    'base_speed_bound': ParameterSpec(
+        2e4, 1e-3, 1e9, (),
+        'largest linear speed [m/s] of an Odometry base twist'),
+    'base_rate_bound': ParameterSpec(
+        35.0, 1e-3, 1e6, (),
+        'largest angular rate [rad/s] of an Odometry base twist'),
 }
 
 
@@ -83,6 +119,16 @@ class EstimatorConfig:
     prediction_integrator: str = PARAMETERS['prediction_integrator'].default
     prediction_tolerance: float = PARAMETERS['prediction_tolerance'].default
     diagnostics_rate: float = PARAMETERS['diagnostics_rate'].default
+    stamp_outlier_tolerance: float = PARAMETERS['stamp_outlier_tolerance'].default
+    joint_limit_margin: float = PARAMETERS['joint_limit_margin'].default
+    limit_factor: float = PARAMETERS['limit_factor'].default
+    joint_position_bound: float = PARAMETERS['joint_position_bound'].default
+    joint_velocity_bound: float = PARAMETERS['joint_velocity_bound'].default
+    joint_effort_bound: float = PARAMETERS['joint_effort_bound'].default
+    quaternion_norm_tolerance: float = PARAMETERS['quaternion_norm_tolerance'].default
+    base_position_bound: float = PARAMETERS['base_position_bound'].default
+    base_speed_bound: float = PARAMETERS['base_speed_bound'].default
+    base_rate_bound: float = PARAMETERS['base_rate_bound'].default
 
     def __post_init__(self) -> None:
         """Validate every field against its range or choices."""

@@ -48,7 +48,9 @@ from reduced_dynamics.estimator.cyclic import (CYCLIC_OFF, CyclicColumns, Cyclic
                                                resolve_cyclic_joints)
 from reduced_dynamics.estimator.kernel import UpdateKernel
 from reduced_dynamics.estimator.observer import MomentumEvent, MomentumObserver
+from reduced_dynamics.estimator.plausibility import BaseBounds, JointBounds
 from reduced_dynamics.estimator.prediction import Prediction, Predictor
+from reduced_dynamics.estimator.stamps import ACCEPTED, ClockJump, StampGate, StampResult
 from reduced_dynamics.estimator.sync import BaseBuffer
 from reduced_dynamics.geometry.isotropy import isotropy_algebra
 from reduced_dynamics.messages.samples import (
@@ -60,6 +62,9 @@ NS = 1_000_000_000
 #: Synchronised samples per chunk of the batched path: enough to amortise the
 #: numpy calls, few enough that the stack of mass matrices stays in cache.
 CHUNK_BYTES = 512 * 1024
+#: Consecutive samples at a new, self-consistent time that prove a clock jump
+#: (estimator/stamps.py): fewer would follow two equal outliers, more delays outputs.
+STAMP_JUMP_SAMPLES = 3
 
 
 @dataclass
@@ -277,6 +282,13 @@ class Estimator:
         # (a failed prediction must not hide a later rejection, nor the reverse).
         self._rejected_at = 0
         self._done: list[OutputChunk] = []
+        # Input gates (estimator/stamps.py, estimator/plausibility.py).
+        self._joint_gate = StampGate('joint state', NS, 3)
+        self._base_gate = StampGate('base', NS, 3)
+        self._joint_bounds: dict[tuple[str, ...], JointBounds] = {}
+        #: Clock restarts so far (a backwards jump, :meth:`reset`), and the last reason.
+        self.clock_resets = 0
+        self.last_reset: Optional[str] = None
         self.apply_config(self.config)
 
     # --- configuration -------------------------------------------------------------
@@ -285,6 +297,12 @@ class Estimator:
         old_observer = getattr(self, 'observer', None)
         self.config = config
         self._tolerance_ns = int(config.sync_tolerance * NS)
+        # Input gates: bounds per joint-name order are rebuilt lazily.
+        outlier_ns = int(config.stamp_outlier_tolerance * NS)
+        self._joint_gate.configure(outlier_ns, STAMP_JUMP_SAMPLES)
+        self._base_gate.configure(outlier_ns, STAMP_JUMP_SAMPLES)
+        self._joint_bounds = {}
+        self._base_bounds = BaseBounds(config)
         rate = config.diagnostics_rate
         self._diagnostics_period_ns = int(NS / rate) if rate > 0.0 else None
         self.observer = MomentumObserver(config.observer_bandwidth, config.event_threshold,
@@ -360,6 +378,10 @@ class Estimator:
 
     def flush_batch(self) -> EstimatorBatch:
         """Like :meth:`flush`, returning the outputs column-wise."""
+        # Candidates the stamp policy still holds were never confirmed: outliers.
+        for gate, prefix in ((self._joint_gate, 'stamp_'), (self._base_gate, 'base_stamp_')):
+            for _, reason, detail in gate.finish():
+                self._reject(prefix + reason, detail)
         self._drain(final=True)
         self._process_chunk()
         self.predictor.finish()
@@ -395,19 +417,24 @@ class Estimator:
         if m and not velocity.size:
             self._reject('missing_velocity', 'joint state has no velocities')
             return
-        # Names match the model one to one, so checking whole arrays is checking qbar.
-        # A finite sum proves every entry finite; otherwise the exact test decides
-        # (finite values can overflow the sum).
-        if m and not math.isfinite(sum(position.tolist()) + sum(velocity.tolist())
-                                   + sum(effort.tolist())) \
-                and not _all_finite(position, velocity, effort):
-            self._reject('non_finite', f'NaN or inf in joint state at {stamp}')
-            return
-        last = self._last_joint_ns
-        if last is not None and stamp <= last:
-            self._reject('stamp_backwards', f'joint state stamp {stamp} <= previous {last}')
-            return
-        self._last_joint_ns = stamp
+        if m:
+            # Names match the model one to one, so checking whole arrays is checking qbar.
+            # A finite sum proves every entry finite; otherwise the exact test decides
+            # (finite values can overflow the sum).
+            values = position.tolist(), velocity.tolist(), effort.tolist()
+            if not math.isfinite(sum(values[0]) + sum(values[1]) + sum(values[2])) \
+                    and not _all_finite(position, velocity, effort):
+                self._reject('non_finite', f'NaN or inf in joint state at {stamp}')
+                return
+            # Plausibility gate (estimator/plausibility.py): URDF limits and bounds.
+            bounds = self._joint_bounds.get(names)
+            if bounds is None:
+                bounds = self._joint_bounds[names] = JointBounds(self.robot, self.config,
+                                                                 names)
+            verdict = bounds.check(*values)
+            if verdict is not None:
+                self._reject(*verdict)
+                return
         if not m:
             empty = self._empty
             pending = (stamp, empty, empty, empty)
@@ -417,6 +444,16 @@ class Estimator:
         else:
             pending = (stamp, position[mapping], velocity[mapping],
                        effort[mapping] if effort.size else self._zeros_m)
+        # Stamp policy (estimator/stamps.py): outliers dropped, clock jumps followed.
+        result = self._joint_gate.offer(stamp, sample.receive_ns, pending)
+        if result is not ACCEPTED:
+            self._stamp_result(result, True)
+            return
+        self._accept_joint(pending)
+
+    def _accept_joint(self, pending: tuple) -> None:
+        """Queue a joint sample whose stamp the stamp policy accepted."""
+        stamp = self._last_joint_ns = pending[0]
         if self.base_driven:
             self._held, self._have_shape = pending, True
             return
@@ -464,11 +501,11 @@ class Estimator:
         if odometry and linear is None:
             self._reject('missing_twist', 'base sample without twist (use pose mode)')
             return
-        last = self._last_base_ns
-        if last is not None and stamp <= last:
-            self._reject('base_stamp_backwards', f'base stamp {stamp} <= previous {last}')
+        # Plausibility gate (estimator/plausibility.py): quaternion norm, position, twist.
+        verdict = self._base_bounds.check(row, norm, twist)
+        if verdict is not None:
+            self._reject(*verdict)
             return
-        self._last_base_ns = stamp
         row += (x / norm, y / norm, z / norm, w / norm)
         if not self._floating:
             pose = self.robot.project_pose(pin.XYZQUATToSE3(np.array(row)))
@@ -479,6 +516,18 @@ class Estimator:
                 kernel = self.kernel
                 twist = kernel.twists(kernel.coordinates(np.array([twist])))[0].tolist()
             row += twist
+        # Stamp policy (estimator/stamps.py): outliers dropped, clock jumps followed.
+        result = self._base_gate.offer(stamp, sample.receive_ns, (stamp, row))
+        if result is not ACCEPTED:
+            self._stamp_result(result, False)
+            return
+        self._accept_base((stamp, row))
+
+    def _accept_base(self, item: tuple) -> None:
+        """Buffer a base sample whose stamp the stamp policy accepted."""
+        stamp, row = item
+        odometry = self.use_odometry
+        self._last_base_ns = stamp
         self._buffer.append(stamp, row)
         pending = self._pending
         if self.base_driven:
@@ -489,6 +538,71 @@ class Estimator:
             self._resolve(pending.popleft() + (row,))
             return
         self._drain(final=False)
+
+    # --- stamp policy and clock restarts (estimator/stamps.py) -----------------------
+    def _stamp_result(self, result: StampResult, joint: bool) -> None:
+        """Apply a stamp decision of the joint (or base) stream: drops, a jump, accepts."""
+        prefix, accept = ('stamp_', self._accept_joint) if joint \
+            else ('base_stamp_', self._accept_base)
+        for _, reason, detail in result.dropped:
+            self._reject(prefix + reason, detail)
+        if result.jump is not None:
+            self._clock_jump(result.jump, joint)
+        for item in result.accepted:
+            accept(item)
+
+    def _clock_jump(self, jump: ClockJump, joint: bool) -> None:
+        """
+        Follow a confirmed clock jump of one stream.
+
+        Forward, nothing restarts (a gap; the other stream confirms its own
+        jump). Backwards, the estimator restarts its clock and the other
+        stream re-anchors on the new time, releasing what it held.
+        """
+        if not jump.backwards:
+            return
+        self._restart_clock(f'{jump.stream} clock jumped back '
+                            f'{(jump.from_ns - jump.to_ns) * 1e-9:.6g} s')
+        other = self._base_gate if joint else self._joint_gate
+        self._stamp_result(other.follow(jump.to_ns, jump.to_receive_ns), not joint)
+
+    def reset(self, reason: str) -> list[EstimatorOutput]:
+        """
+        Restart the estimator's clock (e.g. ROS time jumped back); return ready outputs.
+
+        What waits at the old time is processed first; then every time-dependent
+        state is forgotten (base buffer, last stamps, observer filter state, open
+        predictions, prediction and diagnostics times). The momentum level,
+        events and counters stay. Samples the stamp policy held are re-judged
+        against the new clock.
+        """
+        held = [(self._joint_gate.restart(), True), (self._base_gate.restart(), False)]
+        self._restart_clock(reason)
+        for items, joint in held:
+            gate = self._joint_gate if joint else self._base_gate
+            for stamp, receive, item in items:
+                result = gate.offer(stamp, receive, item)
+                if result is ACCEPTED:
+                    (self._accept_joint if joint else self._accept_base)(item)
+                else:
+                    self._stamp_result(result, joint)
+        return self._close_streaming()
+
+    def _restart_clock(self, reason: str) -> None:
+        self._drain(final=True)
+        self._process_chunk()
+        self.predictor.finish()
+        self._buffer = BaseBuffer()
+        self._last_joint_ns = self._last_base_ns = None
+        self._last_prediction_ns = self._last_diagnostics_ns = None
+        # The filter restarts from the next sample; detected events stay reported.
+        events = self.observer.events
+        config = self.config
+        self.observer = MomentumObserver(config.observer_bandwidth, config.event_threshold,
+                                         config.event_hold)
+        self.observer.events = events
+        self.clock_resets += 1
+        self.last_reset = reason
 
     # --- processing ------------------------------------------------------------------
     def _drain(self, final: bool) -> None:
@@ -718,6 +832,7 @@ class Estimator:
             'received': dict(self.received),
             'processed': self.processed,
             'rejected': dict(self.rejected),
+            'clock_resets': self.clock_resets,
             'cyclic_joints': list(self.cyclic_joints),
             'mu_mean': mean.tolist(),
             'mu_spread': spread.tolist(),

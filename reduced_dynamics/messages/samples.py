@@ -75,9 +75,21 @@ def trusted_sample(cls: type, *values: object) -> object:
     return sample
 
 
+def with_receive_time(sample: object, receive_ns: Optional[int]) -> object:
+    """Set the receive time of a freshly decoded (caller-owned) input sample; return it."""
+    object.__setattr__(sample, 'receive_ns', None if receive_ns is None
+                       else _stamp(receive_ns, 'receive_ns'))
+    return sample
+
+
 @dataclass(frozen=True, eq=False)
 class JointStateSample:
-    """Joint state; velocity and effort may be empty (size 0)."""
+    """
+    Joint state; velocity and effort may be empty (size 0).
+
+    ``receive_ns``: when the message arrived (a bag's record time, rclpy's
+    received timestamp), None when unknown; the estimator's stamp policy uses it.
+    """
 
     stamp_ns: int
     frame_id: str
@@ -85,10 +97,13 @@ class JointStateSample:
     position: np.ndarray
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(0))
     effort: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    receive_ns: Optional[int] = None
 
     def __post_init__(self) -> None:
         """Validate and normalize fields."""
         object.__setattr__(self, 'stamp_ns', _stamp(self.stamp_ns))
+        if self.receive_ns is not None:
+            object.__setattr__(self, 'receive_ns', _stamp(self.receive_ns, 'receive_ns'))
         names = tuple(str(n) for n in self.names)
         object.__setattr__(self, 'names', names)
         n = len(names)
@@ -107,7 +122,8 @@ class BaseStateSample:
 
     The twist follows REP 105 / nav_msgs/Odometry: expressed in the child
     (base) frame.  ``twist_linear``/``twist_angular`` are None when the
-    source carries no twist (e.g. geometry_msgs/PoseStamped).
+    source carries no twist (e.g. geometry_msgs/PoseStamped). ``receive_ns``:
+    when the message arrived, None when unknown (as for joint states).
     """
 
     stamp_ns: int
@@ -117,10 +133,13 @@ class BaseStateSample:
     orientation_xyzw: np.ndarray
     twist_linear: Optional[np.ndarray] = None
     twist_angular: Optional[np.ndarray] = None
+    receive_ns: Optional[int] = None
 
     def __post_init__(self) -> None:
         """Validate and normalize fields."""
         object.__setattr__(self, 'stamp_ns', _stamp(self.stamp_ns))
+        if self.receive_ns is not None:
+            object.__setattr__(self, 'receive_ns', _stamp(self.receive_ns, 'receive_ns'))
         object.__setattr__(self, 'position', _array(self.position, (3,), 'position'))
         object.__setattr__(
             self, 'orientation_xyzw', _array(self.orientation_xyzw, (4,), 'orientation_xyzw'))

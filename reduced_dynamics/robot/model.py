@@ -104,6 +104,8 @@ class RobotModel:
         self.group: BaseGroup = SUBGROUPS[BASE_GROUP_OF_JOINT[parsed.base_joint_type]]
         self.shape_joint_names: tuple[str, ...] = built.shape_joint_names
         self.shape_joint_sources = built.shape_joint_sources
+        #: URDF <limit> of the shape joints that declare one (plausibility gates)
+        self.shape_joint_limits = built.shape_joint_limits
         self.gravity = np.zeros(3) if gravity is None else np.asarray(gravity, dtype=float)
         self._check_invariant_potential()
         self.model.gravity = pin.Motion(np.r_[self.gravity, 0.0, 0.0, 0.0])

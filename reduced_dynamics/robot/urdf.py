@@ -58,9 +58,24 @@ class UrdfLink:
         return pin.Inertia(self.mass, self.com, self.inertia)
 
 
+@dataclass(frozen=True)
+class JointLimit:
+    """
+    A URDF ``<limit>``: position range (None for continuous joints), |velocity|, |effort|.
+
+    Units are the joint's: rad, rad/s, N m (revolute) or m, m/s, N (prismatic).
+    A velocity or effort of 0 means "not given" (URDF's default), stored as None.
+    """
+
+    lower: Optional[float]
+    upper: Optional[float]
+    velocity: Optional[float]
+    effort: Optional[float]
+
+
 @dataclass
 class UrdfJoint:
-    """A joint: type, parent/child link, origin placement and axis."""
+    """A joint: type, parent/child link, origin placement, axis and limits."""
 
     name: str
     type: str
@@ -68,6 +83,7 @@ class UrdfJoint:
     child: str
     origin: pin.SE3
     axis: np.ndarray
+    limit: Optional[JointLimit] = None
 
 
 def _floats(text: Optional[str], count: int, what: str) -> np.ndarray:
@@ -141,7 +157,26 @@ def _parse_joint(element: ElementTree.Element) -> UrdfJoint:
     if jtype not in known:
         raise UrdfError(f'joint {name}: unsupported type {jtype!r} (supported: {known})')
     return UrdfJoint(name, jtype, parent.get('link'), child.get('link'),
-                     _origin(element.find('origin'), f'joint {name}'), axis)
+                     _origin(element.find('origin'), f'joint {name}'), axis,
+                     _parse_limit(element.find('limit'), name, jtype))
+
+
+def _parse_limit(element: Optional[ElementTree.Element], name: str,
+                 jtype: str) -> Optional[JointLimit]:
+    """Read a joint's <limit> (URDF: lower/upper default 0, ignored for continuous joints)."""
+    if element is None or jtype not in ('revolute', 'continuous', 'prismatic'):
+        return None
+
+    def number(key: str) -> float:
+        return float(_floats(element.get(key, '0'), 1, f'joint {name} limit {key}')[0])
+
+    lower, upper = number('lower'), number('upper')
+    velocity, effort = abs(number('velocity')), abs(number('effort'))
+    if jtype == 'continuous':
+        lower = upper = None
+    elif lower > upper:
+        raise UrdfError(f'joint {name}: limit lower {lower} > upper {upper}')
+    return JointLimit(lower, upper, velocity or None, effort or None)
 
 
 @dataclass
@@ -263,6 +298,8 @@ class BuiltModel:
     urdf: UrdfRobot
     shape_joint_names: tuple[str, ...]
     shape_joint_sources: dict[str, str]
+    #: URDF limits of the shape joints that have them (1-dof URDF joints only)
+    shape_joint_limits: dict[str, JointLimit] = field(default_factory=dict)
 
 
 def build_pinocchio_model(robot: UrdfRobot) -> BuiltModel:
@@ -331,4 +368,6 @@ def build_pinocchio_model(robot: UrdfRobot) -> BuiltModel:
             raise UrdfError('internal: shape joints must be one-dimensional')
     model.lowerPositionLimit[:] = -math.inf
     model.upperPositionLimit[:] = math.inf
-    return BuiltModel(model, robot, tuple(shape_names), sources)
+    limits = {j.name: j.limit for j in robot.joints
+              if j.limit is not None and j.name in sources}
+    return BuiltModel(model, robot, tuple(shape_names), sources, limits)

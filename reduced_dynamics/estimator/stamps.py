@@ -1,0 +1,296 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Stamp policy of one input stream: accept, drop an outlier, or follow a clock jump.
+
+A header stamp is trusted when it is consistent with the stream's clock so far:
+
+* with a receive time (the bag's record time, rclpy's ``received_timestamp``)
+  on both this sample and the reference, when the offset ``stamp - receive``
+  stays within the tolerance of the reference's offset (transport latency
+  varies by milliseconds, a wrong clock by much more);
+* without one, when the stamp advances by at most the tolerance.
+
+The tolerance is ``max(stamp_outlier_tolerance, 4 x the stream's local period)``
+(the median of its last 16 accepted steps), so slow streams are not misjudged.
+
+A consistent stamp that does not advance (a duplicate or a reordered message)
+is rejected as ``backwards``. An inconsistent stamp is held as a candidate, and
+its stream decides what it was:
+
+* a later sample consistent with the old clock proves the candidates isolated
+  outliers: they are dropped (``outlier``) and the sample accepted;
+* ``jump_samples`` consecutive candidates consistent among themselves prove a
+  clock jump (simulator restart, ``ros2 bag play --loop``): the gate
+  re-synchronises to them and releases them all, so no sample after a jump is
+  lost (their outputs come ``jump_samples - 1`` samples late);
+* a stamp that jumps together with its receive time (both moved: a bag recorded
+  on sim time, looped) is a jump at once.
+
+Candidates still held at the end of the input are dropped as outliers.
+The gate holds opaque items (what the caller wants back); it never looks at them.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+NS = 1_000_000_000
+#: Accepted steps kept for the local period (median).
+PERIOD_WINDOW = 16
+#: The tolerance is at least this many local periods.
+PERIOD_FACTOR = 4
+
+
+@dataclass
+class ClockJump:
+    """A confirmed re-synchronisation: the stream's clock moved from ``from_ns`` to ``to_ns``."""
+
+    stream: str
+    from_ns: int
+    to_ns: int
+    to_receive_ns: Optional[int]
+    receive_moved: bool
+
+    @property
+    def backwards(self) -> bool:
+        """Return True when time went back (the estimator must restart its clock)."""
+        return self.to_ns < self.from_ns
+
+
+@dataclass
+class StampResult:
+    """
+    What a non-trivial :meth:`StampGate.offer` decided.
+
+    ``dropped``: (item, reason, detail) rejected, reason ``outlier`` or
+    ``backwards``; ``jump``: a confirmed clock jump, to handle before
+    ``accepted`` (items to process now, in order).
+    """
+
+    accepted: list = field(default_factory=list)
+    dropped: list = field(default_factory=list)
+    jump: Optional[ClockJump] = None
+
+
+#: :meth:`StampGate.offer`'s answer when the offered item is accepted and nothing else
+#: happened (the hot path: no allocation).
+ACCEPTED = StampResult()
+
+
+class StampGate:
+    """
+    The stamp policy of one stream (see the module docstring).
+
+    ``tolerance_ns``: ``stamp_outlier_tolerance`` in ns; ``jump_samples``:
+    consecutive consistent candidates that confirm a clock jump.
+    """
+
+    def __init__(self, stream: str, tolerance_ns: int, jump_samples: int) -> None:
+        """Start without a reference: the first sample is accepted."""
+        self.stream = stream
+        self.tolerance_ns = int(tolerance_ns)
+        self.jump_samples = max(1, int(jump_samples))
+        self.last_ns: Optional[int] = None
+        self.last_receive_ns: Optional[int] = None
+        self._steps: deque[int] = deque(maxlen=PERIOD_WINDOW)
+        self._held: list[tuple[int, Optional[int], Any]] = []
+        # After another stream's jump: the new clock, before this stream has a reference.
+        self._anchor: Optional[tuple[int, Optional[int]]] = None
+
+    def configure(self, tolerance_ns: int, jump_samples: int) -> None:
+        """Adopt new settings; the state is kept."""
+        self.tolerance_ns = int(tolerance_ns)
+        self.jump_samples = max(1, int(jump_samples))
+
+    @property
+    def held(self) -> int:
+        """Return the number of candidate samples held."""
+        return len(self._held)
+
+    def tolerance(self) -> int:
+        """Return the effective tolerance [ns]: the parameter or 4 local periods."""
+        steps = self._steps
+        if not steps:
+            return self.tolerance_ns
+        ordered = sorted(steps)
+        return max(self.tolerance_ns, PERIOD_FACTOR * ordered[len(ordered) // 2])
+
+    def _relation(self, ref_ns: int, ref_rx: Optional[int], stamp: int,
+                  receive: Optional[int], tolerance: int, mode: str = 'stream') -> str:
+        """
+        Classify ``stamp`` against a reference: 'forward', 'backwards', 'jump' or 'far'.
+
+        'jump': consistent in offset, but the stamp moved by more than the
+        tolerance together with the receive time. ``mode`` 'window': either
+        direction within the tolerance is 'forward' (re-anchoring on another
+        stream's clock).
+        """
+        step = stamp - ref_ns
+        if receive is not None and ref_rx is not None:
+            if abs(step - (receive - ref_rx)) > tolerance:
+                return 'far'
+            if step > 0 or mode == 'window':
+                return 'forward'
+            return 'jump' if -step > tolerance else 'backwards'
+        if mode == 'window':
+            return 'forward' if abs(step) <= tolerance else 'far'
+        if 0 < step <= tolerance:
+            return 'forward'
+        if -tolerance <= step <= 0:
+            return 'backwards'
+        return 'far'
+
+    def offer(self, stamp: int, receive: Optional[int], item: Any) -> StampResult:
+        """
+        Judge one sample's stamp; return :data:`ACCEPTED` or what to do instead.
+
+        On :data:`ACCEPTED` the caller processes ``item`` now. Otherwise the
+        result lists what to drop, a jump to handle, and what to process.
+        """
+        last = self.last_ns
+        if last is not None and not self._held:
+            # Hot path: the stream goes on.
+            step = stamp - last
+            rx = self.last_receive_ns
+            if 0 < step <= self.tolerance_ns and (
+                    receive is None or rx is None
+                    or abs(step - (receive - rx)) <= self.tolerance_ns):
+                self._steps.append(step)
+                self.last_ns, self.last_receive_ns = stamp, receive
+                return ACCEPTED
+        result = self._judge(stamp, receive, item)
+        if result.jump is None and not result.dropped and len(result.accepted) == 1 \
+                and result.accepted[0] is item:
+            return ACCEPTED
+        return result
+
+    def _accept(self, stamp: int, receive: Optional[int]) -> None:
+        last = self.last_ns
+        if last is not None and stamp > last:
+            self._steps.append(stamp - last)
+        self.last_ns, self.last_receive_ns = stamp, receive
+
+    def _judge(self, stamp: int, receive: Optional[int], item: Any) -> StampResult:
+        last = self.last_ns
+        result = StampResult()
+        if last is None:
+            anchor = self._anchor
+            if anchor is None or self._relation(anchor[0], anchor[1], stamp, receive,
+                                                self.tolerance(), 'window') == 'forward':
+                self._anchor = None
+                self._accept(stamp, receive)
+                result.accepted.append(item)
+                return result
+            return self._candidate(stamp, receive, item, result)
+        tolerance = self.tolerance()
+        relation = self._relation(last, self.last_receive_ns, stamp, receive, tolerance)
+        if relation == 'forward':
+            result.dropped = self._drop_held()
+            self._accept(stamp, receive)
+            result.accepted.append(item)
+            return result
+        if relation == 'backwards':
+            result.dropped.append((item, 'backwards',
+                                   f'{self.stream} stamp {stamp} <= previous {last}'))
+            return result
+        if relation == 'jump':
+            # Stamp and receive time moved together: the source's clock really jumped.
+            result.dropped = self._drop_held()
+            result.jump = ClockJump(self.stream, last, stamp, receive, True)
+            self.last_ns, self.last_receive_ns = stamp, receive
+            result.accepted.append(item)
+            return result
+        return self._candidate(stamp, receive, item, result)
+
+    def _candidate(self, stamp: int, receive: Optional[int], item: Any,
+                   result: StampResult) -> StampResult:
+        held = self._held
+        if held:
+            ref_ns, ref_rx, _ = held[-1]
+            tolerance = self.tolerance()
+            if receive is None or ref_rx is None:
+                # Without receive times the candidates' own spacing (or the gap before
+                # the first) scales the tolerance: a slow stream must be able to start.
+                spacing = ref_ns - held[-2][0] if len(held) > 1 else \
+                    ref_ns - (self.last_ns if self.last_ns is not None else ref_ns)
+                tolerance = max(tolerance, PERIOD_FACTOR * spacing)
+            relation = self._relation(ref_ns, ref_rx, stamp, receive, tolerance)
+            if relation != 'forward':
+                if len(held) == 1:
+                    # One candidate against another: the older one is dropped.
+                    result.dropped = self._drop_held()
+                else:
+                    # A chain is establishing itself: this one is the odd one out.
+                    result.dropped.append((item, 'outlier', self._outlier_text(stamp)))
+                    return result
+        held.append((stamp, receive, item))
+        if len(held) >= self.jump_samples:
+            self._held = []
+            first = held[0][0]
+            origin = self.last_ns if self.last_ns is not None else \
+                (self._anchor[0] if self._anchor is not None else first)
+            result.jump = ClockJump(self.stream, origin, first, held[0][1], False)
+            self._anchor = None
+            # The stream's rate is unchanged: its local period stays.
+            self.last_ns = None
+            for stamp_k, receive_k, item_k in held:
+                self._accept(stamp_k, receive_k)
+                result.accepted.append(item_k)
+        return result
+
+    def _outlier_text(self, stamp: int) -> str:
+        reference = self.last_ns if self.last_ns is not None else \
+            (self._anchor[0] if self._anchor is not None else None)
+        if reference is None:
+            return f'{self.stream} stamp {stamp} inconsistent with its neighbours'
+        return (f'{self.stream} stamp {stamp} is {(stamp - reference) * 1e-9:+.6g} s from '
+                f'its stream (tolerance {self.tolerance() * 1e-9:.3g} s)')
+
+    def _drop_held(self) -> list:
+        held, self._held = self._held, []
+        return [(item, 'outlier', self._outlier_text(stamp)) for stamp, _, item in held]
+
+    def follow(self, stamp: int, receive: Optional[int]) -> StampResult:
+        """
+        Re-anchor on another stream's new clock after its jump (see :class:`ClockJump`).
+
+        Held candidates that fit the new clock are released in order; the rest
+        are dropped as outliers.
+        """
+        held, self._held = self._held, []
+        self.last_ns = self.last_receive_ns = None
+        self._anchor = (stamp, receive)
+        result = StampResult()
+        for stamp_k, receive_k, item_k in held:
+            step = self._judge(stamp_k, receive_k, item_k)
+            result.dropped += step.dropped
+            result.accepted += step.accepted
+            result.jump = step.jump or result.jump
+        return result
+
+    def finish(self) -> list:
+        """End of input: drop the candidates still held (unconfirmed) as outliers."""
+        return self._drop_held()
+
+    def restart(self) -> list[tuple[int, Optional[int], Any]]:
+        """Forget the clock (the estimator restarted); return the held (stamp, receive, item)."""
+        held, self._held = self._held, []
+        self.last_ns = self.last_receive_ns = None
+        self._steps.clear()
+        self._anchor = None
+        return held
