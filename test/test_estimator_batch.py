@@ -180,7 +180,8 @@ def test_batched_equals_streaming_with_the_second_stage():
     run = simulate(robot, scenario.state, scenario.torque, times, None)
     joints, bases = samples(robot, times, *run[:4], torque=scenario.torque)
     stream = [item for pair in zip(bases, joints) for item in pair]
-    config = EstimatorConfig(prediction_rate=2.0, prediction_horizon=0.3, diagnostics_rate=5.0)
+    config = EstimatorConfig(prediction_rate=2.0, prediction_horizon=0.3, diagnostics_rate=5.0,
+                             prediction_mode='held_torque')
     reference = Estimator(robot, config, cyclic_joints='auto')
     expected = _streaming(reference, stream)
     assert len(expected) == 301 and reference.predictor.made >= 2
