@@ -309,6 +309,8 @@ class Estimator:
         # Input gates (estimator/stamps.py, estimator/plausibility.py).
         self._joint_gate = StampGate('joint state', NS, 3)
         self._base_gate = StampGate('base', NS, 3)
+        # One clock: a stream's first stamp is judged by the other stream's last.
+        self._joint_gate.peer, self._base_gate.peer = self._base_gate, self._joint_gate
         self._joint_bounds: dict[tuple[str, ...], JointBounds] = {}
         #: Clock restarts so far (a backwards jump, :meth:`reset`), and the last reason.
         self.clock_resets = 0
