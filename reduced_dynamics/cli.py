@@ -12,7 +12,8 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Command line: ``reduced-dynamics validate | symmetries | simulate | replay | predict | bench``.
+"""
+Command line: ``reduced-dynamics validate | symmetries | simulate | replay | predict | bench``.
 
 One subcommand per task; ``--help`` on each lists its options.
 """
