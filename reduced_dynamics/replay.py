@@ -46,8 +46,8 @@ from reduced_dynamics.estimator.pipeline import Estimator, EstimatorOutput
 from reduced_dynamics.bag.reader import BagReader
 from reduced_dynamics.messages import cdr
 from reduced_dynamics.messages.convert import (
-    joint_state_from_ros, odometry_from_ros, pose_stamped_from_ros)
-from reduced_dynamics.messages.samples import with_receive_time
+    joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros, pose_stamped_from_ros)
+from reduced_dynamics.messages.samples import JointTrajectorySample, with_receive_time
 from reduced_dynamics.messages.types import RosbagsTypes
 from reduced_dynamics.params import defaults, load_params_file
 from reduced_dynamics.robot.model import load_robot, RobotModel
@@ -58,6 +58,7 @@ JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
 REPLAY_BATCH = 512
 ODOMETRY_TYPE = 'nav_msgs/msg/Odometry'
 POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
+TRAJECTORY_TYPE = 'trajectory_msgs/msg/JointTrajectory'
 #: Exit status of a replay that completed but lost messages to a damaged bag.
 EXIT_DAMAGED = 3
 
@@ -70,6 +71,8 @@ class ReplayOptions:
     joint_states_topic: Optional[str] = None
     odom_topic: Optional[str] = None
     base_pose_topic: Optional[str] = None
+    #: planned trajectories (prediction_mode planned); default: the trajectory_topic param
+    trajectory_topic: Optional[str] = None
     start: Optional[float] = None
     end: Optional[float] = None
     plots_dir: Optional[str] = None
@@ -150,9 +153,12 @@ def input_decoder(reader: BagReader, topic: str, msgtype: str, child_frame_id: s
     elif msgtype == POSE_TYPE:
         convert = functools.partial(pose_stamped_from_ros, child_frame_id=child_frame_id)
         fast = functools.partial(cdr.decode_pose_stamped, child_frame_id=child_frame_id)
+    elif msgtype == TRAJECTORY_TYPE:
+        convert, fast = joint_trajectory_from_ros, None  # rare messages: the generic path
     else:
         raise BagError(f'topic {topic}: cannot use {msgtype} as an input')
-    if not cdr.fast_path_applies(reader.typestore_for(topic, msgtype), msgtype):
+    if fast is not None and not cdr.fast_path_applies(reader.typestore_for(topic, msgtype),
+                                                      msgtype):
         fast = None
 
     def decode(data: bytes) -> Any:
@@ -200,7 +206,13 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                               cyclic_joints=options.params.get('cyclic_joints', ''))
         start_ns = None if options.start is None else reader.start_ns + int(options.start * 1e9)
         end_ns = None if options.end is None else reader.start_ns + int(options.end * 1e9)
-        wanted = [t for t in (joint_topic, base_topic) if t]
+        trajectory_topic = _topic(options.trajectory_topic
+                                  or options.params.get('trajectory_topic', 'joint_trajectory'))
+        if options.trajectory_topic and topics.get(trajectory_topic) != TRAJECTORY_TYPE:
+            raise BagError(f'bag has no {TRAJECTORY_TYPE} topic {trajectory_topic}')
+        if topics.get(trajectory_topic) != TRAJECTORY_TYPE:
+            trajectory_topic = None
+        wanted = [t for t in (joint_topic, base_topic, trajectory_topic) if t]
         total_ns = max(reader.duration_ns, 1)
         outputs = active_topics(bool(estimator.cyclic_joints))
         out_topics = {resolved_name(t): t.msgtype for t in outputs}
@@ -214,6 +226,8 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
             elif (topic, msgtype) == (base_topic, base_type):
                 inputs[topic, msgtype] = input_decoder(reader, topic, msgtype,
                                                        robot.base_link)
+            elif (topic, msgtype) == (trajectory_topic, TRAJECTORY_TYPE):
+                inputs[topic, msgtype] = input_decoder(reader, topic, msgtype, '')
             else:
                 expected = JOINT_STATE_TYPE if topic == joint_topic else base_type
                 inputs[topic, msgtype] = _wrong_type(topic, msgtype, expected)
@@ -246,7 +260,15 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                         read[message.topic] += 1
                         # The record time is the receive time the stamp policy compares
                         # header stamps with (estimator/stamps.py).
-                        batch.append(with_receive_time(sample, message.timestamp_ns))
+                        sample = with_receive_time(sample, message.timestamp_ns)
+                        if sample.__class__ is JointTrajectorySample:
+                            # A plan applies from its arrival: what came before is
+                            # processed first, as the node's callbacks would.
+                            emit(estimator.add_samples(batch).outputs())
+                            batch = []
+                            estimator.add_trajectory(sample)
+                        else:
+                            batch.append(sample)
                 except BagError:
                     raise  # strict mode refusing a damaged message
                 except (ValueError, TypeError) as error:
@@ -278,7 +300,8 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
     summary = estimator.summary()
     summary.update({'input_bag': str(bag_path), 'output_bag': str(out_path),
                     'robot': robot.model.name, 'joint_states_topic': joint_topic,
-                    'base_topic': base_topic, 'base_driven': base_driven,
+                    'base_topic': base_topic, 'trajectory_topic': trajectory_topic,
+                    'base_driven': base_driven,
                     'messages_in': dict(read), 'messages_out': dict(written),
                     'undecodable_skipped': skipped, 'damage': damage, 'seconds': elapsed,
                     'samples_per_second': estimator.processed / elapsed if elapsed else None})
@@ -447,6 +470,7 @@ def _run(args: argparse.Namespace) -> int:
     robot = load_robot_from_params(params, args.urdf, args.base_joint, args.gravity)
     options = ReplayOptions(params=params, joint_states_topic=args.joint_states_topic,
                             odom_topic=args.odom_topic, base_pose_topic=args.base_pose_topic,
+                            trajectory_topic=args.trajectory_topic,
                             start=args.start, end=args.end, plots_dir=args.plots,
                             overwrite=args.overwrite, strict=args.strict,
                             progress=None if args.quiet else sys.stderr)
@@ -474,6 +498,9 @@ def register_command(commands: Any) -> None:
     add_robot_arguments(parser)
     parser.add_argument('--params', help='parameters YAML (the node\'s format)')
     parser.add_argument('--joint-states-topic')
+    parser.add_argument('--trajectory-topic',
+                        help='trajectory_msgs/JointTrajectory topic of planned arm motions '
+                             '(default: the trajectory_topic parameter, used when present)')
     group = parser.add_mutually_exclusive_group()
     group.add_argument('--odom-topic')
     group.add_argument('--base-pose-topic')
