@@ -32,7 +32,9 @@ import pinocchio as pin
 
 from reduced_dynamics.estimator.prediction import pose_path, Plan
 from reduced_dynamics.integrators import Budget, BudgetExceeded
-from reduced_dynamics.messages.samples import JointTrajectorySample, PosePath
+from reduced_dynamics.messages.samples import (DIAG_ERROR, DIAG_OK, Diagnostics,
+                                               DiagnosticStatusSample, JointTrajectorySample,
+                                               PosePath)
 from reduced_dynamics.reduction.prescribed import attitude_angles, PrescribedReconstruction
 from reduced_dynamics.robot.model import RobotModel
 
@@ -116,3 +118,38 @@ def predict_base_motion(robot: RobotModel, trajectory: JointTrajectorySample, g0
         pose_path(start_ns, world_frame, offsets, phase),
         pin.SE3(poses[-1]), float(angles.max()), float(angles[-1]), float(phase_angles[-1]),
         budget.evaluations)
+
+
+#: The name of the answer's status (the result topic of ``~/predict_base_motion``).
+ANSWER_STATUS = 'reduced_dynamics: predict_base_motion'
+
+
+def answer_messages(answer: Optional[BaseMotionAnswer], stamp_ns: int, request_id: str,
+                    error: Optional[str] = None) -> tuple[Optional[PosePath], Diagnostics]:
+    """
+    Return the response of ``~/predict_base_motion`` as (path, result) samples.
+
+    Standard types (no generated interface): the path is a nav_msgs/Path
+    whose last pose is the final base pose; the result a DiagnosticArray
+    stamped like the path, one status whose ``hardware_id`` echoes the
+    request id (the request header's frame_id) with the final pose, the
+    largest attitude deviation and the drift/phase split as key-values.
+    ``error``: why the request could not be answered.
+    """
+    reason = error or (answer.failure if answer is not None else 'no answer')
+    if answer is None or answer.failure is not None:
+        status = DiagnosticStatusSample(DIAG_ERROR, ANSWER_STATUS, reason, request_id,
+                                        {'request_id': request_id})
+        return None, Diagnostics(stamp_ns, (status,))
+    final = answer.final_pose
+    quat = pin.Quaternion(final.rotation).coeffs()
+    values = {'request_id': request_id,
+              'final_position': ' '.join(f'{v:.9g}' for v in final.translation),
+              'final_orientation_xyzw': ' '.join(f'{v:.9g}' for v in quat),
+              'max_attitude_deviation_rad': f'{answer.max_attitude_deviation:.9g}',
+              'attitude_change_rad': f'{answer.attitude_change:.9g}',
+              'phase_attitude_change_rad': f'{answer.phase_attitude_change:.9g}',
+              'duration_s': f'{(answer.path.stamps_ns[-1] - answer.path.stamps_ns[0]) / NS:g}',
+              'evaluations': str(answer.evaluations)}
+    status = DiagnosticStatusSample(DIAG_OK, ANSWER_STATUS, 'predicted', request_id, values)
+    return answer.path, Diagnostics(answer.path.stamp_ns, (status,))
