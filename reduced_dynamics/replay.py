@@ -30,12 +30,14 @@ from dataclasses import dataclass, field
 import functools
 import json
 import os
+import shutil
 import sys
 import time
 from typing import Any, Callable, Optional, TextIO
 
 import numpy as np
 
+from reduced_dynamics.bag.damage import Damage
 from reduced_dynamics.bag.errors import BagError
 from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.bag.writer import BagWriter
@@ -57,6 +59,8 @@ REPLAY_BATCH = 512
 ODOMETRY_TYPE = 'nav_msgs/msg/Odometry'
 POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
 TRAJECTORY_TYPE = 'trajectory_msgs/msg/JointTrajectory'
+#: Exit status of a replay that completed but lost messages to a damaged bag.
+EXIT_DAMAGED = 3
 
 
 @dataclass
@@ -74,6 +78,8 @@ class ReplayOptions:
     plots_dir: Optional[str] = None
     overwrite: bool = False
     progress: Optional[TextIO] = None
+    #: refuse a damaged bag (BagError) instead of reading what is intact
+    strict: bool = False
 
 
 class _Series:
@@ -190,7 +196,9 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
     config = EstimatorConfig.from_mapping(options.params)
     types = RosbagsTypes()
     started = time.perf_counter()
-    with open_bag(bag_path) as reader:
+    with open_bag(bag_path, strict=options.strict) as reader:
+        if options.strict:
+            reader.verify()  # refuse before writing anything
         topics = reader.topics()
         joint_topic, base_topic, is_odom = choose_inputs(topics, options)
         base_driven = joint_topic is None or robot.m == 0
@@ -261,6 +269,8 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                             estimator.add_trajectory(sample)
                         else:
                             batch.append(sample)
+                except BagError:
+                    raise  # strict mode refusing a damaged message
                 except (ValueError, TypeError) as error:
                     if sample is None:  # deserialized, but not into a valid sample
                         read[message.topic] += 1
@@ -283,6 +293,7 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
             emit(estimator.flush_batch().outputs())
         written = {topic: count for topic, count in writer.message_counts.items() if count}
         skipped = dict(reader.skipped)
+        damage = damage_report(reader, wanted, read)
     if options.progress is not None:
         options.progress.write('\rreplay: 100.0%\n')
     elapsed = time.perf_counter() - started
@@ -292,7 +303,7 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                     'base_topic': base_topic, 'trajectory_topic': trajectory_topic,
                     'base_driven': base_driven,
                     'messages_in': dict(read), 'messages_out': dict(written),
-                    'undecodable_skipped': skipped, 'seconds': elapsed,
+                    'undecodable_skipped': skipped, 'damage': damage, 'seconds': elapsed,
                     'samples_per_second': estimator.processed / elapsed if elapsed else None})
     if options.plots_dir:
         for prediction in estimator.predictor.finished:
@@ -301,6 +312,36 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                                            prediction.position_residual))
         summary['plots'] = write_plots(options.plots_dir, series, robot)
     return summary
+
+
+def damage_report(reader: BagReader, topics: list[str], read: Counter) -> dict[str, Any]:
+    """
+    Return what the damaged parts of the bag cost: regions, messages and bytes lost.
+
+    ``missing_vs_index`` compares the messages read per input topic (decoded or not)
+    with the counts of metadata.yaml or of an intact storage index.
+    """
+    regions = reader.damage
+    undecodable = sum(reader.skipped.values())
+    missing: dict[str, int] = {}
+    if reader.counts_trusted and (regions or undecodable):
+        for topic in topics:
+            got = read[topic] + sum(n for reason, n in reader.skipped.items()
+                                    if reason.split(': ', 1)[-1].startswith(topic + ' ('))
+            expected = reader.message_count(topic)
+            if expected > got:
+                missing[topic] = expected - got
+    known = [r.messages_lost for r in regions if r.messages_lost is not None]
+    return {
+        'damaged': bool(regions or undecodable or missing),
+        'regions': [r.to_dict() for r in regions],
+        'messages_lost': sum(known) + undecodable,
+        'messages_lost_unknown': any(r.messages_lost is None for r in regions),
+        'messages_salvaged': sum(r.messages_recovered for r in regions),
+        'bytes_lost': sum(r.length for r in regions),
+        'undecodable': undecodable,
+        'missing_vs_index': missing,
+    }
 
 
 def write_plots(directory: str, series: dict, robot: RobotModel) -> list[str]:
@@ -416,6 +457,20 @@ def format_summary(summary: dict[str, Any]) -> str:
             f'{entry["shape_residual_median"]:.2e} rad')
     if summary.get('plots'):
         lines.append('plots: ' + ', '.join(summary['plots']))
+    damage = summary.get('damage') or {}
+    if damage.get('damaged'):
+        lost = f'{damage["messages_lost"]}' + (' + an unknown number'
+                                               if damage['messages_lost_unknown'] else '')
+        lines.append(f'DAMAGED INPUT: {len(damage["regions"])} damaged region(s), '
+                     f'{damage["bytes_lost"]} bytes lost; messages lost {lost} '
+                     f'({damage["undecodable"]} undecodable), '
+                     f'{damage["messages_salvaged"]} salvaged from damaged regions')
+        for region in damage['regions']:
+            lines.append('  ' + Damage(**{k: tuple(v) if k == 'rows' and v else v
+                                          for k, v in region.items()}).text())
+        if damage['missing_vs_index']:
+            lines.append('  missing against the bag\'s own counts: ' + ', '.join(
+                f'{t} {n}' for t, n in sorted(damage['missing_vs_index'].items())))
     return '\n'.join(lines)
 
 
@@ -430,18 +485,21 @@ def _run(args: argparse.Namespace) -> int:
                             odom_topic=args.odom_topic, base_pose_topic=args.base_pose_topic,
                             trajectory_topic=args.trajectory_topic,
                             start=args.start, end=args.end, plots_dir=args.plots,
-                            overwrite=args.overwrite,
+                            overwrite=args.overwrite, strict=args.strict,
                             progress=None if args.quiet else sys.stderr)
+    existed = os.path.exists(args.output)
     try:
         summary = replay(args.bag, args.output, robot, options)
     except BagError as error:
+        if options.strict and not existed and os.path.isdir(args.output):
+            shutil.rmtree(args.output, ignore_errors=True)  # no half-written output
         print(f'reduced-dynamics replay: error: {error}', file=sys.stderr)
         return 2
     print(format_summary(summary))
     if args.summary_json:
         with open(args.summary_json, 'w', encoding='utf-8') as stream:
             json.dump(summary, stream, indent=2)
-    return 0
+    return EXIT_DAMAGED if summary['damage']['damaged'] else 0
 
 
 def register_command(commands: Any) -> None:
@@ -471,5 +529,9 @@ def register_command(commands: Any) -> None:
     parser.add_argument('--plots', metavar='DIR', help='write PNG plots into DIR')
     parser.add_argument('--summary-json', metavar='FILE', help='write the summary as JSON')
     parser.add_argument('--overwrite', action='store_true', help='replace an existing output')
+    parser.add_argument('--strict', action='store_true',
+                        help='refuse a damaged bag (truncated or corrupted storage, messages '
+                             'that do not deserialize) instead of replaying what is intact '
+                             f'and exiting {EXIT_DAMAGED}')
     parser.add_argument('--quiet', action='store_true', help='no progress display')
     parser.set_defaults(func=_run)
