@@ -444,6 +444,17 @@ def format_summary(summary: dict[str, Any]) -> str:
     lines.append(f'predictions: {summary["predictions"]}, shape residual max '
                  + ('n/a' if residual is None else f'{residual:.2e} rad, median '
                     f'{summary["prediction_shape_residual_median"]:.2e} rad'))
+    for mode, entry in summary.get('prediction_residuals', {}).items():
+        # Prescribed modes are judged by the base path, torque modes by the shape.
+        if entry['compared'] == 0:
+            lines.append(f'  {mode}: {entry["predictions"]} predictions, none compared')
+            continue
+        lines.append(
+            f'  {mode}: {entry["predictions"]} predictions ({entry["failed"]} stopped), '
+            f'judged by the {entry["judged_by"]}: position residual median '
+            f'{entry["position_residual_median"]:.2e} m, attitude '
+            f'{entry["attitude_residual_median"]:.2e} rad, shape '
+            f'{entry["shape_residual_median"]:.2e} rad')
     if summary.get('plots'):
         lines.append('plots: ' + ', '.join(summary['plots']))
     damage = summary.get('damage') or {}
@@ -467,6 +478,8 @@ def _run(args: argparse.Namespace) -> int:
     params = load_params_file(args.params) if args.params else defaults()
     if args.cyclic_joints is not None:
         params['cyclic_joints'] = args.cyclic_joints
+    if args.prediction_mode is not None:
+        params['prediction_mode'] = args.prediction_mode
     robot = load_robot_from_params(params, args.urdf, args.base_joint, args.gravity)
     options = ReplayOptions(params=params, joint_states_topic=args.joint_states_topic,
                             odom_topic=args.odom_topic, base_pose_topic=args.base_pose_topic,
@@ -507,6 +520,10 @@ def register_command(commands: Any) -> None:
     parser.add_argument('--cyclic-joints', metavar='NAMES',
                         help='second-stage reduction: "auto" or comma-separated cyclic '
                              'joints (overrides the parameters file)')
+    parser.add_argument('--prediction-mode',
+                        choices=('planned', 'coast', 'held_velocity', 'held_torque'),
+                        help='what the arm does over a prediction (overrides the parameters '
+                             'file; default planned, held_velocity while there is no plan)')
     parser.add_argument('--start', type=float, help='seconds from the bag start')
     parser.add_argument('--end', type=float, help='seconds from the bag start')
     parser.add_argument('--plots', metavar='DIR', help='write PNG plots into DIR')
