@@ -389,3 +389,14 @@ def test_fuzz_damaged_sqlite_never_crashes(keep: Optional[float], hits: list, cl
             assert '\n' not in str(error)
             return
     assert [t for _, t, _ in got] == sorted(t for _, t, _ in got) or bag.damage
+
+
+def test_replay_window_on_a_damaged_bag_counts_no_missing(tmp_path: Path) -> None:
+    bag = tmp_path / 'bag'
+    bag.mkdir()
+    shutil.copy(BAG / 'metadata.yaml', bag)
+    (bag / 'paper_thruster.mcap').write_bytes(MCAP.read_bytes()[:600_000])
+    assert main(['replay', str(bag), '-o', str(tmp_path / 'out'), '--quiet', '--start', '0.5',
+                 '--end', '1.0', '--summary-json', str(tmp_path / 's.json')]) == 3
+    damage = json.loads((tmp_path / 's.json').read_text())['damage']
+    assert damage['regions'] and damage['missing_vs_index'] == {}
