@@ -42,7 +42,7 @@ same run (machines are noisy: ratios, not absolutes):
 6. ``node``: the node over real DDS (separate processes, a ROS_DOMAIN_ID of its
    own): joint states delivered per second, drops and input-to-output latency
    p50/p99 at 1 kHz joint states with 200 Hz and 1 kHz odometry, predictions on,
-   against a bare rclpy relay node measured in alternating windows of the same run
+   against a bare rclpy relay node measured in windows of the same run
    (:mod:`reduced_dynamics.node_bench`). Skipped when rclpy is not importable.
 """
 
@@ -864,7 +864,8 @@ def run_node_phases(workdir: str, joint_rate: float, base_rate: float, settings:
 
     Four processes: ``python -m reduced_dynamics.node`` (defaults: predictions on),
     the relay and the probe of :mod:`reduced_dynamics.node_bench`, then the publisher,
-    which alternates relay and node windows ``settings.repeats`` times. Returns the
+    which feeds ``settings.repeats`` windows to the relay, then as many to the node (each
+    stream pauses 0.5 s between windows). Returns the
     publisher's phases and the probe's records.
     """
     python = sys.executable
@@ -916,7 +917,7 @@ def bench_node(report: Report, settings: Settings, workdir: str,
     Per configuration of :data:`NODE_RATES`: the input rate sustained (joint states
     delivered per second), drops (joint states without an output) and input-to-output
     latency p50/p99 of the node's ``~/momentum``, each with the relay's figure of the
-    neighbouring window as baseline. Separate processes, a ROS_DOMAIN_ID of its own,
+    window of the same rank as baseline. Separate processes, a ROS_DOMAIN_ID of its own,
     discovery on localhost only.
     """
     import importlib.util

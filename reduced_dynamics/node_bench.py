@@ -20,7 +20,7 @@ The ROS 2 processes of ``reduced-dynamics bench --sections node`` (real DDS).
 * ``relay``: the baseline, a bare rclpy node that republishes every joint state
   and odometry message it takes (sensor-data QoS in, reliable out, as the node);
 * ``publish``: the input source, joint states and odometry at fixed rates, in
-  phases that alternate between the relay's and the node's input topics; the
+  phases, first the relay's input topics, then the node's; the
   header stamp of each message is its send time (system clock), so an output
   stamped with its input's stamp carries the send time with it;
 * ``probe``: subscribes to the relay's and the node's outputs and records, per
@@ -170,8 +170,11 @@ def publish(args: argparse.Namespace) -> int:
     index = {name: [0, 0] for name in targets}  # joint and base sample counters per target
     phases = []
     clock = time.time_ns
-    for repeat in range(args.repeats):
-        for name in ('relay', 'node'):
+    # All relay windows, then all node windows: a target's input stream pauses only
+    # args.pause between its windows (a longer pause would be a clock jump to the node's
+    # stamp policy, stamp_outlier_tolerance 1 s).
+    for name in ('relay', 'node'):
+        for repeat in range(args.repeats):
             joints_pub, odom_pub = publishers[name]
             events = sorted([(k / args.joint_rate, 0) for k in
                              range(int(phase_seconds * args.joint_rate))]
