@@ -377,3 +377,19 @@ def test_estimator_answers_a_plan_from_its_latest_state():
     assert answer.path.stamp_ns == joints[100].stamp_ns
     index = [int(round((s * 1e-9 - 1.0) * 200)) for s in answer.path.stamps_ns]
     np.testing.assert_allclose(answer.path.positions, run.poses[index, :3, 3], atol=1e-8)
+
+
+def test_budget_counts_evaluations_and_wall_time(monkeypatch):
+    from reduced_dynamics import integrators
+    from reduced_dynamics.integrators import Budget, BudgetExceeded
+    budget = Budget(max_evaluations=3)
+    budget.charge(3)
+    with pytest.raises(BudgetExceeded, match='evaluation budget exceeded'):
+        budget.charge()
+    clock = iter([100.0, 100.2, 100.9])  # start, then two charges: a fake clock
+    monkeypatch.setattr(integrators.time, 'perf_counter', lambda: next(clock))
+    budget = Budget(max_wall_time=0.5)
+    budget.charge()
+    with pytest.raises(BudgetExceeded, match='wall-time budget exceeded') as caught:
+        budget.charge()
+    assert caught.value.reason.startswith('wall-time budget exceeded (0.5 s, 2 evaluations)')
