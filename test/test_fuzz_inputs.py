@@ -491,7 +491,8 @@ def check(case, batched, values=True):
         backwards = case.jump is not None and case.restarts
         clean_run = _clean(case.start, case.jump if backwards else None)
         damage_ns = [item.origin_ns for item in case.items if item.damage or item.modified]
-        jump_ns = None if case.jump is None or backwards else JOINTS[case.start + case.jump].stamp_ns
+        jump_ns = None if case.jump is None or backwards \
+            else JOINTS[case.start + case.jump].stamp_ns
         for stamp, item in wanted.items():
             output, clean = by_stamp[stamp], clean_run[item.origin_ns]
             for part in ('position', 'velocity', 'effort'):
