@@ -293,7 +293,9 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
             emit(estimator.flush_batch().outputs())
         written = {topic: count for topic, count in writer.message_counts.items() if count}
         skipped = dict(reader.skipped)
-        damage = damage_report(reader, wanted, read)
+        # A --start/--end window reads part of the bag on purpose: no missing count then.
+        damage = damage_report(reader, wanted, read,
+                               whole=start_ns is None and end_ns is None)
     if options.progress is not None:
         options.progress.write('\rreplay: 100.0%\n')
     elapsed = time.perf_counter() - started
@@ -314,7 +316,8 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
     return summary
 
 
-def damage_report(reader: BagReader, topics: list[str], read: Counter) -> dict[str, Any]:
+def damage_report(reader: BagReader, topics: list[str], read: Counter,
+                  whole: bool = True) -> dict[str, Any]:
     """
     Return what the damaged parts of the bag cost: regions, messages and bytes lost.
 
@@ -324,7 +327,7 @@ def damage_report(reader: BagReader, topics: list[str], read: Counter) -> dict[s
     regions = reader.damage
     undecodable = sum(reader.skipped.values())
     missing: dict[str, int] = {}
-    if reader.counts_trusted and (regions or undecodable):
+    if whole and reader.counts_trusted and (regions or undecodable):
         for topic in topics:
             got = read[topic] + sum(n for reason, n in reader.skipped.items()
                                     if reason.split(': ', 1)[-1].startswith(topic + ' ('))
