@@ -560,27 +560,35 @@ def _bench_replay_predictions(report: Report, settings: Settings, workdir: str) 
     paper = load_robot()
     simulate_bag(paper, varying, SimulationOptions(duration=seconds, rate=200.0, torque='pd',
                                                    overwrite=True))
-    bags.append((f'{seconds:g} s, 200 Hz, PD torques (simulated)', varying, paper))
+    varying_label = f'{seconds:g} s, 200 Hz, PD torques (simulated)'
+    bags.append((varying_label, varying, paper))
     out = os.path.join(workdir, 'replayed')
     off = {**defaults(), 'prediction_rate': 0.0}
     for label, bag, robot in bags:
-        rates = {'default': [], 'off': []}
-        summary = None
+        variants = [('default', defaults())]
+        if bag == varying:
+            # The torque-driven mode for comparison (the default before issue 13).
+            variants.append(('held_torque', {**defaults(), 'prediction_mode': 'held_torque'}))
+        rates = {key: [] for key in ['off'] + [v[0] for v in variants]}
+        summaries = {}
         for _ in range(settings.repeats):
-            for key, params in (('off', off), ('default', defaults())):
+            for key, params in [('off', off)] + variants:
                 start = time.perf_counter()
                 result = replay(bag, out, robot, ReplayOptions(params=params, overwrite=True))
                 rates[key].append(result['processed'] / (time.perf_counter() - start))
-                if key == 'default':
-                    summary = result
-        modes = ', '.join(f'{m} {v["predictions"]}'
-                          for m, v in summary['prediction_residuals'].items())
-        report.add(make_figure(
-            'planned', f'replay with defaults, {label}', 'samples/s', rates['default'],
-            'same bag, predictions off', rates['off'],
-            [d / o for d, o in zip(rates['default'], rates['off'])], 'ratio >= 0.5',
-            lambda r: r >= 0.5,
-            f'{summary["processed"]} samples; predictions: {modes or "none"}'))
+                summaries[key] = result
+        for key, _ in variants:
+            summary = summaries[key]
+            modes = ', '.join(f'{m} {v["predictions"]}'
+                              for m, v in summary['prediction_residuals'].items())
+            name = 'defaults' if key == 'default' else f'prediction_mode {key}'
+            report.add(make_figure(
+                'planned', f'replay with {name}, {label}', 'samples/s', rates[key],
+                'same bag, predictions off', rates['off'],
+                [d / o for d, o in zip(rates[key], rates['off'])],
+                'ratio >= 0.5' if key == 'default' else '',
+                (lambda r: r >= 0.5) if key == 'default' else None,
+                f'{summary["processed"]} samples; predictions: {modes or "none"}'))
     shutil.rmtree(out, ignore_errors=True)
 
 
