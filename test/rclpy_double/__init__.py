@@ -36,8 +36,10 @@ The ``Backend`` helpers use only public rclpy API, so they work on both implemen
 import contextlib
 import copy
 import importlib
+import inspect
 import os
 import sys
+import time
 import types
 
 from . import _impl
@@ -137,7 +139,12 @@ class Backend:
         if not subs:
             raise LookupError(f'{node.get_name()} has no subscription on {resolved}')
         for sub in subs:
-            sub.callback(copy.deepcopy(msg))
+            args = (copy.deepcopy(msg),)
+            if _wants_message_info(sub.callback):
+                # As rclpy's executor does for a two-parameter callback: the message
+                # info, with the receive time in system-clock nanoseconds.
+                args += ({'source_timestamp': 0, 'received_timestamp': time.time_ns()},)
+            sub.callback(*args)
         return len(subs)
 
     def fire_timers(self, node):
@@ -235,3 +242,14 @@ def rclpy_backend(mode=None, purge=()):
     finally:
         rclpy.try_shutdown()
         _purge(purge)
+
+
+def _wants_message_info(callback):
+    """Return whether rclpy would call ``callback`` with (message, message info)."""
+    signature = inspect.signature(callback)
+    try:
+        signature.bind(object())
+        return False
+    except TypeError:
+        signature.bind(object(), object())
+        return True
