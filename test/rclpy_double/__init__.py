@@ -142,8 +142,9 @@ class Backend:
             args = (copy.deepcopy(msg),)
             if _wants_message_info(sub.callback):
                 # As rclpy's executor does for a two-parameter callback: the message
-                # info, with the receive time in system-clock nanoseconds.
-                args += ({'source_timestamp': 0, 'received_timestamp': time.time_ns()},)
+                # info. The receive time is the header stamp (delivered at once, latency
+                # 0) so that runs do not depend on how fast the test machine is.
+                args += ({'source_timestamp': 0, 'received_timestamp': _received(msg)},)
             sub.callback(*args)
         return len(subs)
 
@@ -253,3 +254,12 @@ def _wants_message_info(callback):
     except TypeError:
         signature.bind(object(), object())
         return True
+
+
+def _received(msg):
+    """Return a receive time [ns] for ``msg``: its header stamp, else the system time."""
+    header = getattr(msg, 'header', None)
+    stamp = getattr(header, 'stamp', None)
+    if stamp is None:
+        return time.time_ns()
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
