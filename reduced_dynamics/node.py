@@ -66,6 +66,7 @@ from reduced_dynamics.messages import (
     cdr, DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample,
     joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros,
     pose_stamped_from_ros, RclpyTypes, string_from_ros)
+from reduced_dynamics.messages.samples import with_receive_time
 from reduced_dynamics.params import ALL_PARAMETERS, check_any_parameter, RUNTIME_PARAMETERS
 from reduced_dynamics.robot.model import load_robot, ModelError
 from reduced_dynamics.topics import DIAGNOSTICS_TOPIC, NODE_NAME, OUTPUT_TOPICS
@@ -125,6 +126,12 @@ def _plain(value: Any) -> Any:
     if isinstance(value, (array.array, tuple, np.ndarray)):
         return [v.item() if isinstance(v, np.generic) else v for v in value]
     return value
+
+
+def received_ns(info: Any) -> Optional[int]:
+    """Return the receive time [ns] of rclpy's message info (a dict), None if absent."""
+    value = info.get('received_timestamp') if isinstance(info, dict) else None
+    return value if isinstance(value, int) and value > 0 else None
 
 
 def _is_double(spec: ParameterSpec) -> bool:
@@ -552,19 +559,22 @@ class _Shell:
             self._answer_path.publish(cdr.encode_path(path))
         self._answer_result.publish(cdr.encode_diagnostic_array(result))
 
-    def _on_joint_state(self, data: bytes) -> None:
+    # Two parameters: rclpy then passes the message info, whose receive time the
+    # estimator's stamp policy compares header stamps with (estimator/stamps.py).
+    def _on_joint_state(self, data: bytes, info: Any) -> None:
         self._take('joint_states', data, cdr.decode_joint_state, 'sensor_msgs/msg/JointState',
-                   joint_state_from_ros, 'add_joint_state')
+                   joint_state_from_ros, 'add_joint_state', received_ns(info))
 
-    def _on_odometry(self, data: bytes) -> None:
+    def _on_odometry(self, data: bytes, info: Any) -> None:
         self._take('base', data, cdr.decode_odometry, 'nav_msgs/msg/Odometry',
-                   odometry_from_ros, 'add_base_state')
+                   odometry_from_ros, 'add_base_state', received_ns(info))
 
-    def _on_pose(self, data: bytes) -> None:
+    def _on_pose(self, data: bytes, info: Any) -> None:
         base_link = self._estimator.robot.base_link if self._estimator else ''
         self._take('base', data, lambda d: cdr.decode_pose_stamped(d, base_link),
                    'geometry_msgs/msg/PoseStamped',
-                   lambda m: pose_stamped_from_ros(m, base_link), 'add_base_state')
+                   lambda m: pose_stamped_from_ros(m, base_link), 'add_base_state',
+                   received_ns(info))
 
     def _decode(self, data: bytes, fast: Callable[[bytes], Any], msgtype: str,
                 convert: Callable[[Any], Any]) -> Any:
@@ -575,11 +585,12 @@ class _Shell:
             return convert(deserialize_message(data, self._types.get(msgtype)))
 
     def _take(self, kind: str, data: bytes, fast: Callable[[bytes], Any], msgtype: str,
-              convert: Callable[[Any], Any], method: str) -> None:
+              convert: Callable[[Any], Any], method: str,
+              receive_ns: Optional[int] = None) -> None:
         """Decode one input message and feed it to the estimator; publish what is ready."""
         self.received[kind] += 1
         try:
-            sample = self._decode(data, fast, msgtype, convert)
+            sample = with_receive_time(self._decode(data, fast, msgtype, convert), receive_ns)
         except Exception as error:  # noqa: B902 - rclpy raises several types on bad bytes
             self._reject('malformed', f'{kind} message: {error}')
             return

@@ -24,8 +24,11 @@ real rclpy. The DDS tests (test_node_dds.py) use real executors instead.
 import contextlib
 import copy
 import importlib
+import inspect
 import os
+import struct
 import threading
+import time
 
 #: A ROS domain of this test process's own, so parallel runs on one machine do not mix.
 DOMAIN_ID = str(1 + os.getpid() % 100)
@@ -82,17 +85,28 @@ class Ros:
         name = node.resolve_topic_name(topic) if node else topic
         return self._raw.setdefault(name, [])
 
-    def deliver(self, node, topic, msg):
-        """Call every subscription callback of ``node`` on ``topic`` with (a copy of) msg."""
+    def deliver(self, node, topic, msg, received_ns=None):
+        """
+        Call every subscription callback of ``node`` on ``topic`` with (a copy of) msg.
+
+        Two-parameter callbacks get the message info as rclpy's executor gives it;
+        its receive time is ``received_ns``, by default the header stamp (delivered
+        at once), so that runs do not depend on how fast the test machine is.
+        """
         resolved = node.resolve_topic_name(topic)
         subs = [sub for sub in node.subscriptions if sub.topic_name == resolved]
         if not subs:
             raise LookupError(f'{node.get_name()} has no subscription on {resolved}')
         for sub in subs:
             if sub.raw:
-                sub.callback(msg if isinstance(msg, bytes) else serialize_message(msg))
+                args = (msg if isinstance(msg, bytes) else serialize_message(msg),)
             else:
-                sub.callback(copy.deepcopy(msg))
+                args = (copy.deepcopy(msg),)
+            if _wants_message_info(sub.callback):
+                if received_ns is None:
+                    received_ns = _header_stamp(msg)
+                args += ({'source_timestamp': 0, 'received_timestamp': received_ns},)
+            sub.callback(*args)
         return len(subs)
 
     def fire_timers(self, node):
@@ -138,3 +152,25 @@ def real_ros():
     finally:
         rclpy.publisher.Publisher.publish = original
         rclpy.try_shutdown()
+
+
+def _wants_message_info(callback):
+    """Return whether rclpy would call ``callback`` with (message, message info)."""
+    signature = inspect.signature(callback)
+    try:
+        signature.bind(object())
+        return False
+    except TypeError:
+        signature.bind(object(), object())
+        return True
+
+
+def _header_stamp(msg):
+    """Return the header stamp [ns] of a message or of its CDR bytes, else the system time."""
+    if isinstance(msg, bytes):
+        sec, nanosec = struct.unpack_from('<iI', msg, 4)
+        return sec * 1_000_000_000 + nanosec
+    stamp = getattr(getattr(msg, 'header', None), 'stamp', None)
+    if stamp is None:
+        return time.time_ns()
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)

@@ -643,7 +643,8 @@ def test_node_and_replay_publish_the_same_bytes_for_the_same_bag(ros, node_facto
     node = node_factory(urdf_path=str(paper_robot_urdf()))
     with open_bag(path) as reader:
         for message in reader.raw_messages(['/joint_states', '/odom']):
-            ros.deliver(node, message.topic, bytes(message.data))
+            # The record time is the receive time, as the replay takes it.
+            ros.deliver(node, message.topic, bytes(message.data), message.timestamp_ns)
     node.wait_for_predictions()
     with open_bag(tmp_path / 'out') as reader:
         for topic in active_topics(False):
