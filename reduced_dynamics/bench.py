@@ -983,6 +983,7 @@ def bench_node(report: Report, settings: Settings, workdir: str,
 def bench_node_sweep(report: Report, settings: Settings, workdir: str, env: dict,
                      sweep: Sequence[float], details: dict) -> None:
     """Measure the highest joint-state rate (odometry 200 Hz) that no window dropped from."""
+    from reduced_dynamics.node_bench import NODE_OUTPUT, RELAY_OUTPUT
     repeats = min(settings.repeats, 3)
     phases, records = run_node_phases(workdir, sweep, 200.0, settings.node_sweep_seconds,
                                       settings.node_warmup, repeats, env)
