@@ -16,7 +16,9 @@
 # The one test command: ./scripts/test.sh [pytest args...]
 #
 #   1. installs the ament linters from apt (Debian 12 / Ubuntu) when missing,
-#   2. pip-installs the package (editable, with the [test] extra) and colcon,
+#   2. creates the checkout's own venv (.colcon/venv, scripts/python_env.sh) and pip-installs
+#      the package there (editable, [test] extra; [ros] = the real rclpy wheels when no ROS 2
+#      install provides rclpy) and colcon; checks that real rclpy imports and initialises,
 #   3. colcon build  (workspace under .colcon/, never build/ install/ log/),
 #   4. checks the ros2-run executable lib/reduced_dynamics/reduced_dynamics_node,
 #   5. colcon test   (pytest runs once; its output and summary line are printed),
@@ -25,7 +27,8 @@
 # Extra arguments go to pytest, e.g. ./scripts/test.sh -k momentum -x
 #
 # Environment knobs:
-#   PYTHON=python3            interpreter used for pip, colcon and pytest
+#   PYTHON=python3            interpreter the venv is created from
+#   RD_VENV=.colcon/venv      the venv used for pip, colcon and pytest
 #   RD_SKIP_INSTALL=1         skip the apt/pip steps (offline re-runs)
 #   RD_SYMLINK_INSTALL=0      plain `colcon build` instead of --symlink-install
 
@@ -102,9 +105,30 @@ source "$REPO_ROOT/scripts/python_env.sh"
 echo "python: $("$PYTHON" -c 'import sys; print(sys.executable, sys.version.split()[0])')"
 
 if [ "$RD_SKIP_INSTALL" != 1 ]; then
-  step "pip install -e '.[test]' colcon-common-extensions"
-  "$PYTHON" -m pip install -q -e "$REPO_ROOT[test]" colcon-common-extensions
+  # Real ROS 2 Jazzy rclpy: a sourced ROS 2 install provides it; otherwise the PyPI wheels
+  # of the [ros] extra (rclpy with Fast DDS and the message packages).
+  extras=test
+  if ! "$PYTHON" -c 'import rclpy' 2>/dev/null; then
+    extras=test,ros
+  fi
+  step "pip install -e '.[$extras]' colcon-common-extensions"
+  "$PYTHON" -m pip install -q -e "$REPO_ROOT[$extras]" colcon-common-extensions
 fi
+
+# The node tests run on real rclpy: refuse to go on without it (no test double).
+step "real rclpy"
+"$PYTHON" - <<'EOF'
+import rclpy
+from rclpy.utilities import get_rmw_implementation_identifier
+import rclpy.lifecycle  # noqa: F401
+import diagnostic_msgs.msg, geometry_msgs.msg, lifecycle_msgs.msg  # noqa: E401,F401
+import nav_msgs.msg, sensor_msgs.msg, std_msgs.msg, trajectory_msgs.msg  # noqa: E401,F401
+rclpy.init()
+try:
+    print(f'rclpy from {rclpy.__file__}, rmw {get_rmw_implementation_identifier()}')
+finally:
+    rclpy.shutdown()
+EOF
 
 # Run colcon with exactly this interpreter (colcon test runs `sys.executable -m pytest`).
 colcon() {
