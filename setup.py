@@ -2,6 +2,7 @@
 
 from glob import glob
 import os
+import sys
 
 from setuptools import find_packages
 from setuptools import setup
@@ -41,6 +42,14 @@ if config_files or robot_files:
     package_dir[DATA_PACKAGE] = 'config'
     package_data[DATA_PACKAGE] = ['*.yaml', 'robots/*.urdf', 'plans/*.yaml']
 
+# colcon (setup.py install/develop) puts the console scripts into lib/reduced_dynamics
+# (setup.cfg) for `ros2 run`, which is not on PATH; colcon-core's PATH hook adds <prefix>/bin
+# when it holds a file, so a colcon build also ships bin/reduced-dynamics, a wrapper running
+# lib/'s executable. pip builds a wheel, whose console scripts go to bin/ already: there the
+# wrapper would overwrite the real script, so wheel builds leave it out.
+_WHEEL_COMMANDS = {'bdist_wheel', 'editable_wheel', 'dist_info', 'sdist', 'bdist_egg'}
+colcon_bin = [] if _WHEEL_COMMANDS & set(sys.argv) else [('bin', ['bin/reduced-dynamics'])]
+
 setup(
     name=package_name,
     version='0.1.0',
@@ -55,7 +64,7 @@ setup(
         ('share/' + package_name + '/config', config_files),
         ('share/' + package_name + '/config/robots', robot_files),
         ('share/' + package_name + '/config/plans', plan_files),
-    ],
+    ] + colcon_bin,
     python_requires='>=3.10',
     install_requires=[
         'numpy',

@@ -38,3 +38,5 @@ else
   fi
   PYTHON="$VENV/bin/python"
 fi
+# colcon must not crawl the venv for packages.
+[ ! -d "$VENV" ] || touch "$VENV/COLCON_IGNORE"

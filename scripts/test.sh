@@ -20,7 +20,9 @@
 #      the package there (editable, [test] extra; [ros] = the real rclpy wheels when no ROS 2
 #      install provides rclpy) and colcon; checks that real rclpy imports and initialises,
 #   3. colcon build  (workspace under .colcon/, never build/ install/ log/),
-#   4. checks the ros2-run executable lib/reduced_dynamics/reduced_dynamics_node,
+#   4. checks the ros2-run executable lib/reduced_dynamics/reduced_dynamics_node and the
+#      `reduced-dynamics` command on PATH after sourcing install/setup.bash; runs README's
+#      two install blocks from clean clones (scripts/check_readme_install.sh),
 #   5. colcon test   (pytest runs once; its output and summary line are printed),
 #   6. colcon test-result --verbose.
 #
@@ -31,6 +33,7 @@
 #   RD_VENV=.colcon/venv      the venv used for pip, colcon and pytest
 #   RD_SKIP_INSTALL=1         skip the apt/pip steps (offline re-runs)
 #   RD_SYMLINK_INSTALL=0      plain `colcon build` instead of --symlink-install
+#   RD_README_INSTALL=0       skip running README's install blocks (step 4c)
 
 set -euo pipefail
 
@@ -40,6 +43,7 @@ WS="$REPO_ROOT/.colcon"
 PKG=reduced_dynamics
 
 PYTHON="${PYTHON:-python3}"
+ORIG_PYTHON="$PYTHON"
 RD_SKIP_INSTALL="${RD_SKIP_INSTALL:-0}"
 RD_SYMLINK_INSTALL="${RD_SYMLINK_INSTALL:-1}"
 
@@ -51,7 +55,7 @@ export COLCON_HOME="$WS/home"
 # Disable colcon's desktop notifications (no display in CI).
 export COLCON_EXTENSION_BLOCKLIST="colcon_core.event_handler.desktop_notification${COLCON_EXTENSION_BLOCKLIST:+:$COLCON_EXTENSION_BLOCKLIST}"
 
-step() { printf '\n==> %s\n' "$*"; }
+step() { printf '\n==> %s   [%d s]\n' "$*" "$SECONDS"; }
 warn() { printf 'WARNING: %s\n' "$*" >&2; }
 
 as_root() {
@@ -152,6 +156,24 @@ if [ ! -x "$NODE_EXE" ]; then
   exit 1
 fi
 echo "ros2 run executable: ${NODE_EXE#"$REPO_ROOT"/}"
+
+# ------------------------------------------- 4b. colcon install: the plain command
+# After `source install/setup.bash` the CLI is on PATH (bin/ wrapper, colcon's PATH hook).
+step "reduced-dynamics on PATH after sourcing the colcon install"
+(set +u; source "$WS/install/setup.bash"; test "$(command -v reduced-dynamics)" = \
+  "$WS/install/$PKG/bin/reduced-dynamics" && reduced-dynamics --help >/dev/null) || {
+  echo "ERROR: reduced-dynamics is not install/$PKG/bin/reduced-dynamics after sourcing" >&2
+  exit 1
+}
+echo "$(set +u; source "$WS/install/setup.bash"; command -v reduced-dynamics)"
+
+# ------------------------------------------ 4c. README's install paths (clean clones)
+# README's "The ROS 2 path" blocks, run as written (scripts/check_readme_install.sh);
+# needs the network or a warm pip cache, so RD_SKIP_INSTALL=1 skips it.
+if [ "$RD_SKIP_INSTALL" != 1 ] && [ "${RD_README_INSTALL:-1}" = 1 ]; then
+  step "README install paths"
+  PYTHON="$ORIG_PYTHON" "$REPO_ROOT/scripts/check_readme_install.sh"
+fi
 
 # ------------------------------------------------------------- 5. colcon test
 # Every pytest argument is prefixed by a space so colcon's argparse never mistakes
