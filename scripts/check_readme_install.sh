@@ -60,9 +60,10 @@ fake_ros() {
   local site
   site="$("$prefix/venv/bin/python" -c 'import sysconfig; print(sysconfig.get_path("purelib"))')"
   cat > "$prefix/setup.bash" <<EOF
-# stand-in for /opt/ros/jazzy/setup.bash (scripts/check_readme_install.sh)
+# stand-in for /opt/ros/jazzy/setup.bash (scripts/check_readme_install.sh): what the
+# wheels' bootstrap would set (their libraries: the prefix's lib/ and site-packages/*.libs)
 export PYTHONPATH="$site\${PYTHONPATH:+:\$PYTHONPATH}"
-export LD_LIBRARY_PATH="$(find "$site" -maxdepth 1 -name '*.libs' -type d | paste -sd:)\${LD_LIBRARY_PATH:+:\$LD_LIBRARY_PATH}"
+export LD_LIBRARY_PATH="$prefix/venv/lib:$(find "$site" -maxdepth 1 -name '*.libs' -type d | paste -sd:)\${LD_LIBRARY_PATH:+:\$LD_LIBRARY_PATH}"
 export _ROS_WHEELS_BOOTSTRAP_COMPLETE=1  # LD_LIBRARY_PATH is set: no re-exec needed
 export ROS_DISTRO=jazzy ROS_VERSION=2 ROS_PYTHON_VERSION=3
 EOF
