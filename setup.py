@@ -42,11 +42,12 @@ if config_files or robot_files:
     package_dir[DATA_PACKAGE] = 'config'
     package_data[DATA_PACKAGE] = ['*.yaml', 'robots/*.urdf', 'plans/*.yaml']
 
-# colcon (setup.py install/develop) puts the console scripts into lib/reduced_dynamics
-# (setup.cfg) for `ros2 run`, which is not on PATH; colcon-core's PATH hook adds <prefix>/bin
-# when it holds a file, so a colcon build also ships bin/reduced-dynamics, a wrapper running
-# lib/'s executable. pip builds a wheel, whose console scripts go to bin/ already: there the
-# wrapper would overwrite the real script, so wheel builds leave it out.
+# colcon (`setup.py install`/`develop`) puts the console scripts into lib/reduced_dynamics
+# (setup.cfg), where `ros2 run` looks and which is not on PATH. colcon-core's environment
+# hook puts <prefix>/bin on PATH when it holds a file, so a colcon build also ships
+# bin/reduced-dynamics, a wrapper running lib/'s executable. pip builds a wheel, whose
+# console scripts go to bin/ already: the wrapper would clash with them, so wheel builds
+# (PEP 517: bdist_wheel, editable_wheel, dist_info) leave it out.
 _WHEEL_COMMANDS = {'bdist_wheel', 'editable_wheel', 'dist_info', 'sdist', 'bdist_egg'}
 colcon_bin = [] if _WHEEL_COMMANDS & set(sys.argv) else [('bin', ['bin/reduced-dynamics'])]
 

@@ -49,6 +49,7 @@ from reduced_dynamics.messages import (
     DIAG_ERROR, DIAG_WARN, Diagnostics, diagnostics_to_ros, DiagnosticStatusSample,
     joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros, pose_path_to_ros,
     pose_stamped_from_ros, RclpyTypes, string_from_ros)
+from reduced_dynamics.messages.samples import with_receive_time
 from reduced_dynamics.params import ALL_PARAMETERS, check_any_parameter, RUNTIME_PARAMETERS
 from reduced_dynamics.robot.model import load_robot, ModelError
 from reduced_dynamics.topics import DIAGNOSTICS_TOPIC, NODE_NAME, OUTPUT_TOPICS, output_messages
@@ -92,6 +93,12 @@ def _plain(value: Any) -> Any:
     if isinstance(value, (array.array, tuple, np.ndarray)):
         return [v.item() if isinstance(v, np.generic) else v for v in value]
     return value
+
+
+def received_ns(info: Any) -> Optional[int]:
+    """Return the receive time [ns] of rclpy's message info (a dict), None if absent."""
+    value = info.get('received_timestamp') if isinstance(info, dict) else None
+    return value if isinstance(value, int) and value > 0 else None
 
 
 def parameter_descriptor(name: str, spec: ParameterSpec) -> 'ParameterDescriptor':
@@ -328,21 +335,26 @@ class ReducedDynamicsNode(Node):
             self._answer_path.publish(pose_path_to_ros(path, self._types))
         self._answer_result.publish(diagnostics_to_ros(result, self._types))
 
-    def _on_joint_state(self, msg: Any) -> None:
-        self._take('joint_states', msg, joint_state_from_ros, 'add_joint_state')
+    # Two parameters: rclpy then passes the message info, whose receive time the
+    # estimator's stamp policy compares header stamps with (estimator/stamps.py).
+    def _on_joint_state(self, msg: Any, info: Any) -> None:
+        self._take('joint_states', msg, joint_state_from_ros, 'add_joint_state',
+                   received_ns(info))
 
-    def _on_odometry(self, msg: Any) -> None:
-        self._take('base', msg, odometry_from_ros, 'add_base_state')
+    def _on_odometry(self, msg: Any, info: Any) -> None:
+        self._take('base', msg, odometry_from_ros, 'add_base_state', received_ns(info))
 
-    def _on_pose(self, msg: Any) -> None:
+    def _on_pose(self, msg: Any, info: Any) -> None:
         base_link = self._estimator.robot.base_link if self._estimator else ''
-        self._take('base', msg, lambda m: pose_stamped_from_ros(m, base_link), 'add_base_state')
+        self._take('base', msg, lambda m: pose_stamped_from_ros(m, base_link), 'add_base_state',
+                   received_ns(info))
 
-    def _take(self, kind: str, msg: Any, convert: Callable[[Any], Any], method: str) -> None:
+    def _take(self, kind: str, msg: Any, convert: Callable[[Any], Any], method: str,
+              receive_ns: Optional[int] = None) -> None:
         """Convert one input message and feed it to the estimator; publish what is ready."""
         self.received[kind] += 1
         try:
-            sample = convert(msg)
+            sample = with_receive_time(convert(msg), receive_ns)
         except (ValueError, TypeError) as error:
             self._reject('malformed', f'{kind} message: {error}')
             return

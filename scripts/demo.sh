@@ -44,7 +44,7 @@ rd() { "$PYTHON" -m reduced_dynamics.cli "$@"; }
 step "validate: reduced model against full dynamics (1 s per momentum class)"
 rd validate --duration 1
 
-step "simulate: paper robot, 10 s at 200 Hz, torques held 4 s, thruster pulse at t = 5 s"
+step "simulate: paper robot, 10 s at 200 Hz, torques flip sign at t = 2 s and 6 s, thruster pulse at t = 5 s"
 rd simulate -o "$OUT/recorded" --overwrite --duration 10 --rate 200 --seed 1 \
   --torque constant --torque-hold 4 --torque-scale 0.5 --thruster 5,0.5,20,-10,5,2,-3,4
 

@@ -15,11 +15,10 @@
 """The error-state Kalman filter: Jacobians against finite differences, consistency."""
 
 import numpy as np
-import pinocchio as pin
 import pytest
 
 from reduced_dynamics.estimator.filter import (Linearisation, MomentumFilter, NoiseModel,
-                                                smooth)
+                                               smooth)
 from reduced_dynamics.geometry.lie_group import SUBGROUPS
 
 

@@ -36,8 +36,10 @@ The ``Backend`` helpers use only public rclpy API, so they work on both implemen
 import contextlib
 import copy
 import importlib
+import inspect
 import os
 import sys
+import time
 import types
 
 from . import _impl
@@ -137,7 +139,13 @@ class Backend:
         if not subs:
             raise LookupError(f'{node.get_name()} has no subscription on {resolved}')
         for sub in subs:
-            sub.callback(copy.deepcopy(msg))
+            args = (copy.deepcopy(msg),)
+            if _wants_message_info(sub.callback):
+                # As rclpy's executor does for a two-parameter callback: the message
+                # info. The receive time is the header stamp (delivered at once, latency
+                # 0) so that runs do not depend on how fast the test machine is.
+                args += ({'source_timestamp': 0, 'received_timestamp': _received(msg)},)
+            sub.callback(*args)
         return len(subs)
 
     def fire_timers(self, node):
@@ -235,3 +243,23 @@ def rclpy_backend(mode=None, purge=()):
     finally:
         rclpy.try_shutdown()
         _purge(purge)
+
+
+def _wants_message_info(callback):
+    """Return whether rclpy would call ``callback`` with (message, message info)."""
+    signature = inspect.signature(callback)
+    try:
+        signature.bind(object())
+        return False
+    except TypeError:
+        signature.bind(object(), object())
+        return True
+
+
+def _received(msg):
+    """Return a receive time [ns] for ``msg``: its header stamp, else the system time."""
+    header = getattr(msg, 'header', None)
+    stamp = getattr(header, 'stamp', None)
+    if stamp is None:
+        return time.time_ns()
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
