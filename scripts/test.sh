@@ -22,7 +22,8 @@
 #   3. colcon build  (workspace under .colcon/, never build/ install/ log/),
 #   4. checks the ros2-run executable lib/reduced_dynamics/reduced_dynamics_node and the
 #      `reduced-dynamics` command on PATH after sourcing install/setup.bash; runs README's
-#      two install blocks from clean clones (scripts/check_readme_install.sh),
+#      two install blocks from clean clones (scripts/check_readme_install.sh) and
+#      scripts/demo.sh (README's other command),
 #   5. colcon test   (pytest runs once; its output and summary line are printed),
 #   6. colcon test-result --verbose.
 #
@@ -34,6 +35,7 @@
 #   RD_SKIP_INSTALL=1         skip the apt/pip steps (offline re-runs)
 #   RD_SYMLINK_INSTALL=0      plain `colcon build` instead of --symlink-install
 #   RD_README_INSTALL=0       skip running README's install blocks (step 4c)
+#   RD_DEMO=0                 skip running scripts/demo.sh (step 4d)
 
 set -euo pipefail
 
@@ -173,6 +175,13 @@ echo "$(set +u; source "$WS/install/setup.bash"; command -v reduced-dynamics)"
 if [ "$RD_SKIP_INSTALL" != 1 ] && [ "${RD_README_INSTALL:-1}" = 1 ]; then
   step "README install paths"
   PYTHON="$ORIG_PYTHON" "$REPO_ROOT/scripts/check_readme_install.sh"
+fi
+
+# ---------------------------------------------- 4d. README's other command: demo.sh
+# Same venv (scripts/python_env.sh), outputs under .colcon/demo; about 20 s.
+if [ "${RD_DEMO:-1}" = 1 ]; then
+  step "scripts/demo.sh"
+  PYTHON="$ORIG_PYTHON" "$REPO_ROOT/scripts/demo.sh" "$WS/demo"
 fi
 
 # ------------------------------------------------------------- 5. colcon test
