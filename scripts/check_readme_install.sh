@@ -57,12 +57,24 @@ fake_ros() {
   "$PYTHON" -m venv "$prefix/venv"
   "$prefix/venv/bin/python" -m pip install -q "ros-jazzy-rclpy[fastrtps]" \
     ros-jazzy-common-interfaces colcon-common-extensions
-  local site
+  local site shadow entry
   site="$("$prefix/venv/bin/python" -c 'import sysconfig; print(sysconfig.get_path("purelib"))')"
+  # What /opt/ros/jazzy's site-packages holds: the ROS packages (and colcon, as apt's
+  # python3-colcon-* in the system's), not the venv's own pip/setuptools, which on a
+  # Debian python would displace the interpreter's own build tools.
+  shadow="$prefix/lib/python3/site-packages"
+  mkdir -p "$shadow"
+  for entry in "$site"/*; do
+    case "${entry##*/}" in
+      pip | pip-* | setuptools | setuptools-* | pkg_resources | _distutils_hack | \
+        distutils-precedence.pth | wheel | wheel-* | __pycache__) ;;
+      *) ln -s "$entry" "$shadow/" ;;
+    esac
+  done
   cat > "$prefix/setup.bash" <<EOF
 # stand-in for /opt/ros/jazzy/setup.bash (scripts/check_readme_install.sh): what the
 # wheels' bootstrap would set (their libraries: the prefix's lib/ and site-packages/*.libs)
-export PYTHONPATH="$site\${PYTHONPATH:+:\$PYTHONPATH}"
+export PYTHONPATH="$shadow\${PYTHONPATH:+:\$PYTHONPATH}"
 export LD_LIBRARY_PATH="$prefix/venv/lib:$(find "$site" -maxdepth 1 -name '*.libs' -type d | paste -sd:)\${LD_LIBRARY_PATH:+:\$LD_LIBRARY_PATH}"
 export _ROS_WHEELS_BOOTSTRAP_COMPLETE=1  # LD_LIBRARY_PATH is set: no re-exec needed
 export ROS_DISTRO=jazzy ROS_VERSION=2 ROS_PYTHON_VERSION=3
