@@ -96,6 +96,7 @@ setup(
         'console_scripts': [
             'reduced-dynamics = reduced_dynamics.cli:main',
             'reduced_dynamics_node = reduced_dynamics.node:main',
+            'reduced_dynamics_lifecycle_node = reduced_dynamics.node:lifecycle_main',
         ],
     },
 )
