@@ -48,8 +48,8 @@ step "validate: reduced model against full dynamics (1 s per momentum class)"
 rd validate --duration 1
 
 step "simulate: paper robot, 10 s at 200 Hz, torques flip sign at t = 2 s and 6 s, thruster pulse at t = 5 s"
-rd simulate -o "$OUT/recorded" --overwrite --duration 10 --rate 200 --seed 1 \
-  --torque constant --torque-hold 4 --torque-scale 0.5 --thruster 5,0.5,20,-10,5,2,-3,4
+rd simulate -o "$OUT/recorded" --overwrite --duration 10 --rate 200 --seed 2 \
+  --torque constant --torque-hold 4 --torque-scale 0.1 --thruster 5,0.5,20,-10,5,2,-3,4
 
 step "replay: estimator over the recorded bag"
 rd replay "$OUT/recorded" -o "$OUT/estimates" --overwrite --plots "$OUT/plots" \
