@@ -166,6 +166,7 @@ class MomentumFilter:
         self._gated_run = 0
         self.last_nis: float = 0.0
         self._eye = np.eye(3 * n)
+        self._lin: Optional[Linearisation] = None
 
     # --- pieces of the model ----------------------------------------------------------
     @property
@@ -262,6 +263,7 @@ class MomentumFilter:
         n = self.n
         self.g = g
         self.stamp_ns = stamp_ns
+        self._lin = lin
         to_world = self.group.Ad(g.inverse()).T @ lin.locked  # body velocity -> mu
         p = np.zeros((3 * n, 3 * n))
         p[:n, :n] = np.diag(self._pose_var)
@@ -292,9 +294,15 @@ class MomentumFilter:
             self.initialise(stamp_ns, pose, lin, twist)
             return True
         dt = (stamp_ns - self.stamp_ns) * 1e-9
+        previous, self._lin = self._lin, lin
         if dt > 0.0:
-            transition, q = self._transition(self.g, self.x, lin, dt)
-            self.g, self.x = self.propagate_mean(self.g, self.x, lin, dt)
+            # The inputs at the middle of the step (trapezoid in I^-1 and A qbar_dot):
+            # second order in dt, like the midpoint rule of the mean.
+            middle = lin if previous is None else Linearisation(
+                lin.locked, 0.5 * (previous.locked_inverse + lin.locked_inverse),
+                0.5 * (previous.connection_qd + lin.connection_qd), lin.joint_cov)
+            transition, q = self._transition(self.g, self.x, middle, dt)
+            self.g, self.x = self.propagate_mean(self.g, self.x, middle, dt)
             p = transition @ self.p @ transition.T + q
             self.p = 0.5 * (p + p.T)
             self.stamp_ns = stamp_ns
