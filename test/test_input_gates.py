@@ -279,7 +279,10 @@ def test_one_future_stamp_loses_exactly_that_sample(tmp_path, clean_replay):
     reference = _momenta(clean_out)
     mutated = _momenta(tmp_path / 'out')
     assert set(reference) - set(mutated) == {lost} and not set(mutated) - set(reference)
-    assert all(np.array_equal(mutated[t], reference[t]) for t in mutated)
+    # Up to the lost sample bit for bit; after it the filter steps over a longer gap.
+    assert all(np.array_equal(mutated[t], reference[t]) for t in mutated if t < lost)
+    assert all(np.allclose(mutated[t], reference[t], rtol=1e-6, atol=1e-9)
+               for t in mutated)
 
 
 def test_implausible_values_are_rejected_and_counted(tmp_path, clean_replay):

@@ -295,14 +295,14 @@ def test_accepted_changes_reach_the_estimator_and_outputs(ros, node_factory):
     from rclpy.parameter import Parameter
     node = node_factory()
     estimator = node.estimator
-    changes = {'observer_bandwidth': 20.0, 'prediction_integrator': 'discrete_gradient',
+    changes = {'wrench_jerk_linear': 0.2, 'prediction_integrator': 'discrete_gradient',
                'world_frame': 'map', 'event_hold': 0.0, 'sync_tolerance': 1.0}
     for name, value in changes.items():
         assert node.set_parameters([Parameter(name, value=value)])[0].successful, name
         assert node.get_parameter(name).value == value
     assert node.estimator is estimator  # settings change, state is kept
     assert estimator.config == EstimatorConfig().replaced(**changes)
-    assert estimator.observer.bandwidth == 20.0
+    assert estimator.filter.noise.jerk_linear == 0.2
     feed(ros, node, input_messages(ros, count=5))
     momentum = ros.published('~/momentum', node)
     assert momentum and all(m.header.frame_id == 'map' for m in momentum)
@@ -313,11 +313,11 @@ def test_accepted_changes_reach_the_estimator_and_outputs(ros, node_factory):
 def test_atomic_change_is_all_or_nothing(node_factory):
     from rclpy.parameter import Parameter
     node = node_factory()
-    result = node.set_parameters_atomically([Parameter('observer_bandwidth', value=30.0),
+    result = node.set_parameters_atomically([Parameter('wrench_jerk_linear', value=0.3),
                                              Parameter('prediction_rate', value=500.0)])
     assert not result.successful
-    assert node.get_parameter('observer_bandwidth').value == 50.0
-    assert node.estimator.config.observer_bandwidth == 50.0
+    assert node.get_parameter('wrench_jerk_linear').value == 0.05
+    assert node.estimator.config.wrench_jerk_linear == 0.05
 
 
 def test_start_up_only_rule_holds_without_the_read_only_flag(node_factory):

@@ -32,6 +32,9 @@ from typing import Optional
 import numpy as np
 from scipy.stats import chi2
 
+#: Seconds after an event's end during which its mu_after follows the filter.
+SETTLE = 1.0
+
 
 @dataclass
 class MomentumEvent:
@@ -68,6 +71,8 @@ class EventDetector:
         """Set the start and end thresholds from the chi-square quantiles."""
         self.start_threshold = float(chi2.isf(self.significance, self.dim))
         self.end_threshold = float(chi2.isf(0.01, self.dim))
+        # Below the median w is indistinguishable from zero: mu there is "before".
+        self.rest_threshold = float(chi2.isf(0.5, self.dim))
 
     @property
     def in_event(self) -> bool:
@@ -83,6 +88,12 @@ class EventDetector:
                significance: float) -> None:
         """Feed one filtered sample: mu, |w| and s = w^T P_ww^-1 w."""
         event = self.events[-1] if self.in_event else None
+        if event is None and self.events and significance < self.end_threshold:
+            last = self.events[-1]
+            if (stamp_ns - last.end_ns) * 1e-9 <= SETTLE:
+                # The filter's mu still converges after the wrench has gone: the
+                # impulse keeps following it for SETTLE seconds (or to the next event).
+                last.mu_after = mu.copy()
         if event is None:
             if significance > self.start_threshold:
                 before = self._quiet_mu if self._quiet_mu is not None else mu
@@ -90,7 +101,7 @@ class EventDetector:
                                                  peak_wrench=wrench_norm,
                                                  peak_significance=significance))
                 self._quiet_since = None
-            elif significance < self.end_threshold:
+            elif significance < self.rest_threshold:
                 self._quiet_mu = mu
             return
         event.peak_wrench = max(event.peak_wrench, wrench_norm)
