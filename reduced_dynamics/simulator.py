@@ -17,17 +17,22 @@ Simulated sensor bags: full free-floating dynamics written as a rosbag2 (MCAP) b
 
 ``reduced-dynamics simulate`` (and :func:`simulate_bag`) integrates the full
 dynamics (Pinocchio ``aba``, DOP853 at rtol = atol = 1e-13) and writes, at a fixed
-rate, ``/joint_states``, ``/odom`` (or ``/base_pose``) and the noise-free
-ground truth ``/ground_truth/momentum`` and ``/ground_truth/external_wrench``.
-Torque holds and thruster pulses are discontinuities, so the run is integrated
-piecewise between them; every sample comes from the integrator's dense output.
-Messages are written chunk by chunk, so memory stays flat for long runs.
+rate, ``/joint_states`` (robots with shape joints), ``/odom`` (or ``/base_pose``) and
+the noise-free ground truth ``/ground_truth/momentum`` and
+``/ground_truth/external_wrench``. The measured topics go through a sensor model
+(noise, quantisation, stamp jitter and bunching, latency, dropouts:
+:mod:`reduced_dynamics.sensor_model`); binary thrusters
+(:mod:`reduced_dynamics.thrusters`) add ``/commanded_wrench``. Torque holds, thruster
+pulses and firings are discontinuities, so the run is integrated piecewise between
+them; every sample comes from the integrator's dense output. Messages are written in
+record-time order chunk by chunk, so memory stays flat for long runs.
 """
 
 from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass, field
+import heapq
 import json
 import math
 from pathlib import Path
@@ -57,6 +62,10 @@ from reduced_dynamics.robot.momentum import (
     momentum_map,
 )
 from reduced_dynamics.robot.state import FreeFloatingState, TorqueLaw
+from reduced_dynamics.sensor_model import (
+    QUANTIZE_FIELDS, quantize, TimingOptions, TopicStatistics, TopicTiming)
+from reduced_dynamics.thrusters import (
+    LAYOUT_FORCE, LAYOUTS, ThrusterFiring, ThrusterSet)
 from reduced_dynamics.validation import random_scenario
 
 PathLike = Union[str, Path]
@@ -72,6 +81,9 @@ TOPIC_BASE_POSE = '/base_pose'
 TOPIC_MOMENTUM = '/ground_truth/momentum'
 TOPIC_EXTERNAL_WRENCH = '/ground_truth/external_wrench'
 TOPIC_STATUS = '/simulator/status'
+TOPIC_COMMAND = '/commanded_wrench'
+#: Measured topics, in the order that numbers their random streams (never reorder).
+SENSOR_TOPICS = (TOPIC_JOINT_STATES, TOPIC_ODOM, TOPIC_BASE_POSE)
 
 TORQUE_MODES = ('zero', 'constant', 'sinusoid', 'pd')
 MOMENTUM_CLASSES = {
@@ -106,7 +118,7 @@ _SINGULAR_GROWTH = 100.0
 _GAUSS_NODES, _GAUSS_WEIGHTS = np.polynomial.legendre.leggauss(16)
 # Random streams: [seed, stream] so each option draws independently of the others.
 _STREAM_POSE, _STREAM_TORQUE, _STREAM_JOINT_NOISE, _STREAM_BASE_NOISE = 1, 2, 3, 4
-_STREAM_DROP = 10
+_STREAM_EFFORT_NOISE = 5
 
 
 # --------------------------------------------------------------------------- options
@@ -161,10 +173,19 @@ class SimulationOptions:
     ``rtol``/``atol`` are DOP853's tolerances: at 1e-13 the dense output keeps the
     momentum constant to ~1e-11 relative (1e-12 gives occasional 2e-10 spikes between
     steps) at no noticeable cost. Noise standard deviations: ``noise_position`` on joint positions,
-    ``noise_velocity`` on joint velocities and the base twist, ``noise_pose`` on
-    the base position (m) and orientation (a small rotation, rad). ``torque_scale``
-    scales the excitation (the reference amplitude for ``pd``); ``torque_hold``
-    is how long ``constant`` torques are held before they flip sign.
+    ``noise_velocity`` on joint velocities and the base twist (``noise_twist`` when
+    given), ``noise_effort`` on joint efforts, ``noise_pose`` on the base position (m)
+    and orientation (a small rotation, rad; ``noise_orientation`` when given).
+    ``quantize`` holds (field, step) pairs of :data:`QUANTIZE_FIELDS`. The timing
+    fields (``stamp_jitter`` ... ``outage_duration``) apply to every measured topic,
+    each with its own random streams (:class:`reduced_dynamics.sensor_model.TimingOptions`).
+    Binary thrusters: ``thruster_layout`` (a name of
+    :data:`reduced_dynamics.thrusters.LAYOUTS`) or ``thruster_units`` (body-frame unit
+    wrenches), ``thruster_force`` (nominal N, default the layout's or 1), ``firings``,
+    the delivered wrench ``thrust_gain * command + thrust_bias`` and the command topic's
+    ``command_rate``. ``torque_scale`` scales the excitation (the reference amplitude
+    for ``pd``); ``torque_hold`` is how long ``constant`` torques are held before they
+    flip sign.
     """
 
     duration: float = 10.0
@@ -178,6 +199,24 @@ class SimulationOptions:
     noise_velocity: float = 0.0
     noise_pose: float = 0.0
     drop_rate: float = 0.0
+    noise_effort: float = 0.0
+    noise_twist: Optional[float] = None
+    noise_orientation: Optional[float] = None
+    quantize: tuple[tuple[str, float], ...] = ()
+    stamp_jitter: float = 0.0
+    bunch_fraction: float = 0.0
+    bunch_gap: float = 3e-5
+    latency: float = 0.0
+    latency_jitter: float = 0.0
+    outage_rate: float = 0.0
+    outage_duration: float = 0.04
+    thruster_layout: str = ''
+    thruster_units: tuple[tuple[float, ...], ...] = ()
+    thruster_force: Optional[float] = None
+    firings: tuple[ThrusterFiring, ...] = ()
+    thrust_gain: tuple[float, ...] = (1.0,) * 6
+    thrust_bias: tuple[float, ...] = (0.0,) * 6
+    command_rate: float = 10.0
     base_pose_only: bool = False
     momentum_class: str = 'generic'
     status: bool = False
@@ -190,7 +229,30 @@ class SimulationOptions:
     def __post_init__(self) -> None:
         """Validate every field (ValueError with the offending option)."""
         object.__setattr__(self, 'thrusters', tuple(self.thrusters))
+        object.__setattr__(self, 'firings', tuple(self.firings))
+        object.__setattr__(self, 'quantize', tuple((str(f), float(v)) for f, v in self.quantize))
+        object.__setattr__(self, 'thruster_units',
+                           tuple(tuple(float(x) for x in u) for u in self.thruster_units))
+        object.__setattr__(self, 'thrust_gain', tuple(float(x) for x in self.thrust_gain))
+        object.__setattr__(self, 'thrust_bias', tuple(float(x) for x in self.thrust_bias))
         _check_positive('duration', self.duration)
+        _check_positive('bunch_gap', self.bunch_gap)
+        _check_positive('outage_duration', self.outage_duration)
+        _check_positive('command_rate', self.command_rate)
+        for name in ('noise_effort', 'stamp_jitter', 'latency', 'latency_jitter',
+                     'outage_rate'):
+            _check_nonnegative(name, getattr(self, name))
+        for name in ('noise_twist', 'noise_orientation'):
+            if getattr(self, name) is not None:
+                _check_nonnegative(name, getattr(self, name))
+        if not 0.0 <= self.bunch_fraction < 1.0:
+            raise ValueError(f'bunch_fraction must be in [0, 1), got {self.bunch_fraction!r}')
+        for name, step in self.quantize:
+            if name not in QUANTIZE_FIELDS:
+                raise ValueError(f'unknown quantize field {name!r}; choose from '
+                                 f'{QUANTIZE_FIELDS}')
+            _check_positive(f'quantize step of {name}', step)
+        self._check_thrusters()
         _check_positive('rate', self.rate)
         _check_positive('torque_hold', self.torque_hold)
         _check_positive('chunk_seconds', self.chunk_seconds)
@@ -219,6 +281,56 @@ class SimulationOptions:
             if pulse.start >= self.duration:
                 raise ValueError(f'thruster pulse at {pulse.start:g} s starts after the end of '
                                  f'the run ({self.duration:g} s)')
+
+    def _check_thrusters(self) -> None:
+        if self.thruster_layout and self.thruster_units:
+            raise ValueError('give thruster_layout or thruster_units, not both')
+        if self.thruster_layout and self.thruster_layout not in LAYOUTS:
+            raise ValueError(f'unknown thruster layout {self.thruster_layout!r}; choose from '
+                             f'{tuple(LAYOUTS)}')
+        if any(len(u) != 6 for u in self.thruster_units):
+            raise ValueError('each thruster unit wrench needs 6 values (fx fy fz tx ty tz)')
+        if len(self.thrust_gain) != 6 or len(self.thrust_bias) != 6:
+            raise ValueError('thrust_gain and thrust_bias need 6 values (fx fy fz tx ty tz)')
+        if not all(math.isfinite(v) for v in self.thrust_gain + self.thrust_bias):
+            raise ValueError('thrust_gain and thrust_bias must be finite')
+        if self.thruster_force is not None:
+            _check_positive('thruster_force', self.thruster_force)
+        thrusters = self.thruster_set()
+        if thrusters is None and (self.firings or any(self.thrust_bias)):
+            raise ValueError('firings and thrust_bias need a thruster layout '
+                             '(thruster_layout or thruster_units)')
+        for firing in self.firings:
+            if not isinstance(firing, ThrusterFiring):
+                raise ValueError(f'firings must be ThrusterFiring objects, got {firing!r}')
+            if max(firing.thrusters) >= thrusters.count:
+                raise ValueError(f'firing at {firing.start:g} s names thruster '
+                                 f'{max(firing.thrusters)}, but the layout has '
+                                 f'{thrusters.count} (indices from 0)')
+            if firing.start >= self.duration:
+                raise ValueError(f'thruster firing at {firing.start:g} s starts after the end '
+                                 f'of the run ({self.duration:g} s)')
+
+    def thruster_set(self) -> Optional[ThrusterSet]:
+        """Return the binary thrusters, or None when there are none."""
+        if not (self.thruster_layout or self.thruster_units):
+            return None
+        units = LAYOUTS[self.thruster_layout] if self.thruster_layout else self.thruster_units
+        force = self.thruster_force
+        if force is None:
+            force = LAYOUT_FORCE.get(self.thruster_layout, 1.0)
+        return ThrusterSet(np.array(units), force, np.array(self.thrust_gain),
+                           np.array(self.thrust_bias))
+
+    def timing(self) -> TimingOptions:
+        """Return the timing effects of every measured topic."""
+        return TimingOptions(self.stamp_jitter, self.bunch_fraction, self.bunch_gap,
+                             self.latency, self.latency_jitter, self.drop_rate,
+                             self.outage_rate, self.outage_duration)
+
+    def step(self, name: str) -> float:
+        """Return the quantisation step of field ``name`` (0: not quantised)."""
+        return dict(self.quantize).get(name, 0.0)
 
     @property
     def samples(self) -> int:
@@ -250,6 +362,19 @@ class PulseSummary:
 
 
 @dataclass
+class FiringSummary:
+    """A binary-thruster firing: its body-frame command, what was delivered, the impulse."""
+
+    start: float
+    duration: float
+    thrusters: tuple[int, ...]
+    body_command: np.ndarray
+    body_delivered: np.ndarray
+    #: world impulse (force; torque about the origin) of the delivered wrench over the firing
+    world_impulse: np.ndarray
+
+
+@dataclass
 class SimulationSummary:
     """What :func:`simulate_bag` wrote; momenta are 6-D (linear; angular), world frame."""
 
@@ -269,6 +394,8 @@ class SimulationSummary:
     initial_momentum: np.ndarray
     final_momentum: np.ndarray
     pulses: list[PulseSummary] = field(default_factory=list)
+    firings: list[FiringSummary] = field(default_factory=list)
+    sensors: dict[str, TopicStatistics] = field(default_factory=dict)
     wall_seconds: float = 0.0
 
     def text(self) -> str:
@@ -288,6 +415,16 @@ class SimulationSummary:
                 f'Pulse {index} at {pulse.start:g} s for {pulse.duration:g} s: world impulse '
                 f'linear {_vec(pulse.world_impulse[:3])}, '
                 f'angular {_vec(pulse.world_impulse[3:])}.')
+        for index, firing in enumerate(self.firings, 1):
+            parts.append(
+                f'Firing {index} of thrusters {list(firing.thrusters)} at {firing.start:g} s '
+                f'for {firing.duration:g} s: world impulse linear '
+                f'{_vec(firing.world_impulse[:3])}, angular {_vec(firing.world_impulse[3:])}.')
+        for topic, stats in self.sensors.items():
+            lost = stats.dropped_random + stats.dropped_outage
+            if lost or stats.bunched:
+                parts.append(f'{topic}: {stats.dropped_random} dropped, {stats.dropped_outage} '
+                             f'lost in {len(stats.outages)} outages, {stats.bunched} bunched.')
         return ' '.join(parts)
 
     def to_dict(self) -> dict[str, Any]:
@@ -303,6 +440,12 @@ class SimulationSummary:
             'pulses': [{'start': p.start, 'duration': p.duration,
                         'body_wrench': p.body_wrench.tolist(),
                         'world_impulse': p.world_impulse.tolist()} for p in self.pulses],
+            'firings': [{'start': f.start, 'duration': f.duration,
+                         'thrusters': list(f.thrusters),
+                         'body_command': f.body_command.tolist(),
+                         'body_delivered': f.body_delivered.tolist(),
+                         'world_impulse': f.world_impulse.tolist()} for f in self.firings],
+            'sensors': {t: stats.to_dict() for t, stats in self.sensors.items()},
         }
 
     def write_json(self, path: PathLike) -> None:
@@ -414,6 +557,7 @@ class _Piece:
     first: int
     stop: int
     pulses: tuple[int, ...]
+    firings: tuple[int, ...] = ()
 
 
 def _first_sample_at_or_after(t: float, rate: float) -> int:
@@ -430,7 +574,7 @@ def _pieces(options: SimulationOptions, breakpoints: Sequence[float]) -> Iterato
     """Yield the pieces: split at discontinuities, then at chunk boundaries."""
     end = options.duration
     jumps = {0.0, end}
-    for pulse in options.thrusters:
+    for pulse in options.thrusters + options.firings:
         jumps.update(t for t in (pulse.start, pulse.end) if 0.0 < t < end)
     jumps.update(t for t in breakpoints if 0.0 < t < end)
     edges = sorted(jumps)
@@ -444,51 +588,89 @@ def _pieces(options: SimulationOptions, breakpoints: Sequence[float]) -> Iterato
         stop = last + 1 if b == end else _first_sample_at_or_after(b, options.rate)
         mid = 0.5 * (a + b)
         active = tuple(i for i, p in enumerate(options.thrusters) if p.start <= mid < p.end)
-        yield _Piece(a, b, first, min(stop, last + 1), active)
+        firing = tuple(i for i, f in enumerate(options.firings) if f.start <= mid < f.end)
+        yield _Piece(a, b, first, min(stop, last + 1), active, firing)
 
 
 # --------------------------------------------------------------------------- simulation
 class _Noise:
-    """Sensor noise and message drops, one random stream per purpose."""
+    """Sensor noise and quantisation, one random stream per purpose."""
 
-    def __init__(self, robot: RobotModel, options: SimulationOptions, topics: Sequence[str]):
+    def __init__(self, robot: RobotModel, options: SimulationOptions) -> None:
         self.robot = robot
         self.options = options
         seed = options.seed
         self.joint_rng = np.random.default_rng([seed, _STREAM_JOINT_NOISE])
         self.base_rng = np.random.default_rng([seed, _STREAM_BASE_NOISE])
-        self.drop_rngs = {t: np.random.default_rng([seed, _STREAM_DROP + i])
-                          for i, t in enumerate(topics)}
+        self.effort_rng = np.random.default_rng([seed, _STREAM_EFFORT_NOISE])
+        # Standard deviations per algebra coordinate (linear ones: m, angular ones: rad).
+        basis = robot.group.algebra_basis
+        angular = np.abs(basis[3:]).sum(axis=0) > 0.0
+        twist = options.noise_velocity if options.noise_twist is None else options.noise_twist
+        orientation = options.noise_pose if options.noise_orientation is None \
+            else options.noise_orientation
+        self.pose_sigma = np.where(angular, orientation, options.noise_pose)
+        self.twist_sigma = np.full(robot.n, float(twist))
+        self.steps = {name: options.step(name) for name in QUANTIZE_FIELDS}
 
-    def joints(self, qbar: np.ndarray, qbar_dot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Return noisy joint positions and velocities."""
+    def joints(self, qbar: np.ndarray, qbar_dot: np.ndarray, tau: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return measured joint positions, velocities and efforts."""
         # Always draw, so turning one noise on does not change the other's sequence.
         draw = self.joint_rng.standard_normal((2, self.robot.m))
-        return (qbar + self.options.noise_position * draw[0],
-                qbar_dot + self.options.noise_velocity * draw[1])
+        options, steps = self.options, self.steps
+        position = qbar + options.noise_position * draw[0]
+        velocity = qbar_dot + options.noise_velocity * draw[1]
+        effort = tau
+        if options.noise_effort > 0.0:
+            effort = tau + options.noise_effort * self.effort_rng.standard_normal(self.robot.m)
+        return (quantize(position, steps['joint_position']),
+                quantize(velocity, steps['joint_velocity']),
+                quantize(effort, steps['joint_effort']))
 
-    def base(self, g: pin.SE3, twist6: np.ndarray) -> tuple[pin.SE3, np.ndarray]:
-        """Return a noisy pose and body twist (noise only along the base group)."""
+    def base(self, g: pin.SE3, twist6: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the measured position, quaternion (x, y, z, w) and body twist."""
         basis = self.robot.group.algebra_basis
         draw = self.base_rng.standard_normal((2, self.robot.n))
-        pose_noise = basis @ (self.options.noise_pose * draw[0])
+        pose_noise = basis @ (self.pose_sigma * draw[0])
         noisy = pin.SE3(g.rotation @ pin.exp3(pose_noise[3:]), g.translation + pose_noise[:3])
-        return noisy, twist6 + basis @ (self.options.noise_velocity * draw[1])
+        twist6 = twist6 + basis @ (self.twist_sigma * draw[1])
+        steps = self.steps
+        position = quantize(noisy.translation, steps['base_position'])
+        quaternion = quantize(_quaternion_xyzw(noisy.rotation), steps['base_orientation'])
+        twist6 = np.concatenate([quantize(twist6[:3], steps['base_linear_velocity']),
+                                 quantize(twist6[3:], steps['base_angular_velocity'])])
+        return position, quaternion, twist6
 
-    def keep(self, topic: str) -> bool:
-        """Whether the message on ``topic`` survives the random drops."""
-        return bool(self.drop_rngs[topic].random() >= self.options.drop_rate)
+    def covariances(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return the row-major 6x6 pose and twist covariances an Odometry reports."""
+        basis = self.robot.group.algebra_basis
+        mask = np.diag(basis @ basis.T)
+        # The quantisation error, uniform on a step, has variance step^2 / 12.
+        steps = self.steps
+        q_pose = np.r_[[steps['base_position'] ** 2 / 12.0] * 3,
+                       [steps['base_orientation'] ** 2 / 3.0] * 3]
+        q_twist = np.r_[[steps['base_linear_velocity'] ** 2 / 12.0] * 3,
+                        [steps['base_angular_velocity'] ** 2 / 12.0] * 3]
+        pose_var = (basis ** 2) @ (self.pose_sigma ** 2) + q_pose * mask
+        twist_var = (basis ** 2) @ (self.twist_sigma ** 2) + q_twist * mask
+        return np.diag(mask * pose_var).ravel(), np.diag(mask * twist_var).ravel()
 
 
-def bag_topics(options: SimulationOptions) -> dict[str, str]:
-    """Return ``{topic: type}`` of the bag ``options`` describe."""
-    topics = {TOPIC_JOINT_STATES: 'sensor_msgs/msg/JointState'}
+def bag_topics(options: SimulationOptions, robot: Optional[RobotModel] = None
+               ) -> dict[str, str]:
+    """Return ``{topic: type}`` of the bag ``options`` describe (no joint states if m = 0)."""
+    topics = {}
+    if robot is None or robot.m > 0:
+        topics[TOPIC_JOINT_STATES] = 'sensor_msgs/msg/JointState'
     if options.base_pose_only:
         topics[TOPIC_BASE_POSE] = 'geometry_msgs/msg/PoseStamped'
     else:
         topics[TOPIC_ODOM] = 'nav_msgs/msg/Odometry'
     topics[TOPIC_MOMENTUM] = 'geometry_msgs/msg/WrenchStamped'
     topics[TOPIC_EXTERNAL_WRENCH] = 'geometry_msgs/msg/WrenchStamped'
+    if options.thruster_set() is not None:
+        topics[TOPIC_COMMAND] = 'geometry_msgs/msg/WrenchStamped'
     if options.status:
         topics[TOPIC_STATUS] = STATUS_MSGTYPE
     return topics
@@ -511,52 +693,101 @@ def _quaternion_xyzw(rotation: np.ndarray) -> np.ndarray:
     return pin.Quaternion(rotation).normalized().coeffs().copy()
 
 
+def command_times(options: SimulationOptions) -> list[float]:
+    """Return the times [s] of the command messages: the command grid plus every switch."""
+    grid = np.arange(0.0, options.duration + 1e-9, 1.0 / options.command_rate)
+    edges = [t for f in options.firings for t in (f.start, f.end) if t <= options.duration]
+    return sorted({round(float(t), 9) for t in list(grid) + edges})
+
+
 class _Recorder:
-    """Turn trajectory samples into messages and write those that are not dropped."""
+    """Turn trajectory samples into messages; write them in record-time order."""
 
     def __init__(self, robot: RobotModel, options: SimulationOptions, bag: BagWriter) -> None:
         self.robot = robot
         self.options = options
         self.bag = bag
         self.types = RosbagsTypes(bag.typestore)
-        self.noise = _Noise(robot, options, [TOPIC_JOINT_STATES, TOPIC_ODOM, TOPIC_BASE_POSE])
+        self.noise = _Noise(robot, options)
         self.names = tuple(robot.shape_joint_names)
-        mask = np.diag(robot.group.algebra_basis @ robot.group.algebra_basis.T)
-        self.pose_cov = np.diag(mask * options.noise_pose ** 2).ravel()
-        self.twist_cov = np.diag(mask * options.noise_velocity ** 2).ravel()
+        self.pose_cov, self.twist_cov = self.noise.covariances()
         self.status_every = max(1, int(round(options.rate / STATUS_RATE)))
         self.reference_cond: Optional[float] = None
+        self.base_topic = TOPIC_BASE_POSE if options.base_pose_only else TOPIC_ODOM
+        timing = options.timing()
+        self.timing = {topic: TopicTiming(timing, options.seed, SENSOR_TOPICS.index(topic),
+                                          self.stamp, options.duration)
+                       for topic in bag.topics if topic in SENSOR_TOPICS}
+        self.thrusters = options.thruster_set()
+        self.commands = command_times(options) if self.thrusters is not None else []
+        self.next_command = 0
+        # (record time, order, topic, message): messages wait here until no later
+        # sample can be recorded before them (delays are >= 0).
+        self.queue: list[tuple[int, int, str, Any]] = []
+        self.order = 0
 
     def stamp(self, k: int) -> int:
         """Return the bag time of sample k."""
         return self.options.start_time_ns + int(round(k * NS_PER_S / self.options.rate))
 
+    def _push(self, record_ns: int, topic: str, msg: Any) -> None:
+        heapq.heappush(self.queue, (record_ns, self.order, topic, msg))
+        self.order += 1
+
+    def _flush(self, before_ns: Optional[int]) -> None:
+        queue = self.queue
+        while queue and (before_ns is None or queue[0][0] < before_ns):
+            record_ns, _, topic, msg = heapq.heappop(queue)
+            self.bag.write(topic, record_ns, msg)
+
+    def _commands(self, until_s: Optional[float]) -> None:
+        """Queue the command messages up to ``until_s`` (all when None)."""
+        thrusters, times = self.thrusters, self.commands
+        while self.next_command < len(times) and (until_s is None
+                                                  or times[self.next_command] <= until_s):
+            t = times[self.next_command]
+            stamp = self.options.start_time_ns + int(round(t * NS_PER_S))
+            wrench6 = thrusters.command(thrusters.on(self.options.firings, t))
+            sample = WrenchSample(stamp, self.robot.base_link, wrench6[:3], wrench6[3:])
+            self._push(stamp, TOPIC_COMMAND, wrench_to_ros(sample, self.types))
+            self.next_command += 1
+
     def record(self, k: int, state: FreeFloatingState, mu: np.ndarray, tau: np.ndarray,
                external: np.ndarray, body_wrench: np.ndarray) -> None:
-        """Write every topic for sample k."""
+        """Queue every topic for sample k and write what can no longer be overtaken."""
         robot, options, types = self.robot, self.options, self.types
         self._check_regular(k, state.qbar)
         stamp = self.stamp(k)
-        position, velocity = self.noise.joints(state.qbar, state.qbar_dot)
-        twist6 = robot.group.twist(state.xi)
-        pose, twist6 = self.noise.base(state.g, twist6)
-        if self.noise.keep(TOPIC_JOINT_STATES):
-            sample = JointStateSample(stamp, '', self.names, position, velocity, tau)
-            self.bag.write(TOPIC_JOINT_STATES, stamp, joint_state_to_ros(sample, types))
-        topic = TOPIC_BASE_POSE if options.base_pose_only else TOPIC_ODOM
-        if self.noise.keep(topic):
-            base = BaseStateSample(stamp, WORLD_FRAME, robot.base_link, pose.translation,
-                                   _quaternion_xyzw(pose.rotation), twist6[:3], twist6[3:])
+        t = k / options.rate
+        self._commands(t)
+        self._flush(stamp)
+        timing = self.timing.get(TOPIC_JOINT_STATES)
+        if timing is not None:
+            position, velocity, effort = self.noise.joints(state.qbar, state.qbar_dot, tau)
+            times = timing.message(k, t)
+            if times is not None:
+                sample = JointStateSample(times[0], '', self.names, position, velocity, effort)
+                self._push(times[1], TOPIC_JOINT_STATES, joint_state_to_ros(sample, types))
+        position, quaternion, twist6 = self.noise.base(state.g, robot.group.twist(state.xi))
+        times = self.timing[self.base_topic].message(k, t)
+        if times is not None:
+            base = BaseStateSample(times[0], WORLD_FRAME, robot.base_link, position,
+                                   quaternion, twist6[:3], twist6[3:])
             if options.base_pose_only:
-                self.bag.write(topic, stamp, base_state_to_pose_stamped(base, types))
+                msg = base_state_to_pose_stamped(base, types)
             else:
-                self.bag.write(topic, stamp, base_state_to_odometry(
-                    base, types, self.pose_cov, self.twist_cov))
-        self.bag.write(TOPIC_MOMENTUM, stamp, wrench_to_ros(_wrench(mu, robot, stamp), types))
-        self.bag.write(TOPIC_EXTERNAL_WRENCH, stamp,
-                       wrench_to_ros(_wrench(external, robot, stamp), types))
+                msg = base_state_to_odometry(base, types, self.pose_cov, self.twist_cov)
+            self._push(times[1], self.base_topic, msg)
+        self._push(stamp, TOPIC_MOMENTUM, wrench_to_ros(_wrench(mu, robot, stamp), types))
+        self._push(stamp, TOPIC_EXTERNAL_WRENCH,
+                   wrench_to_ros(_wrench(external, robot, stamp), types))
         if options.status and k % self.status_every == 0:
             self._status(stamp, state, body_wrench)
+
+    def finish(self) -> None:
+        """Write every queued message."""
+        self._commands(None)
+        self._flush(None)
 
     def _status(self, stamp: int, state: FreeFloatingState, body_wrench: np.ndarray) -> None:
         robot = self.robot
@@ -567,7 +798,7 @@ class _Recorder:
             torque_mode=self.options.torque, thruster_active=bool(np.any(body_wrench != 0.0)),
             base_wrench=np.asarray(body_wrench, dtype=np.float64),
             kinetic_energy=kinetic, potential_energy=robot.potential_energy(state.qbar))
-        self.bag.write(TOPIC_STATUS, stamp, msg)
+        self._push(stamp, TOPIC_STATUS, msg)
 
     def _check_regular(self, k: int, qbar: np.ndarray) -> None:
         cond = float(np.linalg.cond(self.robot.mass_matrix(qbar)))
@@ -601,18 +832,26 @@ def simulate_bag(robot: RobotModel, out_path: PathLike,
                          f'to replace it)')
     state, scenario_torque = initial_state(robot, options.momentum_class, options.seed)
     excitation = make_excitation(robot, state, scenario_torque, options)
-    topics = bag_topics(options)
+    topics = bag_topics(options, robot)
     store = status_typestore() if options.status else None
     bag = BagWriter(out, topics, typestore=store, overwrite=options.overwrite)
     bag.open()
     try:
         recorder = _Recorder(robot, options, bag)
-        initial_mu, final_mu, pulses = _run(robot, state, excitation, options, recorder)
+        initial_mu, final_mu, pulses, firings = _run(robot, state, excitation, options, recorder)
+        recorder.finish()
         bag.close()
     except BaseException:
         bag.abort()
         shutil.rmtree(out, ignore_errors=True)
         raise
+    thrusters = options.thruster_set()
+    firing_summaries = []
+    for firing, impulse in zip(options.firings, firings):
+        command = thrusters.command(firing.thrusters)
+        firing_summaries.append(FiringSummary(
+            firing.start, firing.duration, firing.thrusters, command,
+            thrusters.delivered(command), robot.group.dual_to_wrench(impulse)))
     return SimulationSummary(
         path=out, robot=robot.model.name, base_link=robot.base_link,
         base_group=robot.group.name, joint_names=tuple(robot.shape_joint_names),
@@ -624,26 +863,40 @@ def simulate_bag(robot: RobotModel, out_path: PathLike,
         pulses=[PulseSummary(p.start, p.duration, np.array(p.wrench),
                              robot.group.dual_to_wrench(impulse))
                 for p, impulse in zip(options.thrusters, pulses)],
+        firings=firing_summaries,
+        sensors={topic: timing.stats for topic, timing in recorder.timing.items()},
         wall_seconds=time.perf_counter() - started)
+
+
+def _piece_wrench(options: SimulationOptions, piece: _Piece) -> np.ndarray:
+    """Return the body wrench on the base during ``piece``: pulses plus delivered thrust."""
+    body_wrench = np.zeros(6)
+    for index in piece.pulses:
+        body_wrench += np.asarray(options.thrusters[index].wrench)
+    thrusters = options.thruster_set()
+    if thrusters is not None:
+        on = thrusters.on(options.firings, 0.5 * (piece.start + piece.end))
+        body_wrench = body_wrench + thrusters.delivered(thrusters.command(on))
+    return body_wrench
 
 
 def _run(robot: RobotModel, state: FreeFloatingState, excitation: Excitation,
          options: SimulationOptions, recorder: _Recorder
-         ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+         ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:
     """Integrate piece by piece, writing each piece's samples; return mu0, mu_end, impulses."""
     impulses = [np.zeros(robot.n) for _ in options.thrusters]
+    firing_impulses = [np.zeros(robot.n) for _ in options.firings]
     dynamics = FullDynamics(robot)
     mu_first = mu_last = np.zeros(robot.n)
     for piece in _pieces(options, excitation.breakpoints):
         torque = excitation.law(0.5 * (piece.start + piece.end))
-        body_wrench = np.zeros(6)
-        for index in piece.pulses:
-            body_wrench += np.asarray(options.thrusters[index].wrench)
+        body_wrench = _piece_wrench(options, piece)
+        pushed = bool(np.any(body_wrench != 0.0))
         dynamics.torque = torque
-        dynamics.base_wrench = _constant_wrench(body_wrench) if piece.pulses else None
+        dynamics.base_wrench = _constant_wrench(body_wrench) if pushed else None
         samples = np.arange(piece.first, piece.stop) / options.rate
         half = 0.5 * (piece.end - piece.start)
-        nodes = piece.start + half * (1.0 + _GAUSS_NODES) if piece.pulses else np.zeros(0)
+        nodes = piece.start + half * (1.0 + _GAUSS_NODES) if pushed else np.zeros(0)
         times = np.unique(np.concatenate([[piece.start, piece.end], samples, nodes]))
         trajectory = dynamics.simulate(state, times, options.rtol, options.atol)
         where = np.searchsorted(times, samples)
@@ -653,25 +906,32 @@ def _run(robot: RobotModel, state: FreeFloatingState, excitation: Excitation,
                              dtype=float)
             external = dynamics.world_wrench(times[index], sample_state.g)
             recorder.record(k, sample_state, trajectory.mu[index], tau, external, body_wrench)
-        if piece.pulses:
-            _add_impulses(robot, options, piece, trajectory, np.searchsorted(times, nodes),
-                          half, impulses)
+        if pushed:
+            where_nodes = np.searchsorted(times, nodes)
+            for pulse_index in piece.pulses:
+                _add_impulse(robot, options.thrusters[pulse_index].wrench, trajectory,
+                             where_nodes, half, impulses[pulse_index])
+            for firing_index in piece.firings:
+                _add_impulse(robot, body_wrench - _pulse_wrench(options, piece), trajectory,
+                             where_nodes, half, firing_impulses[firing_index])
         if piece.start == 0.0:
             mu_first = trajectory.mu[0].copy()
         mu_last = trajectory.mu[-1].copy()
         state = trajectory.state(len(times) - 1)
-    return mu_first, mu_last, impulses
+    return mu_first, mu_last, impulses, firing_impulses
 
 
-def _add_impulses(robot: RobotModel, options: SimulationOptions, piece: _Piece,
-                  trajectory: FullTrajectory, where: np.ndarray, half: float,
-                  impulses: list[np.ndarray]) -> None:
-    """Gauss-Legendre quadrature of each active pulse's world wrench over the piece."""
-    for pulse_index in piece.pulses:
-        body = robot.group.dual_coordinates(np.asarray(options.thrusters[pulse_index].wrench))
-        for weight, index in zip(_GAUSS_WEIGHTS, where):
-            ad = robot.group.Ad(trajectory.pose(index).inverse())
-            impulses[pulse_index] += half * weight * (ad.T @ body)
+def _pulse_wrench(options: SimulationOptions, piece: _Piece) -> np.ndarray:
+    return sum((np.asarray(options.thrusters[i].wrench) for i in piece.pulses), np.zeros(6))
+
+
+def _add_impulse(robot: RobotModel, body_wrench: Sequence[float], trajectory: FullTrajectory,
+                 where: np.ndarray, half: float, impulse: np.ndarray) -> None:
+    """Add the Gauss-Legendre quadrature of a body wrench's world wrench over the piece."""
+    body = robot.group.dual_coordinates(np.asarray(body_wrench, dtype=float))
+    for weight, index in zip(_GAUSS_WEIGHTS, where):
+        ad = robot.group.Ad(trajectory.pose(index).inverse())
+        impulse += half * weight * (ad.T @ body)
 
 
 # --------------------------------------------------------------------------- CLI
@@ -723,6 +983,28 @@ def _thruster(text: str) -> ThrusterPulse:
         raise argparse.ArgumentTypeError(str(error)) from None
 
 
+def _firing(text: str) -> ThrusterFiring:
+    try:
+        return ThrusterFiring.parse(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def _unit_wrench(text: str) -> tuple[float, ...]:
+    parts = text.split(',')
+    if len(parts) != 6:
+        raise argparse.ArgumentTypeError(f'{text!r} must be FX,FY,FZ,TX,TY,TZ (6 numbers)')
+    return tuple(_number(p) for p in parts)
+
+
+def _quantize(text: str) -> tuple[str, float]:
+    name, _, step = text.partition('=')
+    if name not in QUANTIZE_FIELDS:
+        raise argparse.ArgumentTypeError(f'{text!r}: FIELD must be one of '
+                                         f'{", ".join(QUANTIZE_FIELDS)}')
+    return name, _positive(step)
+
+
 def register_command(subparsers: Any) -> None:
     """Add the ``simulate`` subcommand to the ``reduced-dynamics`` parser."""
     from reduced_dynamics.cli import add_robot_arguments
@@ -759,8 +1041,58 @@ def register_command(subparsers: Any) -> None:
                         help='std of joint velocity and base twist noise')
     parser.add_argument('--noise-pose', type=_nonnegative, default=0.0,
                         help='std of base position (m) and orientation (rad) noise')
+    parser.add_argument('--noise-effort', type=_nonnegative, default=0.0,
+                        help='std of joint effort noise (N m or N)')
+    parser.add_argument('--noise-twist', type=_nonnegative, default=None,
+                        help='std of base twist noise (m/s, rad/s; default --noise-velocity)')
+    parser.add_argument('--noise-orientation', type=_nonnegative, default=None,
+                        help='std of base orientation noise (rad; default --noise-pose)')
+    parser.add_argument('--quantize', type=_quantize, action='append', default=[],
+                        metavar='FIELD=STEP',
+                        help='round FIELD to multiples of STEP after the noise; FIELD one of '
+                             + ', '.join(QUANTIZE_FIELDS) + '; repeatable')
     parser.add_argument('--drop-rate', type=_fraction, default=0.0,
                         help='fraction of sensor messages dropped at random, per topic')
+    parser.add_argument('--outage-rate', type=_nonnegative, default=0.0,
+                        help='sensor outages per second, per topic (Poisson; default 0)')
+    parser.add_argument('--outage-duration', type=_positive, default=0.04,
+                        help='mean outage length, s (exponential; default 0.04)')
+    parser.add_argument('--stamp-jitter', type=_nonnegative, default=0.0,
+                        help='std of the header stamp error of sensor messages, s')
+    parser.add_argument('--bunch-fraction', type=_fraction, default=0.0,
+                        help='fraction of sensor messages stamped --bunch-gap before the next '
+                             'one (pairs of packets stamped together, as mocap does)')
+    parser.add_argument('--bunch-gap', type=_positive, default=3e-5,
+                        help='mean stamp gap of a bunched pair, s (uniform in [0.5, 1.5] '
+                             'times it; default 3e-5)')
+    parser.add_argument('--latency', type=_nonnegative, default=0.0,
+                        help='mean delay from a sample to its record (bag log) time, s')
+    parser.add_argument('--latency-jitter', type=_nonnegative, default=0.0,
+                        help='std of that delay, s (the delay is clipped at 0)')
+    parser.add_argument('--thruster-layout', choices=tuple(LAYOUTS), default='',
+                        help='binary thrusters of a known robot (freeflyer: the 8 thrusters '
+                             'of the freeflyer2 testbed, 0.2 N each)')
+    parser.add_argument('--thruster-unit', type=_unit_wrench, action='append', default=[],
+                        metavar='FX,FY,FZ,TX,TY,TZ',
+                        help='body-frame wrench of one binary thruster per newton; '
+                             'repeatable, numbered from 0 (instead of --thruster-layout)')
+    parser.add_argument('--thruster-force', type=_positive, default=None,
+                        help='nominal force of each binary thruster, N (default: the '
+                             "layout's, else 1)")
+    parser.add_argument('--fire', type=_firing, action='append', default=[],
+                        metavar='T,DURATION,I[,J...]',
+                        help='binary thrusters I, J, ... on during [T, T+DURATION); repeatable')
+    parser.add_argument('--thrust-gain', type=float, nargs=6, default=[1.0] * 6,
+                        metavar=('FX', 'FY', 'FZ', 'TX', 'TY', 'TZ'),
+                        help='delivered = gain * commanded + bias, per body axis (default 1)')
+    parser.add_argument('--thrust-bias', type=float, nargs=6, default=[0.0] * 6,
+                        metavar=('FX', 'FY', 'FZ', 'TX', 'TY', 'TZ'),
+                        help='constant body wrench added to the delivered thrust (N, N m; '
+                             'acts also when no thruster fires; default 0)')
+    parser.add_argument('--command-rate', type=_positive, default=10.0,
+                        help=f'rate of {TOPIC_COMMAND} (geometry_msgs/WrenchStamped, the '
+                             'commanded body wrench), Hz, plus one message at every switch '
+                             '(default 10)')
     parser.add_argument('--base-pose-only', action='store_true',
                         help='write /base_pose (PoseStamped) instead of /odom')
     parser.add_argument('--momentum-class', choices=tuple(MOMENTUM_CLASSES), default='generic',
@@ -783,6 +1115,15 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         thrusters=tuple(args.thruster), noise_position=args.noise_position,
         noise_velocity=args.noise_velocity, noise_pose=args.noise_pose,
         drop_rate=args.drop_rate, base_pose_only=args.base_pose_only,
+        noise_effort=args.noise_effort, noise_twist=args.noise_twist,
+        noise_orientation=args.noise_orientation, quantize=tuple(args.quantize),
+        stamp_jitter=args.stamp_jitter, bunch_fraction=args.bunch_fraction,
+        bunch_gap=args.bunch_gap, latency=args.latency, latency_jitter=args.latency_jitter,
+        outage_rate=args.outage_rate, outage_duration=args.outage_duration,
+        thruster_layout=args.thruster_layout, thruster_units=tuple(args.thruster_unit),
+        thruster_force=args.thruster_force, firings=tuple(args.fire),
+        thrust_gain=tuple(args.thrust_gain), thrust_bias=tuple(args.thrust_bias),
+        command_rate=args.command_rate,
         momentum_class=args.momentum_class, status=args.status, overwrite=args.overwrite,
         start_time_ns=int(round(args.start_time * NS_PER_S)))
 

@@ -38,3 +38,18 @@ simulate -o "$OUT/planar_pose_only" --summary "$OUT/planar_pose_only.summary.jso
 
 # Paper robot, pure angular momentum, piecewise-constant torques held 1 s (prediction tests).
 simulate -o "$OUT/paper_constant" --summary "$OUT/paper_constant.summary.json" --overwrite --duration 3 --rate 100 --seed 3 --torque constant --torque-hold 1 --momentum-class pure_angular
+
+# Realistic sensors (issue 10): the paper robot with Odometry from spacecraft-grade sensors:
+# attitude 0.5 mrad and position 1 mm (star tracker, relative navigation), twist 2e-3
+# (IMU-grade), encoders 1e-4 rad quantised to 1e-5 rad (a 19-bit encoder), tachometers
+# 5e-3 rad/s, motor-current efforts 0.05 N m; header stamps with 0.3 ms jitter, records
+# 4 +- 1 ms later, 1 % of messages lost; one 0.5 s thruster pulse at 3 s.
+simulate -o "$OUT/paper_realistic" --summary "$OUT/paper_realistic.summary.json" --overwrite --duration 6 --rate 100 --seed 4 --torque sinusoid --thruster 3,0.5,20,-10,5,2,-3,4 --noise-position 1e-4 --noise-velocity 0.005 --noise-effort 0.05 --noise-pose 0.001 --noise-orientation 0.0005 --noise-twist 0.002 --quantize joint_position=1e-5 --stamp-jitter 0.0003 --latency 0.004 --latency-jitter 0.001 --drop-rate 0.01
+
+# A planar free-flyer like the freeflyer2 testbed (16 kg, 0.18 kg m^2, no arm), mocap poses
+# only at 120 Hz: 0.5 mm and 2 mrad noise, positions quantised to 0.1 mm, 0.5 ms stamp
+# jitter, 1 % of the stamps bunched with the next one (gaps of 15-45 us, as in the real
+# bags), 3 +- 1 ms latency, outages of ~40 ms at 0.2 per second; the 8 binary 0.2 N thrusters
+# fire four times (the rest is coasting), delivering 0.9 / 0.85 / 0.95 of the commanded
+# Fx / Fy / Mz; /commanded_wrench at 8 Hz and at every switch.
+simulate -o "$OUT/freeflyer_realistic" --summary "$OUT/freeflyer_realistic.summary.json" --overwrite --urdf config/robots/freeflyer.urdf --duration 15 --rate 120 --seed 5 --torque zero --base-pose-only --noise-pose 0.0005 --noise-orientation 0.002 --quantize base_position=1e-4 --stamp-jitter 0.0005 --bunch-fraction 0.01 --latency 0.003 --latency-jitter 0.001 --outage-rate 0.2 --outage-duration 0.04 --thruster-layout freeflyer --fire 2,1,2,5 --fire 5,1.5,4,7 --fire 9,0.8,1,3,5,7 --fire 12,1,6,1 --thrust-gain 0.9 0.85 1 1 1 0.95 --command-rate 8

@@ -171,7 +171,7 @@ class MomentumFilter:
     # --- pieces of the model ----------------------------------------------------------
     @property
     def mu(self) -> np.ndarray:
-        """Return the momentum estimate mu (world frame)."""
+        """Return the momentum-map estimate (world frame, about the origin)."""
         return self.x[:self.n]
 
     @property
