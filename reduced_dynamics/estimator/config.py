@@ -76,10 +76,10 @@ PARAMETERS: dict[str, ParameterSpec] = {
         'less likely than this under the filter is rejected (innovation_gate), 3 in a '
         'row are accepted as a momentum jump (0: gate off)'),
     'event_significance': ParameterSpec(
-        1e-6, 1e-15, 0.5, (),
+        1e-6, 0.0, 0.5, (),
         'false-alarm probability per sample of the event test w^T P_ww^-1 w > '
         'chi2_n quantile: a thruster/contact event starts above it (dimensionless, '
-        'the same at any mass)'),
+        'the same at any mass; 0: no events)'),
     'event_hold': ParameterSpec(0.1, 0.0, 10.0, (),
                                 'quiet time [s] with w consistent with zero (chi-square '
                                 'below its 99 % quantile) before an event ends and the model '

@@ -51,8 +51,7 @@ from reduced_dynamics.estimator.cyclic import (CYCLIC_OFF, CyclicColumns, Cyclic
                                                resolve_cyclic_joints)
 from reduced_dynamics.estimator.kernel import UpdateKernel
 from reduced_dynamics.estimator.events import EventDetector, MomentumEvent
-from reduced_dynamics.estimator.filter import (FilterState, Linearisation, MomentumFilter,
-                                               NoiseModel, smooth)
+from reduced_dynamics.estimator.filter import Linearisation, MomentumFilter, NoiseModel
 from reduced_dynamics.estimator.plausibility import BaseBounds, JointBounds
 from reduced_dynamics.estimator.prediction import Prediction, Predictor
 from reduced_dynamics.estimator.stamps import ACCEPTED, ClockJump, StampGate, StampResult

@@ -177,4 +177,3 @@ class BaseBuffer:
         pose = pin.SE3.Interpolate(a.pose, b.pose, s)
         return pin.SE3ToXYZQUAT(pose).tolist() + [
             (1 - s) * u + s * v for u, v in zip(a.row[7:], b.row[7:])]
-
