@@ -65,9 +65,9 @@ setup(
         'matplotlib',
     ],
     extras_require={
-        'test': ['pytest'],
+        'test': ['pytest', 'hypothesis'],
     },
-    tests_require=['pytest'],
+    tests_require=['pytest', 'hypothesis'],
     zip_safe=False,
     maintainer='reduced_dynamics developers',
     maintainer_email='dev@reduced-dynamics.local',

@@ -28,7 +28,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 import pinocchio as pin
 
-from reduced_dynamics.integrators import integrate_adaptive
+from reduced_dynamics.integrators import integrate_adaptive, integrate_pieces
 from reduced_dynamics.robot.model import RobotModel
 from reduced_dynamics.robot.momentum import momentum_map
 from reduced_dynamics.robot.state import FreeFloatingState, TorqueLaw, zero_torque
@@ -133,6 +133,109 @@ class FullDynamics:
         records = integrate_adaptive(self, self.pack(state), times, method, rtol, atol,
                                      max_step=max_step)
         return FullTrajectory(self.robot, np.asarray(times, dtype=float), records)
+
+
+class PrescribedShapeDynamics:
+    """
+    Full dynamics with the shape path prescribed: the arm tracks q(t) exactly.
+
+    The shape is a rheonomic constraint; the base obeys the base rows of the
+    full equations of motion, ``I xi_dot + (B q_ddot + c(q, v))_base = 0``
+    (RNEA with zero base acceleration gives the bracket), integrated as a
+    second-order ODE on the base group: state y = (eta, xi), g = g_seg exp(eta).
+    The joint torques that realise the motion are the shape rows of RNEA.
+    This is the simulator's ground truth for predictions of planned motions
+    (independent of the reduction: it never uses mu or the connection).
+    """
+
+    def __init__(self, robot: RobotModel, path: Callable) -> None:
+        """Track ``path`` (t -> q, q_dot, q_ddot; with ``breakpoints``)."""
+        self.robot = robot
+        self.path = path
+        self.g_seg = pin.SE3.Identity()
+        self._data = robot.model.createData()
+        self._q = np.empty(robot.model.nq)
+        self._a = np.zeros(robot.model.nv)
+
+    def pose(self, y: np.ndarray) -> pin.SE3:
+        """Return base pose g of state y."""
+        return self.g_seg * self.robot.group.exp(y[:self.robot.n])
+
+    def _terms(self, t: float, y: np.ndarray) -> tuple:
+        robot, n = self.robot, self.robot.n
+        qbar, qbar_dot, qbar_ddot = self.path(t)
+        q = self._q
+        q[:robot.nq_base] = robot.base_configuration(self.pose(y))
+        q[robot.nq_base:] = qbar
+        v = np.concatenate([y[n:], qbar_dot])
+        a = self._a
+        a[:n] = 0.0
+        a[n:] = qbar_ddot
+        bias = pin.rnea(robot.model, self._data, q, v, a)[:n].copy()
+        locked = pin.crba(robot.model, self._data, q)[:n, :n]
+        xi_dot = -np.linalg.solve(locked, bias)
+        return q, v, a, xi_dot
+
+    def rhs(self, t: float, y: np.ndarray) -> np.ndarray:
+        """dy/dt: eta_dot = Jr(eta)^-1 xi, xi_dot from the base rows."""
+        n = self.robot.n
+        out = np.empty(y.shape)
+        out[n:] = self._terms(t, y)[3]
+        out[:n] = self.robot.group.right_jacobian_inverse(y[:n]) @ y[n:]
+        return out
+
+    def chart_size(self, y: np.ndarray) -> float:
+        """Norm of the base chart coordinates."""
+        return float(np.linalg.norm(y[:self.robot.n]))
+
+    def recentre(self, y: np.ndarray) -> np.ndarray:
+        """Move the base chart to the current pose."""
+        self.g_seg = self.pose(y)
+        out = y.copy()
+        out[:self.robot.n] = 0.0
+        return out
+
+    def observe(self, t: float, y: np.ndarray) -> np.ndarray:
+        """[g (16), xi, qbar, qbar_dot, mu, joint torques]."""
+        robot, n = self.robot, self.robot.n
+        q, v, a, xi_dot = self._terms(t, y)
+        a = a.copy()
+        a[:n] = xi_dot
+        torques = pin.rnea(robot.model, self._data, q, v, a)[n:].copy()
+        qbar = q[robot.nq_base:].copy()
+        g = self.pose(y)
+        pi = robot.mass_matrix(qbar)[:n] @ v
+        return np.concatenate([g.homogeneous.ravel(), y[n:], qbar, v[n:],
+                               momentum_map(robot.group, g, pi), torques])
+
+    def velocity_jump(self, t: float, y: np.ndarray) -> np.ndarray:
+        """
+        Carry the base twist across a jump of q_dot (a knot of a linear path).
+
+        The impulsive joint forces are internal: pi = I xi + B q_dot is the
+        same just before and after, so xi+ = I^-1 (pi - B q_dot+).
+        """
+        before, after = self.path.velocity_limits(t)
+        if np.array_equal(before, after):
+            return y
+        n = self.robot.n
+        mass = self.robot.mass_matrix(self.path(t)[0])
+        out = y.copy()
+        out[n:] = y[n:] + np.linalg.solve(mass[:n, :n], mass[:n, n:] @ (before - after))
+        return out
+
+    def simulate(self, g0: pin.SE3, xi0: np.ndarray, times: Sequence[float],
+                 rtol: float = 1e-12, atol: float = 1e-12) -> 'FullTrajectory':
+        """Integrate from base pose g0 and twist xi0 at times[0] (shape on the path)."""
+        self.g_seg = pin.SE3(g0)
+        y0 = np.concatenate([np.zeros(self.robot.n), np.asarray(xi0, dtype=float)])
+        times = np.asarray(times, dtype=float)
+        records = integrate_pieces(self, y0, times, getattr(self.path, 'breakpoints', ()),
+                                   rtol, atol, jump=self.velocity_jump)
+        trajectory = FullTrajectory(self.robot, times, records[:, :-self.robot.m]
+                                    if self.robot.m else records)
+        trajectory.torques = records[:, records.shape[1] - self.robot.m:]
+        return trajectory
 
 
 class FullTrajectory:

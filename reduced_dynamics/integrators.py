@@ -30,7 +30,8 @@ Integrators for systems that live partly on Lie groups through re-centred charts
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Protocol, Sequence
+import time
+from typing import Callable, Optional, Protocol, Sequence
 
 import numpy as np
 # The published DOP853 tableau (Hairer, Norsett & Wanner; Fortran DOP853) as scipy
@@ -38,6 +39,49 @@ import numpy as np
 from scipy.integrate._ivp import dop853_coefficients as _dop853
 
 ADAPTIVE_METHODS = ('DOP853',)
+
+
+class BudgetExceeded(RuntimeError):
+    """An integration ran out of its evaluation or wall-time budget (``reason`` says which)."""
+
+    def __init__(self, reason: str) -> None:
+        """Keep the reason (also the message)."""
+        super().__init__(reason)
+        self.reason = reason
+
+
+class Budget:
+    """
+    A cost limit shared by the integrations of one computation (e.g. one prediction).
+
+    ``max_evaluations`` right-hand-side evaluations (or fixed-point iterations)
+    and ``max_wall_time`` seconds from construction (None: unlimited).
+    :meth:`charge` raises :class:`BudgetExceeded` once either is spent.
+    """
+
+    def __init__(self, max_evaluations: Optional[int] = None,
+                 max_wall_time: Optional[float] = None) -> None:
+        """Start the clock."""
+        self.max_evaluations = max_evaluations
+        self.max_wall_time = max_wall_time
+        self.evaluations = 0
+        self.started = time.perf_counter()
+        self._deadline = None if max_wall_time is None else self.started + max_wall_time
+
+    @property
+    def elapsed(self) -> float:
+        """Return the wall time [s] since the budget started."""
+        return time.perf_counter() - self.started
+
+    def charge(self, count: int = 1) -> None:
+        """Count ``count`` evaluations; raise BudgetExceeded when a limit is passed."""
+        self.evaluations += count
+        if self.max_evaluations is not None and self.evaluations > self.max_evaluations:
+            raise BudgetExceeded(f'evaluation budget exceeded ({self.max_evaluations} '
+                                 'right-hand-side evaluations)')
+        if self._deadline is not None and time.perf_counter() > self._deadline:
+            raise BudgetExceeded(f'wall-time budget exceeded ({self.max_wall_time:g} s, '
+                                 f'{self.evaluations} evaluations)')
 
 
 class ChartedSystem(Protocol):
@@ -59,20 +103,57 @@ class ChartedSystem(Protocol):
 def integrate_adaptive(system: ChartedSystem, y0: np.ndarray, t_eval: Sequence[float],
                        method: str = 'DOP853', rtol: float = 1e-11, atol: float = 1e-12,
                        max_chart: float = 0.5, max_step: float = np.inf,
-                       max_evaluations: int = 1_000_000) -> np.ndarray:
+                       max_evaluations: int = 1_000_000,
+                       budget: Optional[Budget] = None) -> np.ndarray:
     """
     Integrate from t_eval[0] to t_eval[-1]; return observe() at each t_eval.
 
     Raises RuntimeError after ``max_evaluations`` right-hand-side calls: near a
     coordinate singularity (gimbal lock of three revolutes) the step size
-    collapses and the run would otherwise not end.
+    collapses and the run would otherwise not end. ``budget``: a shared cost
+    limit (:class:`BudgetExceeded` when spent).
     """
     if method not in ADAPTIVE_METHODS:
         raise ValueError(f'unknown adaptive method {method!r}; choose from {ADAPTIVE_METHODS}')
     times = np.asarray(t_eval, dtype=float)
     if times.ndim != 1 or times.size == 0 or np.any(np.diff(times) < 0):
         raise ValueError('t_eval must be a non-empty, non-decreasing sequence')
-    return Dop853(rtol, atol, max_step, max_evaluations).integrate(system, y0, times, max_chart)
+    solver = Dop853(rtol, atol, max_step, max_evaluations, budget)
+    return solver.integrate(system, y0, times, max_chart)
+
+
+def integrate_pieces(system: ChartedSystem, y0: np.ndarray, t_eval: Sequence[float],
+                     breakpoints: Sequence[float], rtol: float, atol: float,
+                     budget: Optional[Budget] = None, max_chart: float = 0.5,
+                     jump: Optional[Callable[[float, np.ndarray], np.ndarray]] = None
+                     ) -> np.ndarray:
+    """
+    Like :func:`integrate_adaptive`, restarting at ``breakpoints`` inside the span.
+
+    Where the right-hand side's derivatives jump (the knots of a piecewise
+    polynomial input), one step across the jump would lose the method's order
+    and collapse the step size; restarting there keeps both. ``jump(t, y)``
+    maps the state across a breakpoint (an impulsive change), if given.
+    """
+    times = np.asarray(t_eval, dtype=float)
+    if times.ndim != 1 or times.size == 0 or np.any(np.diff(times) < 0):
+        raise ValueError('t_eval must be a non-empty, non-decreasing sequence')
+    inside = sorted({float(b) for b in breakpoints if times[0] < b < times[-1]})
+    edges = [float(times[0])] + inside + [float(times[-1])]
+    solver = Dop853(rtol, atol, budget=budget)
+    y = np.asarray(y0, dtype=float)
+    records: list = []
+    for piece, (start, end) in enumerate(zip(edges[:-1], edges[1:])):
+        if piece and jump is not None:
+            y = jump(start, y)
+        # A sample on a breakpoint belongs to the piece it starts (after the jump).
+        last = piece == len(edges) - 2
+        wanted = times[(times >= start) & ((times <= end) if last else (times < end))]
+        span = np.concatenate([[start], wanted, [end]])
+        out = solver.integrate(system, y, span, max_chart)
+        records.extend(out[1:1 + wanted.size])
+        y = solver.final_state
+    return np.array(records)
 
 
 def _rms(x: np.ndarray) -> float:
@@ -98,13 +179,17 @@ class Dop853:
     ERROR_EXPONENT = -1.0 / 8.0
 
     def __init__(self, rtol: float, atol: float, max_step: float = np.inf,
-                 max_evaluations: int = 1_000_000) -> None:
+                 max_evaluations: int = 1_000_000, budget: Optional[Budget] = None) -> None:
         """
         Set tolerances (scale ``atol + rtol |y|``), step bound and evaluation budget.
 
         ``rtol`` is raised to 100 machine epsilons, as scipy does: below that the
-        error estimate is round-off.
+        error estimate is round-off. ``budget``: a cost limit shared with other
+        integrations (charged per evaluation).
         """
+        self.budget = budget
+        #: the state at the end of the last :meth:`integrate` (in the system's charts)
+        self.final_state: Optional[np.ndarray] = None
         self.rtol = max(rtol, 100.0 * np.finfo(float).eps)
         self.atol = atol
         self.max_step = max_step
@@ -126,6 +211,8 @@ class Dop853:
         if self.evaluations > self.max_evaluations:
             raise RuntimeError(f'integration stalled at t={t:.6g} after {self.evaluations} '
                                'evaluations (a coordinate singularity?)')
+        if self.budget is not None:
+            self.budget.charge()
         return system.rhs(t, y)
 
     def _initial_step(self, system: 'ChartedSystem', t: float, y: np.ndarray, f: np.ndarray,
@@ -202,6 +289,7 @@ class Dop853:
             records.append(system.observe(float(times[index]), y))
             index += 1
         if index == times.size:
+            self.final_state = y
             return np.array(records)
         stages = np.empty((_dop853.N_STAGES_EXTENDED, y.size))
         stages[0] = self._call(system, t, y)
@@ -240,6 +328,7 @@ class Dop853:
             if index < times.size and system.chart_size(y) > max_chart:
                 y = system.recentre(y)
                 stages[0] = self._call(system, t, y)
+        self.final_state = y
         return np.array(records)
 
 

@@ -48,6 +48,10 @@ NODE_PARAMETERS: dict[str, ParameterSpec] = {
     'odom_topic': ParameterSpec('odom', None, None, (), 'nav_msgs/Odometry input'),
     'base_pose_topic': ParameterSpec('base_pose', None, None, (),
                                      'geometry_msgs/PoseStamped input'),
+    'trajectory_topic': ParameterSpec('joint_trajectory', None, None, (),
+                                      'trajectory_msgs/JointTrajectory input: the planned '
+                                      'arm motion (e.g. a joint_trajectory_controller\'s '
+                                      'command topic) that prediction_mode planned follows'),
     'cyclic_joints': ParameterSpec('', None, None, (),
                                    'second-stage reduction (Theorem 57): empty for off, '
                                    '"auto" for every cyclic joint found (reaction wheels, '

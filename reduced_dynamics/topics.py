@@ -63,9 +63,15 @@ OUTPUT_TOPICS: tuple[OutputTopic, ...] = (
     OutputTopic('drift/base_twist', 'geometry_msgs/msg/TwistStamped', 'drift_twist',
                 twist_to_ros, 'I^-1 pi: base twist due to momentum alone, base frame'),
     OutputTopic('prediction/shape', 'trajectory_msgs/msg/JointTrajectory', 'prediction',
-                shape_prediction_to_ros, 'predicted qbar, qbar_dot over the horizon'),
+                shape_prediction_to_ros, 'torque-driven prediction modes (coast, '
+                'held_torque): predicted qbar, qbar_dot over the horizon'),
     OutputTopic('prediction/base_path', 'nav_msgs/msg/Path', 'prediction_path',
-                pose_path_to_ros, 'predicted base poses, world frame'),
+                pose_path_to_ros, 'predicted base poses, world frame (every mode)'),
+    OutputTopic('prediction/geometric_phase_path', 'nav_msgs/msg/Path',
+                'prediction_phase_path', pose_path_to_ros,
+                'prescribed prediction modes (planned, held_velocity): the base path the '
+                'arm motion alone causes (geometric phase -A qbar_dot, i.e. the same motion at '
+                'zero momentum), world frame; base_path minus this is the drift\'s share'),
     OutputTopic(DIAGNOSTICS_TOPIC, 'diagnostic_msgs/msg/DiagnosticArray', 'diagnostics',
                 diagnostics_to_ros, 'estimator status'),
 )

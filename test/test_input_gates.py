@@ -68,6 +68,17 @@ def test_isolated_future_outlier_is_dropped_alone():
         assert dropped == [(bad[20], 'outlier')] and not jumps
 
 
+def test_a_stamp_slightly_ahead_is_an_outlier_not_a_new_clock():
+    # Half a second ahead: within the tolerance, but 100 periods ahead of the cadence.
+    stamps = [k * 5 * MS for k in range(60)]
+    for receives in (None, [s + 2 * MS for s in stamps]):
+        bad = list(stamps)
+        bad[30] += S // 2
+        accepted, dropped, jumps = _run_gate(StampGate('j', S, 3), bad, receives)
+        assert accepted == stamps[:30] + stamps[31:]
+        assert dropped == [(bad[30], 'outlier')] and not jumps
+
+
 def test_outlier_in_the_past_and_at_the_end():
     stamps = [100 * S + k * 10 * MS for k in range(30)]
     bad = list(stamps)

@@ -63,9 +63,12 @@ def test_output_bag_read_independently_with_counts_of_summary(thruster_replay):
         for _, channel, _ in reader.iter_messages():
             counts[channel.topic] = counts.get(channel.topic, 0) + 1
     assert counts == summary['messages_out']
-    assert set(counts) == {resolved_name(t) for t in active_topics(False)}
+    # Default prediction mode (planned, held_velocity without a plan): no shape prediction.
+    assert set(counts) == {resolved_name(t) for t in active_topics(False)
+                           if t.name != 'prediction/shape'}
     with open_bag(out) as reader:
-        assert {t: reader.message_count(t) for t in reader.topics()} == counts
+        assert {t: reader.message_count(t) for t in reader.topics()
+                if reader.message_count(t)} == counts
         assert reader.topics() == {resolved_name(t): t.msgtype for t in active_topics(False)}
 
 
@@ -110,7 +113,8 @@ def test_replay_equals_pipeline_on_same_bag(thruster_replay):
 
 def test_constant_torque_bag_prediction_residual(tmp_path):
     bag = os.path.join(DATA, 'paper_constant')
-    params = {**_params(), 'prediction_rate': 2.0, 'prediction_horizon': 0.4}
+    params = {**_params(), 'prediction_rate': 2.0, 'prediction_horizon': 0.4,
+              'prediction_mode': 'held_torque'}
     summary = replay(bag, str(tmp_path / 'out'), load_robot(), ReplayOptions(params=params))
     assert summary['predictions'] >= 4
     # Torques are held for 1 s: predictions that do not straddle a flip are exact.
@@ -220,14 +224,22 @@ def test_fixed_layout_codecs_change_no_output_byte(tmp_path, monkeypatch):
     # Same bag, prediction and diagnostics on: fast codecs against rosbags' generic
     # (de)serialization through the *_to_ros / *_from_ros converters.
     from reduced_dynamics.messages import cdr
-    params = {**_params(), 'prediction_rate': 2.0, 'prediction_horizon': 0.4}
     bag = os.path.join(DATA, 'paper_constant')
-    fast = replay(bag, str(tmp_path / 'fast'), load_robot(), ReplayOptions(params=params))
-    monkeypatch.setattr(cdr, 'fast_path_applies', lambda store, msgtype: False)
-    slow = replay(bag, str(tmp_path / 'slow'), load_robot(), ReplayOptions(params=params))
-    assert fast['messages_out'] == slow['messages_out']
-    assert set(fast['messages_out']) == {resolved_name(t) for t in active_topics(False)}
-    assert _raw_outputs(tmp_path / 'fast') == _raw_outputs(tmp_path / 'slow')
+    fast_path = cdr.fast_path_applies
+    written = set()
+    for mode in ('held_torque', 'held_velocity'):
+        params = {**_params(), 'prediction_rate': 2.0, 'prediction_horizon': 0.4,
+                  'prediction_mode': mode}
+        monkeypatch.setattr(cdr, 'fast_path_applies', fast_path)
+        fast = replay(bag, str(tmp_path / f'fast_{mode}'), load_robot(),
+                      ReplayOptions(params=params))
+        monkeypatch.setattr(cdr, 'fast_path_applies', lambda store, msgtype: False)
+        slow = replay(bag, str(tmp_path / f'slow_{mode}'), load_robot(),
+                      ReplayOptions(params=params))
+        assert fast['messages_out'] == slow['messages_out']
+        written |= set(fast['messages_out'])
+        assert _raw_outputs(tmp_path / f'fast_{mode}') == _raw_outputs(tmp_path / f'slow_{mode}')
+    assert written == {resolved_name(t) for t in active_topics(False)}
 
 
 def test_bad_input_messages_are_counted_and_change_no_output(tmp_path):

@@ -96,6 +96,20 @@ PARAMETERS: dict[str, ParameterSpec] = {
                                            'preserving discrete gradient (fixed step)'),
     'prediction_tolerance': ParameterSpec(1e-10, 1e-13, 1e-3, (),
                                           'relative and absolute tolerance of DOP853'),
+    'prediction_mode': ParameterSpec(
+        'planned', None, None, ('planned', 'coast', 'held_velocity', 'held_torque'),
+        'what the arm does over a prediction: planned (follows the latest planned '
+        'trajectory; held_velocity while there is none), coast (zero joint torques), '
+        'held_velocity (joint velocities kept), held_torque (last measured torques kept)'),
+    'prediction_max_evaluations': ParameterSpec(
+        20000.0, 10.0, 1e8, (),
+        'budget of right-hand-side evaluations of one prediction (a 2 s horizon at '
+        'tolerance 1e-10 takes 100-600); a prediction that exceeds it stops with the reason '
+        'in diagnostics'),
+    'prediction_max_wall_time': ParameterSpec(
+        0.5, 1e-3, 600.0, (),
+        'budget of wall time [s] of one prediction (half the default prediction period); '
+        'a prediction that exceeds it stops with the reason in diagnostics'),
     'diagnostics_rate': ParameterSpec(1.0, 0.0, 100.0, (),
                                       'diagnostics messages per second of stamp time (0: off)'),
     # Input gates (estimator/stamps.py, estimator/plausibility.py); README "Bad input".
@@ -158,6 +172,9 @@ class EstimatorConfig:
     prediction_step: float = PARAMETERS['prediction_step'].default
     prediction_integrator: str = PARAMETERS['prediction_integrator'].default
     prediction_tolerance: float = PARAMETERS['prediction_tolerance'].default
+    prediction_mode: str = PARAMETERS['prediction_mode'].default
+    prediction_max_evaluations: float = PARAMETERS['prediction_max_evaluations'].default
+    prediction_max_wall_time: float = PARAMETERS['prediction_max_wall_time'].default
     diagnostics_rate: float = PARAMETERS['diagnostics_rate'].default
     stamp_outlier_tolerance: float = PARAMETERS['stamp_outlier_tolerance'].default
     joint_limit_margin: float = PARAMETERS['joint_limit_margin'].default

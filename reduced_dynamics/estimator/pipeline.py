@@ -53,13 +53,14 @@ from reduced_dynamics.estimator.kernel import UpdateKernel
 from reduced_dynamics.estimator.events import EventDetector, MomentumEvent
 from reduced_dynamics.estimator.filter import Linearisation, MomentumFilter, NoiseModel
 from reduced_dynamics.estimator.plausibility import BaseBounds, JointBounds
-from reduced_dynamics.estimator.prediction import Prediction, Predictor
+from reduced_dynamics.estimator.prediction import (
+    FinishedPrediction, Plan, PredictionJob, PredictionMessages, Predictor, PRESCRIBED_MODES)
 from reduced_dynamics.estimator.stamps import ACCEPTED, ClockJump, StampGate, StampResult
 from reduced_dynamics.estimator.sync import BaseBuffer
 from reduced_dynamics.geometry.isotropy import isotropy_algebra
 from reduced_dynamics.messages.samples import (
     BaseStateSample, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample, JointStateSample,
-    PosePath, ShapePrediction, trusted_sample, TwistSample, WrenchSample)
+    JointTrajectorySample, PosePath, ShapePrediction, trusted_sample, TwistSample, WrenchSample)
 from reduced_dynamics.robot.model import RobotModel
 
 NS = 1_000_000_000
@@ -88,6 +89,12 @@ class EstimatorOutput:
     diagnostics: Optional[Diagnostics] = None
     #: second stage on: the cyclic joints' angles, rates and momenta theta (effort)
     cyclic_state: Optional[JointStateSample] = None
+    #: prescribed prediction modes: the base path under the geometric phase alone
+    prediction_phase_path: Optional[PosePath] = None
+    #: ``Estimator(defer_predictions=True)``: the prediction started at this sample, to
+    #: be computed off the input path (``job.run()`` returns its messages, see
+    #: :class:`~reduced_dynamics.estimator.prediction.PredictionJob`)
+    prediction_job: Optional[PredictionJob] = None
     #: covariance (n x n, algebra coordinates) of mu and of the wrench w
     momentum_covariance: Optional[np.ndarray] = None
     wrench_covariance: Optional[np.ndarray] = None
@@ -167,7 +174,9 @@ class OutputChunk:
                 mu, energy)
             extra = extras.get(k) if extras else None
             if extra:
-                output.prediction, output.prediction_path, output.diagnostics = extra
+                output.prediction, output.prediction_path, output.diagnostics = extra[:3]
+                if len(extra) > 3:
+                    output.prediction_phase_path, output.prediction_job = extra[3]
             if cyclic is not None:
                 output.cyclic_state = cyclic.sample(k, stamp)
             if self.mu_cov is not None:
@@ -253,13 +262,27 @@ class Estimator:
     ``cyclic_joints``: ``''`` (first stage), ``'auto'`` (every cyclic joint of
     section 5.1), or joint names: the second stage (Theorem 57) then shapes the
     outputs, see :mod:`.cyclic`.
+
+    ``defer_predictions`` (the node): an output where a prediction starts
+    carries ``prediction_job`` (:class:`~.prediction.PredictionJob`) instead of
+    the prediction messages; ``job.run()`` computes them (thread-safe, its own
+    Pinocchio Data; the first call computes, later ones return the same
+    messages) and returns ``PredictionMessages(shape, path, phase_path)`` or
+    None if the prediction failed or ran out of budget. The messages equal
+    those computed inline (replay); residuals and diagnostics do not depend on
+    when a job ran (the estimator runs it itself when its horizon has passed).
     """
 
     def __init__(self, robot: RobotModel, config: Optional[EstimatorConfig] = None,
                  use_odometry: bool = True, base_driven: Optional[bool] = None,
-                 cyclic_joints: Union[str, Sequence[str]] = CYCLIC_OFF) -> None:
+                 cyclic_joints: Union[str, Sequence[str]] = CYCLIC_OFF,
+                 defer_predictions: bool = False) -> None:
         """Set up the pipeline for ``robot`` (ModelError for unusable cyclic joints)."""
         self.robot = robot
+        self.defer_predictions = defer_predictions
+        #: the latest processed state (stamp, rotation, translation, qbar, qbar_dot)
+        self.latest_state: Optional[tuple] = None
+        self.trajectories_received = 0
         self.cyclic_joints = resolve_cyclic_joints(robot, cyclic_joints)
         self._cyclic_view = CyclicView(robot, self.cyclic_joints) if self.cyclic_joints \
             else None
@@ -306,11 +329,13 @@ class Estimator:
         # (a failed prediction must not hide a later rejection, nor the reverse).
         self._rejected_at = 0
         self._done: list[OutputChunk] = []
-        #: keep the filter's steps for :meth:`smoothed` (replay sets it before input)
+        #: keep the filter's steps for :meth:`smoothed` (see :meth:`enable_smoothing`)
         self.record_steps = False
         # Input gates (estimator/stamps.py, estimator/plausibility.py).
         self._joint_gate = StampGate('joint state', NS, 3)
         self._base_gate = StampGate('base', NS, 3)
+        # One clock: a stream's first stamp is judged by the other stream's last.
+        self._joint_gate.peer, self._base_gate.peer = self._base_gate, self._joint_gate
         self._joint_bounds: dict[tuple[str, ...], JointBounds] = {}
         #: Clock restarts so far (a backwards jump, :meth:`reset`), and the last reason.
         self.clock_resets = 0
@@ -346,11 +371,12 @@ class Estimator:
         old_predictor = getattr(self, 'predictor', None)
         self.predictor = Predictor(self.robot, config.prediction_horizon,
                                    config.prediction_step, config.prediction_integrator,
-                                   config.prediction_tolerance, self.cyclic_joints)
+                                   config.prediction_tolerance, self.cyclic_joints,
+                                   config.prediction_mode, config.prediction_max_evaluations,
+                                   config.prediction_max_wall_time, config.world_frame,
+                                   self.shape_names)
         if old_predictor is not None:
-            self.predictor.active = old_predictor.active
-            self.predictor.finished = old_predictor.finished
-            self.predictor.made = old_predictor.made
+            self.predictor.adopt(old_predictor)
 
     @property
     def received(self) -> Counter:
@@ -625,6 +651,7 @@ class Estimator:
         self._drain(final=True)
         self._process_chunk()
         self.predictor.finish()
+        self.predictor.forget_history()
         self._buffer = BaseBuffer()
         self._last_joint_ns = self._last_base_ns = None
         self._last_prediction_ns = self._last_diagnostics_ns = None
@@ -746,6 +773,8 @@ class Estimator:
         if self.predictor.active or self._prediction_enabled():
             self._per_sample(stamp_list, qbar, qbar_dot, taus, result, extras, rejected_at,
                              cyclic, poses, mu, quiet)
+        self.latest_state = (stamp_list[-1], result.rotation[-1], result.translation[-1],
+                             qbar[-1], qbar_dot[-1])
         if self.first_stamp_ns is None:
             self.first_stamp_ns = stamp_list[0]
         self._accumulate_statistics(mu)
@@ -753,7 +782,7 @@ class Estimator:
         if chunk.diagnose:
             stamp = stamp_list[-1]
             previous = extras.get(count - 1, (None, None, None))
-            extras[count - 1] = previous[:2] + (self.diagnostics(stamp),)
+            extras[count - 1] = previous[:2] + (self.diagnostics(stamp),) + previous[3:]
         out = OutputChunk(self, stamps, mu, pi, rate, drift, qbar, qbar_dot, result.pbar,
                           energy, extras, cyclic)
         out.mu_cov, out.w_cov = mu_cov, w_cov
@@ -796,18 +825,18 @@ class Estimator:
                     taus: tuple, result, extras: dict, rejected_at: int,
                     cyclic: Optional[CyclicColumns], poses: list, mu: np.ndarray,
                     quiet: list) -> None:
-        """Compare running predictions with the measurements and start new ones."""
+        """Record the measured history for the residuals and start predictions when due."""
         predictor = self.predictor
+        rotation, translation = result.rotation, result.translation
         for k, stamp in enumerate(stamp_list):
-            if predictor.active:
-                predictor.compare(stamp, qbar[k],
-                                  pin.SE3(result.rotation[k], result.translation[k]))
+            # Measured history for the residuals (closes predictions whose horizon passed).
+            predictor.observe(stamp, qbar[k], translation[k], rotation[k])
             if quiet[k] and self._prediction_due(stamp):
-                messages = self._predict(stamp, poses[k], qbar[k], qbar_dot[k], taus[k],
-                                         k >= rejected_at, mu[k],
-                                         None if cyclic is None else cyclic.theta[k])
-                if messages is not None:
-                    extras[k] = messages + (None,)
+                extra = self._predict(stamp, poses[k], qbar[k], qbar_dot[k], taus[k],
+                                      k >= rejected_at, mu[k],
+                                      None if cyclic is None else cyclic.theta[k])
+                if extra is not None:
+                    extras[k] = extra
 
     def _prediction_enabled(self) -> bool:
         config = self.config
@@ -822,29 +851,72 @@ class Estimator:
 
     def _predict(self, stamp: int, g: pin.SE3, qbar: np.ndarray, qbar_dot: np.ndarray,
                  tau: np.ndarray, report: bool, mu: np.ndarray,
-                 theta: Optional[np.ndarray] = None
-                 ) -> Optional[tuple[ShapePrediction, PosePath]]:
-        """Predict from the filter's pose and momentum (re-reduced at that mu)."""
+                 theta: Optional[np.ndarray] = None) -> Optional[tuple]:
+        """
+        Start a prediction from the filter's pose and momentum (re-reduced at that mu).
+
+        Return the output extras (messages, or the deferred job).
+        """
         self._last_prediction_ns = stamp
         self.detector.take_level_change()
+        deferred = self.defer_predictions
         try:
-            prediction = self.predictor.predict(stamp, g, qbar, qbar_dot, mu, tau, theta)
+            job = self.predictor.predict(stamp, g, qbar, qbar_dot, mu, tau, theta,
+                                         deferred=deferred)
         except (RuntimeError, ValueError, ArithmeticError, np.linalg.LinAlgError) as error:
-            # A failed prediction (e.g. a singular chart) must not stop the estimates.
+            # A prediction that cannot start must not stop the estimates. (Failures while
+            # computing are the job's: counted when its horizon has passed.)
             self.prediction_failures[type(error).__name__] += 1
             if report:
                 self.last_rejection = f'prediction failed: {error}'
             return None
-        return self._prediction_messages(prediction)
+        if deferred:
+            return (None, None, None, (None, job))
+        return self._prediction_messages(job.run())
 
-    def _prediction_messages(self, prediction: Prediction) -> tuple[ShapePrediction, PosePath]:
-        offsets = np.round(prediction.times * NS).astype(np.int64)
-        shape = ShapePrediction(prediction.start_ns, '', self.shape_names,
-                                offsets, prediction.qbar, prediction.qbar_dot)
-        quats = np.array([pin.Quaternion(pose[:3, :3]).coeffs() for pose in prediction.poses])
-        path = PosePath(prediction.start_ns, self.config.world_frame,
-                        prediction.start_ns + offsets, prediction.poses[:, :3, 3], quats)
-        return shape, path
+    @staticmethod
+    def _prediction_messages(messages: Optional[PredictionMessages]) -> Optional[tuple]:
+        """Output extras of computed messages (None: the prediction failed)."""
+        if messages is None:
+            return None
+        return (messages.shape, messages.path, None, (messages.phase_path, None))
+
+    # --- planned trajectories ------------------------------------------------------------
+    def add_trajectory(self, sample: JointTrajectorySample) -> None:
+        """
+        Take a planned joint trajectory (prediction_mode planned follows the latest).
+
+        Its times count from its header stamp; stamp 0 means "from now" (the
+        newest joint-state stamp), as joint_trajectory_controller starts such
+        a trajectory on arrival. Joints must be shape joints of the model (a
+        subset: the others keep their velocities); bad trajectories are
+        counted as rejections (``trajectory_*``) and the previous plan stays.
+        """
+        self.trajectories_received += 1
+        names = sample.joint_names
+        unknown = [n for n in names if n not in self._index]
+        if not names or not sample.times_from_start_ns.size:
+            self._reject('trajectory_empty', 'planned trajectory without joints or points')
+            return
+        if unknown:
+            self._reject('trajectory_unknown_joint',
+                         f'{", ".join(unknown[:5])} not in the robot model')
+            return
+        if len(set(names)) != len(names):
+            self._reject('trajectory_duplicate_joint', 'joint names repeat')
+            return
+        arrays = [a for a in (sample.positions, sample.velocities, sample.accelerations)
+                  if a is not None]
+        if not _all_finite(*arrays):
+            self._reject('trajectory_non_finite', 'NaN or inf in a planned trajectory')
+            return
+        start = sample.stamp_ns
+        if start == 0:
+            start = self._last_joint_ns if self._last_joint_ns is not None else 0
+        index = np.array([self._index[n] for n in names], dtype=int)
+        self.predictor.set_plan(Plan(start, index, sample.times_from_start_ns,
+                                     sample.positions, sample.velocities,
+                                     sample.accelerations, self.robot.m))
 
     # --- reporting -------------------------------------------------------------------
     def diagnostics(self, stamp_ns: int) -> Diagnostics:
@@ -889,17 +961,46 @@ class Estimator:
                  'event_threshold': f'{self.detector.start_threshold:.4g}',
                  'innovation_gated': str(flt.gated),
                  'events': str(len(self.detector.events)),
+
                  'kinetic_plus_potential_energy': f'{self._last_energy:.9g}',
                  **self._cyclic_diagnostics()}))
-        residual = self.predictor.last_residual
-        statuses.append(DiagnosticStatusSample(
-            DIAG_OK, 'reduced_dynamics: prediction',
-            'no finished prediction yet' if residual is None else 'prediction residual',
-            self.robot.model.name,
-            {'predictions': str(self.predictor.made),
-             'last_shape_residual_rad': 'n/a' if residual is None else f'{residual:.3e}',
-             'horizon_s': f'{self.config.prediction_horizon:g}'}))
+        statuses.append(self._prediction_status())
         return Diagnostics(stamp_ns, statuses)
+
+    def _prediction_status(self) -> DiagnosticStatusSample:
+        """Return the prediction status: mode, residuals, drift/phase split, failures."""
+        predictor = self.predictor
+        done = predictor.last_finished
+        values = {'predictions': str(predictor.made),
+                  'mode': self.config.prediction_mode,
+                  'horizon_s': f'{self.config.prediction_horizon:g}',
+                  'last_shape_residual_rad': 'n/a' if done is None
+                  else f'{done.shape_residual:.3e}'}
+        level, message = DIAG_OK, 'no finished prediction yet'
+        if done is not None:
+            message = 'prediction residual'
+            result = done.result
+            values.update({
+                'last_mode': done.mode,
+                'last_position_residual_m': f'{done.position_residual:.3e}',
+                'last_attitude_residual_rad': f'{done.attitude_residual:.3e}',
+                'last_attitude_change_rad': f'{result.attitude_change()[-1]:.6g}',
+                'last_max_attitude_deviation_rad': f'{result.attitude_change().max():.6g}',
+                'last_drift_twist_mean': ' '.join(f'{v:.4g}' for v in result.drift.mean(0)),
+                'last_phase_twist_mean': ' '.join(f'{v:.4g}' for v in result.phase.mean(0)),
+                # Evaluations, not wall time: outputs must not depend on the machine.
+                'last_evaluations': str(result.evaluations)})
+            phase = result.phase_attitude_change()
+            if phase is not None:
+                values['last_phase_attitude_change_rad'] = f'{phase[-1]:.6g}'
+        failures = [f for f in predictor.finished if f.failure is not None]
+        if failures:
+            values['failed'] = str(len(failures))
+            values['last_failure'] = failures[-1].failure
+            if failures[-1] is predictor.finished[-1]:
+                level, message = DIAG_WARN, f'prediction stopped: {failures[-1].failure}'
+        return DiagnosticStatusSample(level, 'reduced_dynamics: prediction', message,
+                                      self.robot.model.name, values)
 
     def _cyclic_diagnostics(self) -> dict[str, str]:
         """Second-stage key-values: the cyclic joints and their momenta theta."""
@@ -919,8 +1020,11 @@ class Estimator:
         """Return counts, momentum statistics, events and prediction residuals."""
         mean = self._mu_mean
         spread = np.sqrt(self._mu_m2 / max(self.processed, 1))
-        residuals = [p.shape_residual for p in self.predictor.finished if p.compared]
-        positions = [p.position_residual for p in self.predictor.finished if p.compared]
+        finished = self.predictor.finished
+        residuals = [p.shape_residual for p in finished if p.compared]
+        positions = [p.position_residual for p in finished if p.compared]
+        failures = self.prediction_failures + Counter(p.result.failure_kind for p in finished
+                                                      if p.failure is not None)
         origin = self.first_stamp_ns or 0
         return {
             'first_stamp_ns': self.first_stamp_ns,
@@ -937,9 +1041,38 @@ class Estimator:
                         'impulse': None if e.impulse is None else e.impulse.tolist(),
                         'peak_wrench': e.peak_wrench} for e in self.events],
             'predictions': self.predictor.made,
-            'prediction_failures': dict(self.prediction_failures),
+            'prediction_failures': dict(failures),
             'prediction_shape_residual_max': max(residuals) if residuals else None,
             'prediction_shape_residual_median': float(np.median(residuals))
             if residuals else None,
             'prediction_position_residual_max': max(positions) if positions else None,
+            'prediction_mode': self.config.prediction_mode,
+            'prediction_residuals': _residuals_by_mode(finished),
+            'trajectories_received': self.trajectories_received,
         }
+
+
+def _residuals_by_mode(finished: list[FinishedPrediction]) -> dict:
+    """
+    Residual statistics per effective mode (max and median over predictions).
+
+    Prescribed modes (planned, held_velocity) are judged by the base path
+    (position, attitude); their shape residual says how far the arm left the
+    prescribed path. Torque modes are judged by the shape.
+    """
+    out: dict = {}
+    for mode in sorted({p.mode for p in finished}):
+        runs = [p for p in finished if p.mode == mode]
+        compared = [p for p in runs if p.compared]
+        entry: dict = {'predictions': len(runs),
+                       'compared': len(compared),
+                       'failed': sum(p.failure is not None for p in runs),
+                       'judged_by': 'base path' if mode in PRESCRIBED_MODES else 'shape',
+                       'evaluations_median': float(np.median([p.result.evaluations
+                                                              for p in runs]))}
+        for key in ('shape_residual', 'position_residual', 'attitude_residual'):
+            values = [getattr(p, key) for p in compared]
+            entry[key + '_max'] = max(values) if values else None
+            entry[key + '_median'] = float(np.median(values)) if values else None
+        out[mode] = entry
+    return out

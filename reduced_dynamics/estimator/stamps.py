@@ -16,15 +16,17 @@
 Stamp policy of one input stream: accept, drop an outlier, or follow a clock jump.
 
 A header stamp is trusted when it is consistent with the stream's clock so far:
-
-* with a receive time (the bag's record time, rclpy's ``received_timestamp``)
-  on both this sample and the reference, when the offset ``stamp - receive``
-  stays within the tolerance of the reference's offset (transport latency
-  varies by milliseconds, a wrong clock by much more);
-* without one, when the stamp advances by at most the tolerance.
-
-The tolerance is ``max(stamp_outlier_tolerance, 4 x the stream's local period)``
-(the median of its last 16 accepted steps), so slow streams are not misjudged.
+it advances by at most the stream's cadence (4 local periods: 4 x the upper
+quartile of its last 16 accepted steps; ``stamp_outlier_tolerance`` until they
+are known), or, with a receive time (the bag's record time, rclpy's
+``received_timestamp``) on both this sample and the reference, it advances
+further while the receive time moved at least half as far (the stream paused).
+With receive times the offset ``stamp - receive`` must also stay within the
+tolerance of the reference's offset (transport latency varies by
+milliseconds, a wrong clock by much more). The tolerance is
+``max(stamp_outlier_tolerance, cadence)``. A stamp running ahead of the
+cadence alone is suspect even when small: accepted, it would turn the valid
+samples after it into ``backwards`` ones.
 
 A consistent stamp that does not advance (a duplicate or a reordered message)
 is rejected as ``backwards``. An inconsistent stamp is held as a candidate, and
@@ -108,14 +110,38 @@ class StampGate:
         self.last_ns: Optional[int] = None
         self.last_receive_ns: Optional[int] = None
         self._steps: deque[int] = deque(maxlen=PERIOD_WINDOW)
+        # PERIOD_FACTOR local periods (tolerance_ns until the period is known), refreshed
+        # every few accepted steps: the per-sample check compares with it.
+        self._cadence = self.tolerance_ns
+        self._since_cadence = 0
         self._held: list[tuple[int, Optional[int], Any]] = []
         # After another stream's jump: the new clock, before this stream has a reference.
         self._anchor: Optional[tuple[int, Optional[int]]] = None
+        #: The gate of the other stream on the same clock: its last stamp judges this
+        #: stream's first one (set by the owner).
+        self.peer: Optional['StampGate'] = None
 
     def configure(self, tolerance_ns: int, jump_samples: int) -> None:
         """Adopt new settings; the state is kept."""
         self.tolerance_ns = int(tolerance_ns)
         self.jump_samples = max(1, int(jump_samples))
+        self._refresh_cadence()
+
+    def _refresh_cadence(self) -> None:
+        steps = self._steps
+        self._since_cadence = 0
+        if not steps:
+            self._cadence = self.tolerance_ns
+            return
+        ordered = sorted(steps)
+        # The upper quartile: bursts of near-equal stamps must not shrink the cadence.
+        self._cadence = PERIOD_FACTOR * ordered[(3 * len(ordered)) // 4]
+
+    def _step(self, step: int) -> None:
+        self._steps.append(step)
+        self._since_cadence += 1
+        if self._since_cadence >= 4 or len(self._steps) < 4:
+            self._refresh_cadence()
 
     @property
     def held(self) -> int:
@@ -124,11 +150,7 @@ class StampGate:
 
     def tolerance(self) -> int:
         """Return the effective tolerance [ns]: the parameter or 4 local periods."""
-        steps = self._steps
-        if not steps:
-            return self.tolerance_ns
-        ordered = sorted(steps)
-        return max(self.tolerance_ns, PERIOD_FACTOR * ordered[len(ordered) // 2])
+        return max(self.tolerance_ns, self._cadence)
 
     def _relation(self, ref_ns: int, ref_rx: Optional[int], stamp: int,
                   receive: Optional[int], tolerance: int, mode: str = 'stream') -> str:
@@ -136,20 +158,29 @@ class StampGate:
         Classify ``stamp`` against a reference: 'forward', 'backwards', 'jump' or 'far'.
 
         'jump': consistent in offset, but the stamp moved by more than the
-        tolerance together with the receive time. ``mode`` 'window': either
-        direction within the tolerance is 'forward' (re-anchoring on another
-        stream's clock).
+        tolerance together with the receive time. In 'stream' mode a step ahead
+        of the stream's cadence (PERIOD_FACTOR local periods) is 'forward' only
+        when the receive time moved at least half as far (a pause of the
+        stream); a stamp that runs ahead alone would make the samples after it
+        look backwards. 'chain' mode (candidates of a stream whose period is
+        not known yet) and 'window' mode (either direction; re-anchoring on
+        another stream's clock) allow steps up to the tolerance.
         """
         step = stamp - ref_ns
         if receive is not None and ref_rx is not None:
-            if abs(step - (receive - ref_rx)) > tolerance:
+            deviation = abs(step - (receive - ref_rx))
+            if deviation > tolerance:
                 return 'far'
-            if step > 0 or mode == 'window':
+            if mode == 'window':
                 return 'forward'
+            if step > 0:
+                if mode == 'chain' or step <= self._cadence or 2 * deviation <= step:
+                    return 'forward'
+                return 'far'
             return 'jump' if -step > tolerance else 'backwards'
         if mode == 'window':
             return 'forward' if abs(step) <= tolerance else 'far'
-        if 0 < step <= tolerance:
+        if 0 < step <= (tolerance if mode == 'chain' else self._cadence):
             return 'forward'
         if -tolerance <= step <= 0:
             return 'backwards'
@@ -167,10 +198,10 @@ class StampGate:
             # Hot path: the stream goes on.
             step = stamp - last
             rx = self.last_receive_ns
-            if 0 < step <= self.tolerance_ns and (
+            if 0 < step <= self._cadence and (
                     receive is None or rx is None
                     or abs(step - (receive - rx)) <= self.tolerance_ns):
-                self._steps.append(step)
+                self._step(step)
                 self.last_ns, self.last_receive_ns = stamp, receive
                 return ACCEPTED
         result = self._judge(stamp, receive, item)
@@ -182,14 +213,14 @@ class StampGate:
     def _accept(self, stamp: int, receive: Optional[int]) -> None:
         last = self.last_ns
         if last is not None and stamp > last:
-            self._steps.append(stamp - last)
+            self._step(stamp - last)
         self.last_ns, self.last_receive_ns = stamp, receive
 
     def _judge(self, stamp: int, receive: Optional[int], item: Any) -> StampResult:
         last = self.last_ns
         result = StampResult()
         if last is None:
-            anchor = self._anchor
+            anchor = self._reference_anchor()
             if anchor is None or self._relation(anchor[0], anchor[1], stamp, receive,
                                                 self.tolerance(), 'window') == 'forward':
                 self._anchor = None
@@ -222,14 +253,16 @@ class StampGate:
         held = self._held
         if held:
             ref_ns, ref_rx, _ = held[-1]
-            tolerance = self.tolerance()
-            if receive is None or ref_rx is None:
-                # Without receive times the candidates' own spacing (or the gap before
-                # the first) scales the tolerance: a slow stream must be able to start.
+            # Candidates follow each other at the stream's cadence, as its samples do.
+            tolerance, mode = self.tolerance(), 'stream'
+            if not self._steps:
+                # No local period yet: the candidates' own spacing (or the gap before
+                # the first) scales the tolerance, so that a stream slower than the
+                # tolerance can start.
                 spacing = ref_ns - held[-2][0] if len(held) > 1 else \
                     ref_ns - (self.last_ns if self.last_ns is not None else ref_ns)
-                tolerance = max(tolerance, PERIOD_FACTOR * spacing)
-            relation = self._relation(ref_ns, ref_rx, stamp, receive, tolerance)
+                tolerance, mode = max(tolerance, PERIOD_FACTOR * spacing), 'chain'
+            relation = self._relation(ref_ns, ref_rx, stamp, receive, tolerance, mode)
             if relation != 'forward':
                 if len(held) == 1:
                     # One candidate against another: the older one is dropped.
@@ -242,8 +275,9 @@ class StampGate:
         if len(held) >= self.jump_samples:
             self._held = []
             first = held[0][0]
+            anchor = self._reference_anchor()
             origin = self.last_ns if self.last_ns is not None else \
-                (self._anchor[0] if self._anchor is not None else first)
+                (anchor[0] if anchor is not None else first)
             result.jump = ClockJump(self.stream, origin, first, held[0][1], False)
             self._anchor = None
             # The stream's rate is unchanged: its local period stays.
@@ -253,9 +287,19 @@ class StampGate:
                 result.accepted.append(item_k)
         return result
 
+    def _reference_anchor(self) -> Optional[tuple[int, Optional[int]]]:
+        """Return the clock a stream without a reference is judged by, if any."""
+        if self._anchor is not None:
+            return self._anchor
+        peer = self.peer
+        if peer is not None and peer.last_ns is not None:
+            return peer.last_ns, peer.last_receive_ns
+        return None
+
     def _outlier_text(self, stamp: int) -> str:
+        anchor = self._reference_anchor()
         reference = self.last_ns if self.last_ns is not None else \
-            (self._anchor[0] if self._anchor is not None else None)
+            (anchor[0] if anchor is not None else None)
         if reference is None:
             return f'{self.stream} stamp {stamp} inconsistent with its neighbours'
         return (f'{self.stream} stamp {stamp} is {(stamp - reference) * 1e-9:+.6g} s from '
@@ -292,5 +336,6 @@ class StampGate:
         held, self._held = self._held, []
         self.last_ns = self.last_receive_ns = None
         self._steps.clear()
+        self._refresh_cadence()
         self._anchor = None
         return held

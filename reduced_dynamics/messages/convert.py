@@ -33,6 +33,7 @@ from reduced_dynamics.messages.samples import (
     Diagnostics,
     DiagnosticStatusSample,
     JointStateSample,
+    JointTrajectorySample,
     PosePath,
     ShapePrediction,
     TwistSample,
@@ -305,6 +306,57 @@ def shape_prediction_from_ros(msg: Any) -> ShapePrediction:
         times_from_start_ns=times,
         positions=positions,
         velocities=velocities,
+    )
+
+
+def joint_trajectory_from_ros(msg: Any) -> JointTrajectorySample:
+    """
+    Convert trajectory_msgs/msg/JointTrajectory into a planned trajectory (an input).
+
+    Velocities (accelerations) are kept when every point has them, dropped when
+    none has; some points only is an error (the interpolation would be ambiguous).
+    """
+    stamp_ns, frame_id = header_from_ros(msg.header)
+    names = tuple(str(n) for n in msg.joint_names)
+    points = list(msg.points)
+    m = len(names)
+    times = np.array([duration_from_ros(p.time_from_start) for p in points], dtype=np.int64)
+    positions = np.array([_floats(p.positions) for p in points]).reshape(len(points), m)
+    columns = {}
+    for key in ('velocities', 'accelerations'):
+        have = [len(getattr(p, key)) > 0 for p in points]
+        columns[key] = None
+        if points and all(have):
+            columns[key] = np.array([_floats(getattr(p, key)) for p in points]).reshape(
+                len(points), m)
+        elif any(have):
+            raise ValueError(f'JointTrajectory has {key} on some points only')
+    if columns['velocities'] is None:
+        columns['accelerations'] = None
+    return JointTrajectorySample(stamp_ns, frame_id, names, times, positions,
+                                 columns['velocities'], columns['accelerations'])
+
+
+def joint_trajectory_to_ros(sample: JointTrajectorySample, types: MessageTypes) -> Any:
+    """Build trajectory_msgs/msg/JointTrajectory from a planned trajectory."""
+    empty = types.float_seq(np.zeros(0))
+    points = []
+    for i, t_ns in enumerate(sample.times_from_start_ns):
+        points.append(types.create(
+            'trajectory_msgs/msg/JointTrajectoryPoint',
+            positions=types.float_seq(sample.positions[i]),
+            velocities=empty if sample.velocities is None
+            else types.float_seq(sample.velocities[i]),
+            accelerations=empty if sample.accelerations is None
+            else types.float_seq(sample.accelerations[i]),
+            effort=types.float_seq(np.zeros(0)),
+            time_from_start=duration_to_ros(int(t_ns), types),
+        ))
+    return types.create(
+        'trajectory_msgs/msg/JointTrajectory',
+        header=header_to_ros(sample.stamp_ns, sample.frame_id, types),
+        joint_names=list(sample.joint_names),
+        points=points,
     )
 
 

@@ -223,6 +223,50 @@ class ShapePrediction:
 
 
 @dataclass(frozen=True, eq=False)
+class JointTrajectorySample:
+    """
+    A planned joint trajectory (trajectory_msgs/JointTrajectory as an input).
+
+    Times count from ``stamp_ns`` (0: start on arrival, as joint_trajectory_controller
+    does); ``times_from_start_ns`` (N,) non-negative and strictly increasing;
+    ``positions`` (N, m); ``velocities`` / ``accelerations`` (N, m) or None
+    (accelerations only with velocities).
+    """
+
+    stamp_ns: int
+    frame_id: str
+    joint_names: tuple[str, ...]
+    times_from_start_ns: np.ndarray
+    positions: np.ndarray
+    velocities: Optional[np.ndarray] = None
+    accelerations: Optional[np.ndarray] = None
+    receive_ns: Optional[int] = None
+
+    def __post_init__(self) -> None:
+        """Validate and normalize fields."""
+        object.__setattr__(self, 'stamp_ns', _stamp(self.stamp_ns))
+        if self.receive_ns is not None:
+            object.__setattr__(self, 'receive_ns', _stamp(self.receive_ns, 'receive_ns'))
+        names = tuple(str(n) for n in self.joint_names)
+        object.__setattr__(self, 'joint_names', names)
+        times = np.asarray(self.times_from_start_ns)
+        if times.ndim != 1 or (times.size and not np.issubdtype(times.dtype, np.integer)):
+            raise ValueError('times_from_start_ns must be a 1-D integer array (nanoseconds)')
+        times = np.ascontiguousarray(times, dtype=np.int64)
+        if times.size and (times[0] < 0 or np.any(np.diff(times) <= 0)):
+            raise ValueError('times_from_start_ns must be >= 0 and strictly increasing')
+        object.__setattr__(self, 'times_from_start_ns', times)
+        shape = (times.size, len(names))
+        object.__setattr__(self, 'positions', _array(self.positions, shape, 'positions'))
+        object.__setattr__(
+            self, 'velocities', _optional_array(self.velocities, shape, 'velocities'))
+        object.__setattr__(
+            self, 'accelerations', _optional_array(self.accelerations, shape, 'accelerations'))
+        if self.accelerations is not None and self.velocities is None:
+            raise ValueError('accelerations need velocities')
+
+
+@dataclass(frozen=True, eq=False)
 class PosePath:
     """Sequence of stamped poses in ``frame_id`` (e.g. a drift-integrated base path)."""
 

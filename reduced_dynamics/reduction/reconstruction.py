@@ -29,7 +29,7 @@ from typing import Optional, Sequence
 import numpy as np
 import pinocchio as pin
 
-from reduced_dynamics.integrators import DiscreteGradient, integrate_adaptive
+from reduced_dynamics.integrators import Budget, DiscreteGradient, integrate_adaptive
 from reduced_dynamics.reduction.vector_field import ReducedSystem
 from reduced_dynamics.robot.state import FreeFloatingState, TorqueLaw, zero_torque
 
@@ -99,18 +99,19 @@ class ReducedPropagator:
 
     def propagate(self, y0: np.ndarray, times: Sequence[float], integrator: str = 'dop853',
                   rtol: float = 1e-11, atol: float = 1e-12,
-                  step: float = 1e-3) -> 'ReducedTrajectory':
+                  step: float = 1e-3, budget: Optional[Budget] = None) -> 'ReducedTrajectory':
         """
         Integrate from times[0] and sample at ``times``.
 
         ``dop853``: adaptive with tolerances rtol/atol. ``discrete_gradient``:
         fixed ``step`` (the sample times should be multiples of it).
+        ``budget``: a cost limit (evaluations, or fixed-point iterations).
         """
         times = np.asarray(times, dtype=float)
         if integrator == 'dop853':
-            records = integrate_adaptive(self, y0, times, 'DOP853', rtol, atol)
+            records = integrate_adaptive(self, y0, times, 'DOP853', rtol, atol, budget=budget)
         elif integrator == 'discrete_gradient':
-            records = self._propagate_fixed(y0, times, step)
+            records = self._propagate_fixed(y0, times, step, budget)
         else:
             raise ValueError(f'unknown integrator {integrator!r}; choose from {INTEGRATORS}')
         return ReducedTrajectory(self.system, times, records)
@@ -138,7 +139,8 @@ class ReducedPropagator:
     def _has_torque(self) -> bool:
         return not getattr(self.torque, 'is_zero', False)
 
-    def _propagate_fixed(self, y0: np.ndarray, times: np.ndarray, step: float) -> np.ndarray:
+    def _propagate_fixed(self, y0: np.ndarray, times: np.ndarray, step: float,
+                         budget: Optional[Budget] = None) -> np.ndarray:
         stepper = self.fixed_step_integrator()
         y = self.recentre(np.asarray(y0, dtype=float))
         t = float(times[0])
@@ -148,7 +150,10 @@ class ReducedPropagator:
             while t < target - 1e-12:
                 h = min(step, target - t)
                 z0 = y[:self.nz]
+                before = stepper.stats.iterations
                 z1 = stepper.step(t, z0, h, energy)
+                if budget is not None:
+                    budget.charge(stepper.stats.iterations - before)
                 zm = 0.5 * (z0 + z1)
                 xi_mid = self.system.evaluate(zm, np.zeros(self.system.m)).xi
                 # g_{n+1} = g_n exp(h xi(z_mid)): second order, like the scheme.

@@ -46,7 +46,7 @@ import pinocchio as pin
 
 from reduced_dynamics.geometry.chart import CosetChart
 from reduced_dynamics.geometry.isotropy import isotropy_algebra, IsotropyAlgebra, RANK_RTOL
-from reduced_dynamics.integrators import integrate_adaptive
+from reduced_dynamics.integrators import Budget, integrate_adaptive
 from reduced_dynamics.reduction.hamiltonian import kinetic_shape_derivatives
 from reduced_dynamics.reduction.magnetic import magnetic_form
 from reduced_dynamics.robot.model import ModelError, RobotModel
@@ -444,10 +444,11 @@ class SecondStagePropagator:
                                system.split(z)[3], [energy]])
 
     def propagate(self, y0: np.ndarray, times: Sequence[float], rtol: float = 1e-11,
-                  atol: float = 1e-12) -> 'SecondStageTrajectory':
+                  atol: float = 1e-12, budget: Optional[Budget] = None
+                  ) -> 'SecondStageTrajectory':
         """Integrate with adaptive DOP853 from times[0] and sample at ``times``."""
         times = np.asarray(times, dtype=float)
-        records = integrate_adaptive(self, y0, times, 'DOP853', rtol, atol)
+        records = integrate_adaptive(self, y0, times, 'DOP853', rtol, atol, budget=budget)
         return SecondStageTrajectory(self.system, times, records)
 
 

@@ -126,6 +126,22 @@ class RobotModel:
         if self.total_mass <= 0.0:
             raise ModelError('the robot has no mass')
 
+    def worker_copy(self) -> 'RobotModel':
+        """
+        Return a copy sharing the (read-only) model but owning its Pinocchio Data.
+
+        For computations in another thread (deferred predictions): every
+        method writes only into Data objects and work buffers, which the copy
+        has to itself.
+        """
+        copy = object.__new__(RobotModel)
+        copy.__dict__.update(self.__dict__)
+        copy.data = self.model.createData()
+        copy._kinetic_data = self._kinetic_model.createData()
+        copy._q_work = self._q_work.copy()
+        copy._zero_v = self._zero_v.copy()
+        return copy
+
     def _check_invariant_potential(self) -> None:
         norm = float(np.linalg.norm(self.gravity))
         if norm == 0.0:

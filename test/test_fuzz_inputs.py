@@ -1,0 +1,537 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Property-based fuzzing of the estimator's input streams (Hypothesis).
+
+Each case takes a window of the shipped ``paper_thruster`` bag (joint states
+and odometry at 200 Hz, same stamps), damages it with one family of hostile
+input, runs the estimator (batched or streaming, drawn) and asserts:
+
+* no exception and no hang (faulthandler aborts a case stuck for 60 s with
+  its traceback; the work per case is bounded by its sample count);
+* no NaN or inf in any output;
+* every rejection counted by reason, and the counts add up: joint states
+  received = processed + rejected for a joint reason; base samples rejected
+  for a base reason = the damaged base samples;
+* nothing valid lost: every joint state that was not itself damaged produces
+  exactly one output (unless no undamaged base sample lies within the sync
+  tolerance: an explained drop), and none of the damaged ones do;
+* same values: mu, body momentum, shape state and drift twist of an undamaged
+  joint state whose base sample is undamaged equal those of the clean window
+  bit for bit; so does the momentum rate up to the first damaged sample (the
+  estimator is causal), and after it once the transient is over: from
+  :data:`TRANSIENT_S` after the last damaged sample or clock restart before
+  it, the rate is within 1e-6 of the bag's largest rate of the clean value.
+
+Settings: ``max_examples`` per family, ``derandomize=True`` (reproducible),
+no example database, ``deadline=None``. ``RD_FUZZ_STATS=file`` writes the
+measured totals as JSON (the README's table).
+"""
+
+from collections import Counter
+from dataclasses import dataclass, field
+import faulthandler
+import json
+import os
+
+from hypothesis import given, HealthCheck, note, settings, strategies as st
+import numpy as np
+import pytest
+
+from reduced_dynamics.bag.reader import open_bag
+from reduced_dynamics.estimator import Estimator
+from reduced_dynamics.estimator.config import EstimatorConfig
+from reduced_dynamics.messages.convert import joint_state_from_ros, odometry_from_ros
+from reduced_dynamics.messages.samples import BaseStateSample, JointStateSample
+from reduced_dynamics.robot.model import load_robot
+
+DATA = os.path.join(os.path.dirname(__file__), 'data')
+NS = 1_000_000_000
+WINDOW = 100
+ROBOT = load_robot()
+CONFIG = EstimatorConfig(prediction_rate=0.0, diagnostics_rate=0.0)
+#: The estimator's transient after a gap or a restart: the momentum observer
+#: forgets a rate error as exp(-K t) (K = observer_bandwidth), so after
+#: ln(1e6) / K (0.28 s at the default 50 rad/s) an error of the size of the
+#: largest rate has fallen below 1e-6 of it.
+TRANSIENT_S = np.log(1e6) / CONFIG.observer_bandwidth
+#: Cases per family (the budget: >= 1000 in all, about a minute on 2 cores).
+EXAMPLES = {'values': 150, 'joints': 150, 'stamps_outliers': 150, 'clock_jumps': 150,
+            'implausible': 150, 'quaternions': 150, 'mixed': 150}
+BASE_REASONS = {'non_finite_base', 'invalid_quaternion', 'missing_twist', 'quaternion_norm',
+                'base_position_bound', 'base_twist_bound', 'base_stamp_backwards',
+                'base_stamp_outlier'}
+STATS: dict = {}
+
+
+def _fuzz_settings(family):
+    return settings(max_examples=EXAMPLES[family], deadline=None, derandomize=True,
+                    database=None, suppress_health_check=list(HealthCheck))
+
+
+def _load():
+    joints, bases = [], []
+    with open_bag(os.path.join(DATA, 'paper_thruster')) as reader:
+        for message in reader.messages(['/joint_states', '/odom']):
+            if message.topic == '/joint_states':
+                joints.append(joint_state_from_ros(message.msg))
+            else:
+                bases.append(odometry_from_ros(message.msg))
+    assert [j.stamp_ns for j in joints] == [b.stamp_ns for b in bases]
+    return joints, bases
+
+
+JOINTS, BASES = _load()
+
+
+def _clean_rate_scale():
+    estimator = Estimator(ROBOT, CONFIG)
+    stream = [s for pair in zip(JOINTS, BASES) for s in pair]
+    outputs = estimator.add_samples(stream).outputs() + estimator.flush()
+    assert len(outputs) == len(JOINTS) and not estimator.rejected
+    return max(np.abs(np.r_[o.momentum_rate.force, o.momentum_rate.torque]).max()
+               for o in outputs)
+
+
+RATE_SCALE = _clean_rate_scale()
+
+
+@dataclass
+class Item:
+    """One input sample of a case and what the test expects of it."""
+
+    sample: object
+    joint: bool
+    origin_ns: int  # the clean stamp it came from
+    damage: str = ''  # expected rejection reason ('' = valid)
+    modified: bool = False  # valid, but its values may differ in the last bits
+
+
+@dataclass
+class Case:
+    """A damaged window and its bookkeeping."""
+
+    family: str
+    items: list = field(default_factory=list)
+    clean: list = field(default_factory=list)  # the undamaged window
+
+    def __repr__(self) -> str:
+        """Return the damage only (the samples are the bag's)."""
+        first = self.items[0]
+        damaged = [(i, 'joint' if item.joint else 'base', item.damage or 'modified',
+                    item.sample.stamp_ns - item.origin_ns)
+                   for i, item in enumerate(self.items)
+                   if item.damage or item.modified or item.sample.stamp_ns != item.origin_ns]
+        return (f'Case({self.family}, start {first.origin_ns}, receive '
+                f'{first.sample.receive_ns is not None}, {len(damaged)} changed: '
+                f'{damaged[:8]})')
+    restarts: int = 0  # clock restarts expected (backwards jumps)
+    gaps: list = field(default_factory=list)  # clean stamps where the clock jumped
+
+
+def _window(start, receive):
+    items = []
+    for k in range(start, start + WINDOW):
+        for joint, sample in ((True, JOINTS[k]), (False, BASES[k])):
+            if receive is not None:
+                sample = _replace(sample, receive_ns=sample.stamp_ns + receive[k - start])
+            items.append(Item(sample, joint, sample.stamp_ns))
+    return items
+
+
+def _replace(sample, **changes):
+    if isinstance(sample, JointStateSample):
+        fields = dict(stamp_ns=sample.stamp_ns, frame_id=sample.frame_id, names=sample.names,
+                      position=sample.position, velocity=sample.velocity,
+                      effort=sample.effort, receive_ns=sample.receive_ns)
+        fields.update(changes)
+        return JointStateSample(**fields)
+    fields = dict(stamp_ns=sample.stamp_ns, frame_id=sample.frame_id,
+                  child_frame_id=sample.child_frame_id, position=sample.position,
+                  orientation_xyzw=sample.orientation_xyzw, twist_linear=sample.twist_linear,
+                  twist_angular=sample.twist_angular, receive_ns=sample.receive_ns)
+    fields.update(changes)
+    return BaseStateSample(**fields)
+
+
+@st.composite
+def _base_case(draw, family):
+    start = draw(st.integers(0, len(JOINTS) - WINDOW))
+    receive = None
+    if draw(st.booleans()):
+        # Receive time: the stamp plus a transport latency of up to 5 ms.
+        receive = draw(st.lists(st.integers(0, 5_000_000), min_size=WINDOW,
+                                max_size=WINDOW))
+    items = _window(start, receive)
+    return Case(family, items, [item.sample for item in items])
+
+
+def _indices(draw, case, joint=None, most=6, first=0):
+    """Distinct item indices from ``first`` on to damage (of one kind when ``joint`` is given)."""
+    pool = [i for i, item in enumerate(case.items)
+            if i >= first and (joint is None or item.joint == joint)]
+    return draw(st.lists(st.sampled_from(pool), min_size=1, max_size=most, unique=True))
+
+
+# --- families --------------------------------------------------------------------------
+@st.composite
+def values_case(draw):
+    """Put NaN / inf into any field of joint or base samples."""
+    case = draw(_base_case('values'))
+    bad = st.sampled_from([np.nan, np.inf, -np.inf])
+    for index in _indices(draw, case):
+        item = case.items[index]
+        value = draw(bad)
+        if item.joint:
+            key = draw(st.sampled_from(['position', 'velocity', 'effort']))
+            array = getattr(item.sample, key).copy()
+            array[draw(st.integers(0, array.size - 1))] = value
+            item.sample, item.damage = _replace(item.sample, **{key: array}), 'non_finite'
+        else:
+            key = draw(st.sampled_from(['position', 'orientation_xyzw', 'twist_linear',
+                                        'twist_angular']))
+            array = getattr(item.sample, key).copy()
+            array[draw(st.integers(0, array.size - 1))] = value
+            item.sample, item.damage = _replace(item.sample, **{key: array}), \
+                'non_finite_base'
+    return case
+
+
+@st.composite
+def joints_case(draw):
+    """Name unknown, duplicate or missing joints, drop velocities, permute (valid)."""
+    case = draw(_base_case('joints'))
+    for index in _indices(draw, case, joint=True):
+        item = case.items[index]
+        sample = item.sample
+        names, m = list(sample.names), len(sample.names)
+        kind = draw(st.sampled_from(['unknown', 'duplicate', 'missing', 'no_velocity',
+                                     'permuted']))
+        k = draw(st.integers(0, m - 1))
+        if kind == 'unknown':
+            names[k] = draw(st.text(min_size=1, max_size=8).filter(lambda n: n not in names))
+            item.sample, item.damage = _replace(sample, names=tuple(names)), 'unknown_joint'
+        elif kind == 'duplicate':
+            names[k] = names[(k + 1) % m]
+            item.sample, item.damage = _replace(sample, names=tuple(names)), \
+                'duplicate_joint'
+        elif kind == 'missing':
+            keep = [i for i in range(m) if i != k]
+            item.sample = _replace(sample, names=tuple(names[i] for i in keep),
+                                   position=sample.position[keep],
+                                   velocity=sample.velocity[keep], effort=sample.effort[keep])
+            item.damage = 'missing_joint'
+        elif kind == 'no_velocity':
+            item.sample, item.damage = _replace(sample, velocity=np.zeros(0)), \
+                'missing_velocity'
+        else:
+            order = draw(st.permutations(range(m)))
+            item.sample = _replace(sample, names=tuple(names[i] for i in order),
+                                   position=sample.position[list(order)],
+                                   velocity=sample.velocity[list(order)],
+                                   effort=sample.effort[list(order)])
+    return case
+
+
+@st.composite
+def outliers_case(draw):
+    """
+    Move isolated stamps to the far future or past, slightly ahead or behind.
+
+    Isolated: no two damaged stamps follow each other in a stream (three mutually
+    consistent ones would be a clock jump). The first two stamps of a stream are
+    kept: the first has no clock to be judged by, the second no cadence.
+    """
+    case = draw(_base_case('stamps_outliers'))
+    joint = draw(st.booleans())
+    prefix = '' if joint else 'base_'
+    chosen = sorted(_indices(draw, case, joint=joint, most=4, first=4))
+    chosen = [i for n, i in enumerate(chosen) if n == 0 or i - chosen[n - 1] > 2]
+    for index in chosen:
+        item = case.items[index]
+        stamp = item.sample.stamp_ns
+        kind = draw(st.sampled_from(['future', 'past', 'duplicate', 'ahead', 'behind']))
+        previous = [i for i in range(index) if case.items[i].joint == joint]
+        if kind == 'duplicate':
+            if not previous or case.items[previous[-1]].damage:
+                continue
+            new = case.items[previous[-1]].sample.stamp_ns  # equal to the previous stamp
+            item.damage = prefix + 'stamp_backwards'
+        elif kind == 'future':
+            new = draw(st.integers(stamp + 2 * NS, 2**31 * NS - 1))
+            item.damage = prefix + 'stamp_outlier'
+        elif kind == 'ahead':  # within the tolerance, far ahead of the cadence
+            new = stamp + draw(st.integers(50_000_000, 900_000_000))
+            item.damage = prefix + 'stamp_outlier'
+        elif kind == 'behind':  # not after the previous one, within the tolerance
+            new = case.items[previous[-1]].sample.stamp_ns - draw(st.integers(0, 900_000_000))
+            item.damage = prefix + 'stamp_backwards'
+        else:
+            new = draw(st.integers(0, stamp - 2 * NS))
+            item.damage = prefix + 'stamp_outlier'
+        receive = item.sample.receive_ns
+        item.sample = _replace(item.sample, stamp_ns=new)
+        assert item.sample.receive_ns == receive  # the record time is not the header's
+    return case
+
+
+@st.composite
+def jumps_case(draw):
+    """Jump the clock of both streams (back or forward), receive time with it or not."""
+    case = draw(_base_case('clock_jumps'))
+    split = draw(st.integers(4, WINDOW - 4))
+    shift = draw(st.integers(2 * NS, 100 * NS)) * draw(st.sampled_from([-1, 1]))
+    receive_moves = draw(st.booleans())
+    first_new = None
+    for item in case.items[2 * split:]:
+        sample = item.sample
+        changes = {'stamp_ns': sample.stamp_ns + shift}
+        if receive_moves and sample.receive_ns is not None:
+            changes['receive_ns'] = sample.receive_ns + shift
+        item.sample = _replace(sample, **changes)
+        first_new = first_new or item.origin_ns
+    case.restarts = int(shift < 0)
+    case.gaps.append(first_new)
+    return case
+
+
+@st.composite
+def implausible_case(draw):
+    """Put values far beyond the URDF limits and the bounds (up to 1e300)."""
+    case = draw(_base_case('implausible'))
+    for index in _indices(draw, case):
+        item = case.items[index]
+        sample = item.sample
+        scale = draw(st.sampled_from([1e300, 1e12, 1e7]))
+        sign = draw(st.sampled_from([-1.0, 1.0]))
+        if item.joint:
+            key = draw(st.sampled_from(['position', 'velocity', 'effort']))
+            array = getattr(sample, key).copy()
+            k = draw(st.integers(0, array.size - 1))
+            array[k] = sign * scale
+            item.sample = _replace(sample, **{key: array})
+            item.damage = {'position': 'joint_position_limit', 'velocity':
+                           'joint_velocity_limit', 'effort': 'joint_effort_limit'}[key]
+        else:
+            key = draw(st.sampled_from(['position', 'twist_linear', 'twist_angular']))
+            array = getattr(sample, key).copy()
+            array[draw(st.integers(0, 2))] = sign * max(scale, 1e10)
+            item.sample = _replace(sample, **{key: array})
+            item.damage = 'base_position_bound' if key == 'position' else 'base_twist_bound'
+    return case
+
+
+@st.composite
+def quaternions_case(draw):
+    """Zero or scale quaternions (rejected), or scale them slightly (valid, normalised)."""
+    case = draw(_base_case('quaternions'))
+    tolerance = CONFIG.quaternion_norm_tolerance
+    for index in _indices(draw, case, joint=False):
+        item = case.items[index]
+        kind = draw(st.sampled_from(['zero', 'scaled', 'slight']))
+        q = item.sample.orientation_xyzw
+        if kind == 'zero':
+            item.sample, item.damage = _replace(item.sample, orientation_xyzw=np.zeros(4)), \
+                'invalid_quaternion'
+        elif kind == 'scaled':
+            scale = draw(st.one_of(st.floats(1 + 2 * tolerance, 1e6),
+                                   st.floats(1e-5, 1 - 2 * tolerance)))
+            item.sample = _replace(item.sample, orientation_xyzw=q * scale)
+            item.damage = 'quaternion_norm'
+        else:
+            scale = draw(st.floats(1 - 0.5 * tolerance, 1 + 0.5 * tolerance))
+            item.sample = _replace(item.sample, orientation_xyzw=q * scale)
+            item.modified = True
+    return case
+
+
+@st.composite
+def mixed_case(draw):
+    """Combine two families (stamps, values, names, bounds, quaternions)."""
+    family = draw(st.sampled_from([values_case, joints_case, outliers_case,
+                                   implausible_case, quaternions_case]))
+    case = draw(family())
+    other = draw(st.sampled_from([values_case, joints_case, implausible_case,
+                                  quaternions_case]))()
+    extra = draw(other)
+    # The previous sample of a stream is the reference of a duplicated or reordered stamp:
+    # it stays valid.
+    references = {i - 2 for i, item in enumerate(case.items) if 'backwards' in item.damage}
+    for index, (mine, theirs) in enumerate(zip(case.items, extra.items)):
+        if theirs.damage and not mine.damage and mine.origin_ns == theirs.origin_ns \
+                and index not in references:
+            mine.sample, mine.damage = _replace(theirs.sample, stamp_ns=mine.sample.stamp_ns,
+                                                receive_ns=mine.sample.receive_ns), \
+                theirs.damage
+    case.family = 'mixed'
+    return case
+
+
+# --- running and checking ----------------------------------------------------------------
+def _run(samples, batched):
+    estimator = Estimator(ROBOT, CONFIG)
+    faulthandler.dump_traceback_later(60, exit=True)
+    try:
+        if batched:
+            outputs = estimator.add_samples(samples).outputs()
+        else:
+            outputs = []
+            for sample in samples:
+                if isinstance(sample, JointStateSample):
+                    outputs += estimator.add_joint_state(sample)
+                else:
+                    outputs += estimator.add_base_state(sample)
+        outputs += estimator.flush()
+    finally:
+        faulthandler.cancel_dump_traceback_later()
+    return estimator, outputs
+
+
+def _finite(output):
+    arrays = [output.mu, output.momentum.force, output.momentum.torque,
+              output.body_momentum.force, output.body_momentum.torque,
+              output.shape_state.position, output.shape_state.velocity,
+              output.shape_state.effort, output.momentum_rate.force,
+              output.momentum_rate.torque, output.drift_twist.linear,
+              output.drift_twist.angular]
+    return all(np.isfinite(a).all() for a in arrays) and np.isfinite(output.energy)
+
+
+def _explained(case, index):
+    """Return whether valid joint item ``index`` has no valid base within the sync tolerance."""
+    stamp = case.items[index].sample.stamp_ns
+    tolerance = CONFIG.sync_tolerance * NS
+    return not any(not item.joint and not item.damage
+                   and abs(item.sample.stamp_ns - stamp) <= tolerance for item in case.items)
+
+
+def _record(case, **counts):
+    stats = STATS.setdefault(case.family, Counter())
+    stats['cases'] += 1
+    stats.update(counts)
+
+
+def check(case, batched, values=True):
+    """Run ``case`` and assert the properties of the module docstring."""
+    note(repr(case))
+    estimator, outputs = _run([item.sample for item in case.items], batched)
+    assert all(_finite(o) for o in outputs)
+    rejected = estimator.rejected
+    joint_rejections = sum(n for r, n in rejected.items() if r not in BASE_REASONS)
+    base_rejections = sum(n for r, n in rejected.items() if r in BASE_REASONS)
+    received = estimator.received
+    assert received['joint_states'] == estimator.processed + joint_rejections
+    assert received['joint_states'] + received['base'] == len(case.items)
+    damaged_bases = sum(1 for i in case.items if not i.joint and i.damage)
+    assert base_rejections == damaged_bases
+    valid = {i: item for i, item in enumerate(case.items) if item.joint and not item.damage}
+    explained = {i for i in valid if _explained(case, i)}
+    expected = Counter(item.damage for item in case.items if item.damage)
+    expected['stale_base_state'] += len(explained)
+    expected = +expected
+    assert Counter(rejected) == expected, (rejected, expected)
+    by_stamp = {o.stamp_ns: o for o in outputs}
+    assert len(by_stamp) == len(outputs) == estimator.processed
+    wanted = {item.sample.stamp_ns: item for i, item in valid.items() if i not in explained}
+    assert set(by_stamp) == set(wanted)
+    compared = transients = 0
+    if values:
+        clean_run = {o.stamp_ns: o for o in _run(case.clean, batched)[1]}
+        base_ok = {item.origin_ns for item in case.items
+                   if not item.joint and not item.damage and not item.modified}
+        damage_ns = [item.origin_ns for item in case.items
+                     if item.damage or item.modified] + case.gaps
+        for stamp, item in wanted.items():
+            output, clean = by_stamp[stamp], clean_run[item.origin_ns]
+            if item.origin_ns not in base_ok or item.modified:
+                continue
+            for name in ('mu',):
+                assert np.array_equal(getattr(output, name), getattr(clean, name))
+            for sample in ('momentum', 'body_momentum'):
+                for part in ('force', 'torque'):
+                    assert np.array_equal(getattr(getattr(output, sample), part),
+                                          getattr(getattr(clean, sample), part))
+            for part in ('position', 'velocity', 'effort'):
+                assert np.array_equal(getattr(output.shape_state, part),
+                                      getattr(clean.shape_state, part))
+            assert np.array_equal(output.drift_twist.linear, clean.drift_twist.linear)
+            assert np.array_equal(output.drift_twist.angular, clean.drift_twist.angular)
+            rate = np.r_[output.momentum_rate.force, output.momentum_rate.torque]
+            truth = np.r_[clean.momentum_rate.force, clean.momentum_rate.torque]
+            since = [item.origin_ns - d for d in damage_ns if d <= item.origin_ns]
+            if not since:
+                assert np.array_equal(rate, truth)
+            elif min(since) >= TRANSIENT_S * NS:
+                assert np.abs(rate - truth).max() <= 1e-6 * RATE_SCALE, \
+                    (np.abs(rate - truth).max(), RATE_SCALE)
+                transients += 1
+            compared += 1
+    _record(case, samples=len(case.items), valid_joint_states=len(valid),
+            lost=len(set(wanted) - set(by_stamp)), explained_drops=len(explained),
+            rejected=sum(rejected.values()), compared=compared, after_transient=transients,
+            restarts=estimator.clock_resets)
+    return estimator
+
+
+@_fuzz_settings('values')
+@given(values_case(), st.booleans())
+def test_fuzz_non_finite_values(case, batched):
+    check(case, batched)
+
+
+@_fuzz_settings('joints')
+@given(joints_case(), st.booleans())
+def test_fuzz_joint_names_and_arrays(case, batched):
+    check(case, batched)
+
+
+@_fuzz_settings('stamps_outliers')
+@given(outliers_case(), st.booleans())
+def test_fuzz_stamp_outliers_and_backwards(case, batched):
+    check(case, batched)
+
+
+@_fuzz_settings('clock_jumps')
+@given(jumps_case(), st.booleans())
+def test_fuzz_clock_jumps(case, batched):
+    estimator = check(case, batched)
+    assert estimator.clock_resets == case.restarts
+
+
+@_fuzz_settings('implausible')
+@given(implausible_case(), st.booleans())
+def test_fuzz_implausible_values(case, batched):
+    check(case, batched)
+
+
+@_fuzz_settings('quaternions')
+@given(quaternions_case(), st.booleans())
+def test_fuzz_quaternions(case, batched):
+    check(case, batched)
+
+
+@_fuzz_settings('mixed')
+@given(mixed_case(), st.booleans())
+def test_fuzz_mixed_damage(case, batched):
+    check(case, batched)
+
+
+@pytest.fixture(scope='module', autouse=True)
+def _write_stats():
+    yield
+    path = os.environ.get('RD_FUZZ_STATS')
+    if path and STATS:
+        with open(path, 'w', encoding='utf-8') as stream:
+            json.dump({k: dict(v) for k, v in STATS.items()}, stream, indent=2)

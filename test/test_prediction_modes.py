@@ -1,0 +1,252 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""Prediction modes: planned trajectories, prescribed-shape reconstruction, deferred jobs."""
+
+import threading
+
+from conftest_robots import paper_robot, tree_robot
+import numpy as np
+import pinocchio as pin
+import pytest
+from sim_samples import samples
+
+from reduced_dynamics.estimator import Estimator, EstimatorConfig
+from reduced_dynamics.full_dynamics import PrescribedShapeDynamics
+from reduced_dynamics.messages.samples import JointTrajectorySample
+from reduced_dynamics.reduction.prescribed import attitude_angles, PrescribedReconstruction
+from reduced_dynamics.reduction.shape_path import HeldVelocityPath, PlannedPath
+from reduced_dynamics.robot.momentum import momentum_map
+
+ROBOTS = {'paper': paper_robot, 'tree': tree_robot}
+
+
+def _plan(m, seed=1, kind='cubic', seconds=10.0, points=11):
+    rng = np.random.default_rng(seed)
+    times = np.linspace(0.0, seconds, points)
+    positions = 0.4 * rng.standard_normal((points, m))
+    velocities = 0.2 * rng.standard_normal((points, m))
+    velocities[0] = velocities[-1] = 0.0
+    accelerations = 0.1 * rng.standard_normal((points, m))
+    return times, positions, (velocities if kind != 'linear' else None), \
+        (accelerations if kind == 'quintic' else None)
+
+
+def _start(robot, path, g0, xi0):
+    q0, qd0, _ = path(0.0)
+    mass = robot.mass_matrix(q0)
+    n = robot.n
+    pi = mass[:n, :n] @ xi0 + mass[:n, n:] @ qd0
+    return momentum_map(robot.group, g0, pi)
+
+
+G0 = pin.SE3(pin.exp3(np.array([0.1, 0.2, -0.3])), np.array([1.0, 2.0, 3.0]))
+XI0 = np.array([0.01, -0.02, 0.03, 0.02, -0.01, 0.015])
+
+
+@pytest.mark.parametrize('kind', ['linear', 'cubic', 'quintic'])
+def test_planned_path_interpolates_like_the_trajectory_controller(kind):
+    times, positions, velocities, accelerations = _plan(3, kind=kind, points=5, seconds=2.0)
+    path = PlannedPath(times, positions, velocities, accelerations)
+    assert path.interpolation == kind
+    for i, t in enumerate(times[:-1]):
+        q, qd, qdd = path(t)
+        np.testing.assert_allclose(q, positions[i], atol=1e-14)
+        if velocities is not None:
+            np.testing.assert_allclose(qd, velocities[i], atol=1e-13)
+        if accelerations is not None:
+            np.testing.assert_allclose(qdd, accelerations[i], atol=1e-12)
+        # The end of each segment meets the next waypoint.
+        left, _ = path.velocity_limits(times[i + 1])
+        if velocities is not None:
+            np.testing.assert_allclose(left, velocities[i + 1], atol=1e-12)
+    # Derivatives are those of the position polynomial (central differences).
+    t, h = 0.7, 1e-5
+    q_plus, q_minus = path(t + h)[0], path(t - h)[0]
+    np.testing.assert_allclose((q_plus - q_minus) / (2 * h), path(t)[1], atol=1e-8)
+    # After the last waypoint the controller holds its positions.
+    q, qd, _ = path(5.0)
+    np.testing.assert_allclose(q, positions[-1])
+    assert not qd.any()
+
+
+@pytest.mark.parametrize('robot_name', sorted(ROBOTS))
+@pytest.mark.parametrize('kind', ['linear', 'cubic', 'quintic'])
+def test_predicted_base_pose_matches_prescribed_full_dynamics(robot_name, kind):
+    # Acceptance (issue 13): a 10 s plan played with the exact shape path by the full
+    # dynamics; the reconstruction alone predicts the base to 1e-6 m and 1e-6 rad.
+    robot = ROBOTS[robot_name]()
+    path = PlannedPath(*_plan(robot.m, kind=kind))
+    mu = _start(robot, path, G0, XI0)
+    times = np.linspace(0.0, 10.0, 201)
+    full = PrescribedShapeDynamics(robot, path).simulate(G0, XI0, times)
+    predicted = PrescribedReconstruction(robot, mu, G0, path).propagate(
+        times, 1e-10, 1e-12, path.breakpoints)
+    position = np.abs(full.poses[:, :3, 3] - predicted.poses[:, :3, 3]).max()
+    attitude = max(np.linalg.norm(pin.log3(a[:3, :3].T @ b[:3, :3]))
+                   for a, b in zip(full.poses, predicted.poses))
+    assert position <= 1e-6 and attitude <= 1e-6
+    # The full model keeps mu (a check that the ground truth is one).
+    assert np.abs(full.mu - mu).max() <= 1e-7 * max(1.0, np.abs(mu).max())
+    assert attitude_angles(full.poses[0, :3, :3], full.poses[:, :3, :3]).max() > 1e-2
+
+
+@pytest.mark.parametrize('robot_name', sorted(ROBOTS))
+def test_geometric_phase_alone_equals_the_zero_momentum_motion(robot_name):
+    robot = ROBOTS[robot_name]()
+    path = PlannedPath(*_plan(robot.m, kind='quintic'))
+    mu = _start(robot, path, G0, XI0)
+    assert np.linalg.norm(mu) > 1.0
+    times = np.linspace(0.0, 10.0, 101)
+    predicted = PrescribedReconstruction(robot, mu, G0, path).propagate(
+        times, 1e-10, 1e-12, path.breakpoints)
+    # Zero momentum: xi0 = -A qbar_dot0, the same plan, the full dynamics.
+    q0, qd0, _ = path(0.0)
+    mass = robot.mass_matrix(q0)
+    xi_zero = -np.linalg.solve(mass[:6, :6], mass[:6, 6:] @ qd0)
+    zero = PrescribedShapeDynamics(robot, path).simulate(G0, xi_zero, times)
+    assert np.abs(zero.mu).max() <= 1e-7  # the integrator keeps mu = 0
+    np.testing.assert_allclose(predicted.phase_poses[:, :3, 3], zero.poses[:, :3, 3],
+                               atol=1e-6)
+    angles = [np.linalg.norm(pin.log3(a[:3, :3].T @ b[:3, :3]))
+              for a, b in zip(predicted.phase_poses, zero.poses)]
+    assert max(angles) <= 1e-6
+    # And the full prediction differs from it: the drift is not negligible here.
+    assert np.abs(predicted.poses[-1, :3, 3] - predicted.phase_poses[-1, :3, 3]).max() > 1e-2
+
+
+def test_held_velocity_path_is_a_line():
+    path = HeldVelocityPath(0.0, np.array([0.1, 0.2]), np.array([1.0, -2.0]))
+    q, qd, qdd = path(0.5)
+    np.testing.assert_allclose(q, [0.6, -0.8])
+    np.testing.assert_allclose(qd, [1.0, -2.0])
+    assert not qdd.any()
+
+
+# --- the estimator: planned mode, deferred jobs, budgets ---------------------------------
+def _planned_run(robot, seconds=4.0, rate=200.0):
+    """Return samples of a plan played by the prescribed full dynamics, and the plan."""
+    times, positions, velocities, accelerations = _plan(robot.m, kind='cubic',
+                                                        seconds=seconds, points=9)
+    path = PlannedPath(times, positions, velocities, accelerations)
+    sample_times = np.arange(int(seconds * rate) + 1) / rate
+    run = PrescribedShapeDynamics(robot, path).simulate(G0, XI0, sample_times)
+    joints, bases = samples(robot, sample_times, run.poses, run.xi, run.qbar, run.qbar_dot)
+    plan = JointTrajectorySample(0, '', robot.shape_joint_names,
+                                 np.round(times * 1e9).astype(np.int64), positions, velocities)
+    return joints, bases, plan, run
+
+
+def _feed(estimator, joints, bases, plan):
+    outputs = []
+    estimator.add_trajectory(plan)
+    for joint, base in zip(joints, bases):
+        outputs += estimator.add_joint_state(joint)
+        outputs += estimator.add_base_state(base)
+    return outputs + estimator.flush()
+
+
+def test_planned_mode_predicts_the_measured_base_path():
+    robot = paper_robot()
+    joints, bases, plan, _ = _planned_run(robot)
+    config = EstimatorConfig(prediction_rate=1.0, prediction_horizon=1.0)
+    estimator = Estimator(robot, config)
+    outputs = _feed(estimator, joints, bases, plan)
+    started = [o for o in outputs if o.prediction_path is not None]
+    assert len(started) >= 3
+    assert all(o.prediction is None and o.prediction_phase_path is not None for o in started)
+    summary = estimator.summary()
+    planned = summary['prediction_residuals']['planned']
+    assert planned['compared'] >= 3 and planned['judged_by'] == 'base path'
+    # Odometry is exact here: the base residual is the integrators' error.
+    assert planned['position_residual_max'] <= 1e-7
+    assert planned['attitude_residual_max'] <= 1e-7
+    assert planned['shape_residual_max'] <= 1e-9  # the arm followed the plan exactly
+    # Held velocities are a worse guess for the same run (cubic segments curve).
+    held = Estimator(robot, config.replaced(prediction_mode='held_velocity'))
+    _feed(held, joints, bases, plan)
+    other = held.summary()['prediction_residuals']['held_velocity']
+    assert other['position_residual_max'] > 100 * planned['position_residual_max']
+
+
+def test_deferred_predictions_give_identical_messages_and_residuals():
+    robot = paper_robot()
+    joints, bases, plan, _ = _planned_run(robot, seconds=3.0)
+    for mode in ('planned', 'held_torque', 'coast'):
+        config = EstimatorConfig(prediction_rate=2.0, prediction_horizon=0.5,
+                                 prediction_mode=mode, diagnostics_rate=2.0)
+        inline = _feed(Estimator(robot, config), joints, bases, plan)
+        deferred_estimator = Estimator(robot, config, defer_predictions=True)
+        deferred = _feed(deferred_estimator, joints, bases, plan)
+        jobs = [o.prediction_job for o in deferred if o.prediction_job is not None]
+        assert len(jobs) >= 4
+        # Half of the jobs run in worker threads, after the fact.
+        workers = [threading.Thread(target=job.run) for job in jobs[::2]]
+        for worker in workers:
+            worker.start()
+        for worker in workers:
+            worker.join()
+        messages = [job.run() for job in jobs]
+        expected = [(o.prediction, o.prediction_path, o.prediction_phase_path)
+                    for o in inline if o.prediction_path is not None]
+        assert len(expected) == len(messages)
+        for (shape, path, phase), got in zip(expected, messages):
+            assert np.array_equal(path.positions, got.path.positions)
+            assert np.array_equal(path.orientations_xyzw, got.path.orientations_xyzw)
+            assert (shape is None) == (got.shape is None) == (mode == 'planned')
+            if shape is not None:
+                assert np.array_equal(shape.positions, got.shape.positions)
+            assert (phase is None) == (got.phase_path is None)
+        # Diagnostics (residuals included) are the same whenever the jobs ran.
+        diagnostics = [o.diagnostics.statuses for o in inline if o.diagnostics is not None]
+        other = [o.diagnostics.statuses for o in deferred if o.diagnostics is not None]
+        assert [[s.values for s in d] for d in diagnostics] == \
+            [[s.values for s in d] for d in other]
+
+
+def test_a_prediction_over_budget_stops_with_the_reason():
+    robot = paper_robot()
+    joints, bases, plan, _ = _planned_run(robot, seconds=3.0)
+    config = EstimatorConfig(prediction_rate=1.0, prediction_horizon=1.0,
+                             prediction_max_evaluations=10.0, diagnostics_rate=1.0,
+                             prediction_mode='coast')
+    estimator = Estimator(robot, config)
+    outputs = _feed(estimator, joints, bases, plan)
+    assert not any(o.prediction_path is not None for o in outputs)
+    assert estimator.summary()['prediction_failures'] == {'budget': estimator.predictor.made}
+    statuses = [s for o in outputs if o.diagnostics is not None
+                for s in o.diagnostics.statuses if s.name.endswith('prediction')]
+    assert any('evaluation budget exceeded' in s.message for s in statuses)
+    # The estimates themselves go on.
+    assert len(outputs) == len(joints)
+
+
+def test_bad_trajectories_are_rejected_and_counted():
+    robot = paper_robot()
+    estimator = Estimator(robot)
+    names = robot.shape_joint_names
+    estimator.add_trajectory(JointTrajectorySample(0, '', ('nope',), [0], [[0.0]]))
+    estimator.add_trajectory(JointTrajectorySample(0, '', names[:2], [0, 10],
+                                                   [[0.0, np.nan], [0.0, 0.0]]))
+    assert estimator.rejected == {'trajectory_unknown_joint': 1, 'trajectory_non_finite': 1}
+    assert estimator.predictor.plan is None
+    # A subset of the joints is a valid plan (the others keep their velocities).
+    estimator.add_trajectory(JointTrajectorySample(5, '', names[:2], [0, 10**9],
+                                                   [[0.0, 0.1], [0.2, 0.3]]))
+    plan = estimator.predictor.plan
+    assert plan is not None and plan.start_ns == 5 and list(plan.index) == [0, 1]
+    path = plan.path_from(5, np.zeros(robot.m), np.ones(robot.m))
+    np.testing.assert_allclose(path(0.5)[0][2:], 0.5)
+    np.testing.assert_allclose(path(0.5)[0][:2], [0.1, 0.2])
+    assert plan.path_from(2 * 10**9, np.zeros(robot.m), np.zeros(robot.m)) is None
