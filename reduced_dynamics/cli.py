@@ -12,7 +12,11 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Command line: ``reduced-dynamics validate | symmetries | simulate | replay | bench``."""
+"""
+Command line: ``reduced-dynamics validate | symmetries | simulate | replay | predict | bench``.
+
+One subcommand per task; ``--help`` on each lists its options.
+"""
 
 from __future__ import annotations
 
@@ -115,7 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _extra_commands() -> list:
     registrars = []
-    for module in ('simulator', 'replay', 'bench'):
+    for module in ('simulator', 'replay', 'predict', 'bench'):
         try:
             imported = __import__(f'reduced_dynamics.{module}', fromlist=['register_command'])
         except ImportError:

@@ -43,11 +43,12 @@ import numpy as np
 
 from reduced_dynamics.estimator import Estimator, EstimatorConfig, EstimatorOutput
 from reduced_dynamics.estimator.config import PARAMETERS as ESTIMATOR_PARAMETERS
+from reduced_dynamics.estimator.base_motion import answer_messages
 from reduced_dynamics.estimator.config import ParameterSpec
 from reduced_dynamics.messages import (
     DIAG_ERROR, DIAG_WARN, Diagnostics, diagnostics_to_ros, DiagnosticStatusSample,
-    joint_state_from_ros, odometry_from_ros, pose_stamped_from_ros, RclpyTypes,
-    string_from_ros)
+    joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros, pose_path_to_ros,
+    pose_stamped_from_ros, RclpyTypes, string_from_ros)
 from reduced_dynamics.params import ALL_PARAMETERS, check_any_parameter, RUNTIME_PARAMETERS
 from reduced_dynamics.robot.model import load_robot, ModelError
 from reduced_dynamics.topics import DIAGNOSTICS_TOPIC, NODE_NAME, OUTPUT_TOPICS, output_messages
@@ -78,6 +79,10 @@ ROBOT_DESCRIPTION_TOPIC = 'robot_description'
 #: Node-clock time between two log lines about the same kind of rejected input.
 LOG_THROTTLE_NS = 5_000_000_000
 OUTPUT_QOS_DEPTH = 10
+#: ~/predict_base_motion as a request/response topic pair (standard types; README).
+PREDICT_REQUEST_TOPIC = '~/predict_base_motion/request'
+PREDICT_PATH_TOPIC = '~/predict_base_motion/path'
+PREDICT_RESULT_TOPIC = '~/predict_base_motion/result'
 NS_PER_S = 1_000_000_000
 
 
@@ -271,6 +276,57 @@ class ReducedDynamicsNode(Node):
             self.create_subscription(
                 self._types.get('geometry_msgs/msg/PoseStamped'),
                 self._value('base_pose_topic'), self._on_pose, qos_profile_sensor_data)
+
+        # Planned arm motions (prediction_mode planned) and the base-motion requests:
+        # reliable, a plan must not be dropped.
+        trajectory_type = self._types.get('trajectory_msgs/msg/JointTrajectory')
+        reliable = QoSProfile(depth=OUTPUT_QOS_DEPTH, history=HistoryPolicy.KEEP_LAST,
+                              reliability=ReliabilityPolicy.RELIABLE)
+        self.create_subscription(trajectory_type, self._value('trajectory_topic'),
+                                 self._on_trajectory, reliable)
+        self.create_subscription(trajectory_type, PREDICT_REQUEST_TOPIC,
+                                 self._on_predict_request, reliable)
+        self._answer_path = self.create_publisher(self._types.get('nav_msgs/msg/Path'),
+                                                  PREDICT_PATH_TOPIC, reliable)
+        self._answer_result = self.create_publisher(
+            self._types.get('diagnostic_msgs/msg/DiagnosticArray'), PREDICT_RESULT_TOPIC,
+            reliable)
+
+    def _on_trajectory(self, msg: Any) -> None:
+        """Take a planned trajectory (what prediction_mode planned follows)."""
+        self.received['trajectory'] += 1
+        try:
+            sample = joint_trajectory_from_ros(msg)
+        except (ValueError, TypeError) as error:
+            self._reject('malformed', f'trajectory message: {error}')
+            return
+        if self._estimator is not None:
+            self._estimator.add_trajectory(sample)
+
+    def _on_predict_request(self, msg: Any) -> None:
+        """
+        Answer ~/predict_base_motion: where the base goes if the arm executes this plan.
+
+        Standard types stand in for a service (README "Topics"): the request is a
+        JointTrajectory on ~/predict_base_motion/request; the answer a Path on
+        ~/predict_base_motion/path and a DiagnosticArray on .../result, whose status
+        hardware_id echoes the request header's frame_id.
+        """
+        self.received['predict_request'] += 1
+        request_id = str(getattr(msg.header, 'frame_id', ''))
+        answer, error, stamp = None, None, 0
+        try:
+            sample = joint_trajectory_from_ros(msg)
+            if self._estimator is None:
+                raise ValueError(self._model_error or 'no robot model')
+            stamp = self._estimator.latest_state[0] if self._estimator.latest_state else 0
+            answer = self._estimator.predict_base_motion(sample)
+        except (ValueError, TypeError, ArithmeticError, RuntimeError) as failure:
+            error = str(failure)
+        path, result = answer_messages(answer, stamp, request_id, error)
+        if path is not None:
+            self._answer_path.publish(pose_path_to_ros(path, self._types))
+        self._answer_result.publish(diagnostics_to_ros(result, self._types))
 
     def _on_joint_state(self, msg: Any) -> None:
         self._take('joint_states', msg, joint_state_from_ros, 'add_joint_state')

@@ -44,16 +44,18 @@ import numpy as np
 import pinocchio as pin
 
 from reduced_dynamics.bag.writer import BagWriter
-from reduced_dynamics.full_dynamics import FullDynamics, FullTrajectory
+from reduced_dynamics.full_dynamics import FullDynamics, FullTrajectory, PrescribedShapeDynamics
 from reduced_dynamics.geometry.isotropy import MomentumClass
 from reduced_dynamics.messages.convert import (
     base_state_to_odometry,
     base_state_to_pose_stamped,
     header_to_ros,
     joint_state_to_ros,
+    joint_trajectory_to_ros,
     wrench_to_ros,
 )
-from reduced_dynamics.messages.samples import BaseStateSample, JointStateSample, WrenchSample
+from reduced_dynamics.messages.samples import (BaseStateSample, JointStateSample,
+                                               JointTrajectorySample, WrenchSample)
 from reduced_dynamics.messages.types import RosbagsTypes
 from reduced_dynamics.robot.model import RobotModel
 from reduced_dynamics.robot.momentum import (
@@ -82,6 +84,8 @@ TOPIC_MOMENTUM = '/ground_truth/momentum'
 TOPIC_EXTERNAL_WRENCH = '/ground_truth/external_wrench'
 TOPIC_STATUS = '/simulator/status'
 TOPIC_COMMAND = '/commanded_wrench'
+#: the planned trajectory of ``--trajectory`` (what the estimator's planned mode follows)
+TOPIC_TRAJECTORY = '/joint_trajectory'
 #: Measured topics, in the order that numbers their random streams (never reorder).
 SENSOR_TOPICS = (TOPIC_JOINT_STATES, TOPIC_ODOM, TOPIC_BASE_POSE)
 
@@ -225,6 +229,9 @@ class SimulationOptions:
     rtol: float = 1e-13
     atol: float = 1e-13
     chunk_seconds: float = 1.0
+    #: a planned joint trajectory file (YAML/CSV, :mod:`reduced_dynamics.trajectory_file`):
+    #: the shape follows it exactly, the base by the full dynamics (no torque law)
+    trajectory: str = ''
 
     def __post_init__(self) -> None:
         """Validate every field (ValueError with the offending option)."""
@@ -236,6 +243,9 @@ class SimulationOptions:
         object.__setattr__(self, 'thrust_gain', tuple(float(x) for x in self.thrust_gain))
         object.__setattr__(self, 'thrust_bias', tuple(float(x) for x in self.thrust_bias))
         _check_positive('duration', self.duration)
+        if self.trajectory and (self.thrusters or self.firings):
+            raise ValueError('--trajectory prescribes the shape with no external wrench: '
+                             'thrusters are not supported with it')
         _check_positive('bunch_gap', self.bunch_gap)
         _check_positive('outage_duration', self.outage_duration)
         _check_positive('command_rate', self.command_rate)
@@ -673,6 +683,8 @@ def bag_topics(options: SimulationOptions, robot: Optional[RobotModel] = None
         topics[TOPIC_COMMAND] = 'geometry_msgs/msg/WrenchStamped'
     if options.status:
         topics[TOPIC_STATUS] = STATUS_MSGTYPE
+    if options.trajectory:
+        topics[TOPIC_TRAJECTORY] = 'trajectory_msgs/msg/JointTrajectory'
     return topics
 
 
@@ -831,14 +843,20 @@ def simulate_bag(robot: RobotModel, out_path: PathLike,
         raise ValueError(f'output {out} exists already (pass --overwrite / overwrite=True '
                          f'to replace it)')
     state, scenario_torque = initial_state(robot, options.momentum_class, options.seed)
-    excitation = make_excitation(robot, state, scenario_torque, options)
+    planned = _planned_start(robot, state, options) if options.trajectory else None
+    excitation = None if planned else make_excitation(robot, state, scenario_torque, options)
     topics = bag_topics(options, robot)
     store = status_typestore() if options.status else None
     bag = BagWriter(out, topics, typestore=store, overwrite=options.overwrite)
     bag.open()
     try:
         recorder = _Recorder(robot, options, bag)
-        initial_mu, final_mu, pulses, firings = _run(robot, state, excitation, options, recorder)
+        if planned:
+            initial_mu, final_mu, pulses, firings = _run_planned(robot, planned, options,
+                                                                 recorder)
+        else:
+            initial_mu, final_mu, pulses, firings = _run(robot, state, excitation, options,
+                                                         recorder)
         recorder.finish()
         bag.close()
     except BaseException:
@@ -856,7 +874,8 @@ def simulate_bag(robot: RobotModel, out_path: PathLike,
         path=out, robot=robot.model.name, base_link=robot.base_link,
         base_group=robot.group.name, joint_names=tuple(robot.shape_joint_names),
         duration=options.duration, rate=options.rate, samples=options.samples,
-        torque=options.torque, seed=int(options.seed), start_time_ns=int(options.start_time_ns),
+        torque='trajectory' if options.trajectory else options.torque, seed=int(options.seed),
+        start_time_ns=int(options.start_time_ns),
         message_counts=dict(bag.message_counts), topic_types=topics,
         initial_momentum=robot.group.dual_to_wrench(initial_mu),
         final_momentum=robot.group.dual_to_wrench(final_mu),
@@ -919,6 +938,51 @@ def _run(robot: RobotModel, state: FreeFloatingState, excitation: Excitation,
         mu_last = trajectory.mu[-1].copy()
         state = trajectory.state(len(times) - 1)
     return mu_first, mu_last, impulses, firing_impulses
+
+
+def _planned_start(robot: RobotModel, state: FreeFloatingState,
+                   options: SimulationOptions) -> tuple:
+    """
+    Return (trajectory sample, shape path, g0, xi0) of a ``--trajectory`` run.
+
+    The shape starts on the plan (joints it leaves out at the scenario's
+    shape, at rest); the base at the scenario's pose and momentum mu (so
+    ``--momentum-class`` still chooses the class): xi0 = I^-1 (pi - B qbar_dot0).
+    """
+    from reduced_dynamics.estimator.base_motion import plan_of
+    from reduced_dynamics.trajectory_file import load_trajectory
+    trajectory = load_trajectory(options.trajectory, robot.shape_joint_names)
+    plan = plan_of(robot, trajectory, 0)
+    qbar0 = state.qbar.copy()
+    if trajectory.times_from_start_ns[0] == 0:
+        qbar0[plan.index] = trajectory.positions[0]
+    path = plan.path_from(0, qbar0, np.zeros(robot.m))
+    if path is None:
+        raise ValueError(f'trajectory {options.trajectory} has a single point at time 0')
+    n = robot.n
+    pi = robot.mass_matrix(state.qbar)[:n] @ np.concatenate([state.xi, state.qbar_dot])
+    q0, qd0, _ = path(0.0)
+    mass = robot.mass_matrix(q0)
+    xi0 = np.linalg.solve(mass[:n, :n], pi - mass[:n, n:] @ qd0)
+    return trajectory, path, state.g, xi0
+
+
+def _run_planned(robot: RobotModel, planned: tuple, options: SimulationOptions,
+                 recorder: _Recorder) -> tuple:
+    """Play the plan with the exact shape path (full dynamics for the base); record it."""
+    trajectory, path, g0, xi0 = planned
+    sample = JointTrajectorySample(options.start_time_ns, '', trajectory.joint_names,
+                                   trajectory.times_from_start_ns, trajectory.positions,
+                                   trajectory.velocities, trajectory.accelerations)
+    recorder.bag.write(TOPIC_TRAJECTORY, options.start_time_ns,
+                       joint_trajectory_to_ros(sample, recorder.types))
+    times = np.arange(options.samples) / options.rate
+    run = PrescribedShapeDynamics(robot, path).simulate(g0, xi0, times, options.rtol,
+                                                        options.atol)
+    zero = np.zeros(robot.n)
+    for k in range(len(times)):
+        recorder.record(k, run.state(k), run.mu[k], run.torques[k], zero, np.zeros(6))
+    return run.mu[0].copy(), run.mu[-1].copy(), [], []
 
 
 def _pulse_wrench(options: SimulationOptions, piece: _Piece) -> np.ndarray:
@@ -1097,6 +1161,10 @@ def register_command(subparsers: Any) -> None:
                         help='write /base_pose (PoseStamped) instead of /odom')
     parser.add_argument('--momentum-class', choices=tuple(MOMENTUM_CLASSES), default='generic',
                         help='class of the initial momentum (default generic)')
+    parser.add_argument('--trajectory', metavar='FILE',
+                        help='play a planned joint trajectory (YAML/CSV, see reduced-dynamics '
+                             'predict): the shape follows it exactly, the base by the full '
+                             f'dynamics; the plan is recorded on {TOPIC_TRAJECTORY}')
     parser.add_argument('--status', action='store_true',
                         help=f'also write {TOPIC_STATUS} ({STATUS_MSGTYPE}, a custom type '
                              f'embedded in the bag) at {STATUS_RATE:g} Hz')
@@ -1123,7 +1191,7 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         thruster_layout=args.thruster_layout, thruster_units=tuple(args.thruster_unit),
         thruster_force=args.thruster_force, firings=tuple(args.fire),
         thrust_gain=tuple(args.thrust_gain), thrust_bias=tuple(args.thrust_bias),
-        command_rate=args.command_rate,
+        command_rate=args.command_rate, trajectory=args.trajectory or '',
         momentum_class=args.momentum_class, status=args.status, overwrite=args.overwrite,
         start_time_ns=int(round(args.start_time * NS_PER_S)))
 

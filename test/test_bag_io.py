@@ -637,8 +637,16 @@ def test_error_directory_without_metadata(full_bag: Path, tmp_path: Path) -> Non
 
 
 def test_error_truncated_mcap(full_bag: Path, tmp_path: Path) -> None:
+    # Cut in the data: readable up to the damage (test_damaged_bags.py), refused when strict.
     data = (full_bag / 'run.mcap').read_bytes()
-    for cut in (len(data) // 2, len(data) - 10, 20, 9):
+    for cut in (len(data) // 2, len(data) - 10):
+        path = tmp_path / f'cut{cut}.mcap'
+        path.write_bytes(data[:cut])
+        with open_bag(path) as bag:
+            assert bag.damage
+        with pytest.raises(BagError, match='damaged bag'):
+            open_bag(path, strict=True)
+    for cut in (20, 9):  # cut in the header: nothing to read
         path = tmp_path / f'cut{cut}.mcap'
         path.write_bytes(data[:cut])
         _assert_bag_error(path, 'cannot open bag')
@@ -649,7 +657,10 @@ def test_error_truncated_mcap_inside_bag_directory(full_bag: Path, tmp_path: Pat
     path.mkdir()
     (path / 'metadata.yaml').write_text((full_bag / 'metadata.yaml').read_text())
     (path / 'run.mcap').write_bytes((full_bag / 'run.mcap').read_bytes()[:5000])
-    _assert_bag_error(path, 'cannot open bag')
+    with open_bag(path) as bag:
+        assert bag.damage and bag.damage[0].kind == 'truncated'
+    with pytest.raises(BagError, match='damaged bag'):
+        open_bag(path, strict=True)
 
 
 def test_error_garbage_files(tmp_path: Path) -> None:

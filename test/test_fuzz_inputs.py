@@ -552,3 +552,144 @@ def _write_stats():
     if path and STATS:
         with open(path, 'w', encoding='utf-8') as stream:
             json.dump({k: dict(v) for k, v in STATS.items()}, stream, indent=2)
+
+
+# --- hostile bags through the replay tool -----------------------------------------------------
+BAG_WINDOW = 60
+OUTPUT_TOPICS = ('/reduced_dynamics/momentum', '/reduced_dynamics/drift/momentum_rate')
+
+
+def _raw_window():
+    with open_bag(os.path.join(DATA, 'paper_thruster')) as reader:
+        topics = {t: m for t, m in reader.topics().items() if t in ('/joint_states', '/odom')}
+        items = [(m.topic, m.timestamp_ns, bytes(m.data))
+                 for _, m in zip(range(2 * BAG_WINDOW), reader.raw_messages(list(topics)))]
+    return topics, items
+
+
+BAG_TOPICS, BAG_ITEMS = _raw_window()
+
+
+def _write_bag(path, items):
+    """Write ``items`` with 4 KiB chunks (many chunks, as long recordings have)."""
+    from reduced_dynamics.bag import writer as bag_writer
+    chunk = bag_writer._CHUNK_BYTES
+    bag_writer._CHUNK_BYTES = 4096
+    try:
+        with bag_writer.BagWriter(path, BAG_TOPICS) as writer:
+            for topic, stamp, data in items:
+                writer.write_raw(topic, stamp, data)
+    finally:
+        bag_writer._CHUNK_BYTES = chunk
+
+
+def _garble(draw, data):
+    """Overwrite, truncate or extend ``data`` (bytes) as the drawn damage says."""
+    data = bytearray(data)
+    kind = draw(st.sampled_from(['overwrite', 'truncate', 'extend', 'zero']))
+    if kind == 'overwrite' and data:
+        for _ in range(draw(st.integers(1, 16))):
+            data[draw(st.integers(0, len(data) - 1))] = draw(st.integers(0, 255))
+    elif kind == 'truncate':
+        data = data[:draw(st.integers(0, max(len(data) - 1, 0)))]
+    elif kind == 'extend':
+        data += draw(st.binary(min_size=1, max_size=64))
+    elif data:
+        start = draw(st.integers(0, len(data) - 1))
+        data[start:start + draw(st.integers(1, 256))] = bytes(
+            len(data[start:start + 256]))
+    return bytes(data), kind
+
+
+@st.composite
+def garbled_messages(draw):
+    """Damage the CDR bytes of a few messages of a bag."""
+    items = list(BAG_ITEMS)
+    for index in draw(st.lists(st.integers(0, len(items) - 1), min_size=1, max_size=5,
+                               unique=True)):
+        topic, stamp, data = items[index]
+        items[index] = (topic, stamp, _garble(draw, data)[0])
+    return items
+
+
+def _replay_checked(bag, out, family):
+    """Replay ``bag``; assert a clean error or a consistent summary with finite outputs."""
+    from reduced_dynamics.bag.errors import BagError
+    from reduced_dynamics.params import defaults
+    from reduced_dynamics.replay import replay, ReplayOptions
+    options = ReplayOptions(params={**defaults(), 'prediction_rate': 0.0})
+    faulthandler.dump_traceback_later(60, exit=True)
+    try:
+        summary = replay(str(bag), str(out), ROBOT, options)
+    except BagError as error:
+        text = str(error)
+        assert text and '\n' not in text
+        STATS.setdefault(family, Counter()).update(cases=1, bag_errors=1)
+        return None
+    finally:
+        faulthandler.cancel_dump_traceback_later()
+    rejected = Counter(summary['rejected'])
+    malformed = rejected.pop('malformed', 0)
+    received = summary['received']
+    assert sum(summary['messages_in'].values()) == sum(received.values()) + malformed
+    joint_rejections = sum(n for r, n in rejected.items() if r not in BASE_REASONS)
+    assert received.get('joint_states', 0) == summary['processed'] + joint_rejections
+    with open_bag(str(out)) as reader:
+        rows = [m.msg.wrench for m in reader.messages(list(OUTPUT_TOPICS))]
+    values = np.array([[w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y, w.torque.z]
+                       for w in rows]).reshape(-1, 6)
+    assert np.isfinite(values).all()
+    assert len(values) == 2 * summary['processed']
+    STATS.setdefault(family, Counter()).update(
+        cases=1, processed=summary['processed'], rejected=sum(summary['rejected'].values()),
+        undecodable=sum(summary['undecodable_skipped'].values()))
+    return summary
+
+
+def _template():
+    """Return the clean bag's (metadata.yaml text, storage file name, storage bytes)."""
+    import tempfile
+    with tempfile.TemporaryDirectory() as directory:
+        path = os.path.join(directory, 'bag')
+        _write_bag(path, BAG_ITEMS)
+        storage = next(n for n in os.listdir(path) if n.endswith('.mcap'))
+        with open(os.path.join(path, 'metadata.yaml'), 'rb') as stream:
+            metadata = stream.read()
+        with open(os.path.join(path, storage), 'rb') as stream:
+            return metadata, storage, stream.read()
+
+
+TEMPLATE = _template()
+EXAMPLES.update({'bag_messages': 60, 'bag_files': 90})
+
+
+@_fuzz_settings('bag_messages')
+@given(garbled_messages())
+def test_fuzz_garbled_messages_in_a_bag(items):
+    import tempfile
+    with tempfile.TemporaryDirectory() as directory:
+        _write_bag(os.path.join(directory, 'bag'), items)
+        summary = _replay_checked(os.path.join(directory, 'bag'),
+                                  os.path.join(directory, 'out'), 'bag_messages')
+    assert summary is not None  # intact storage: the bag opens and replays
+
+
+@_fuzz_settings('bag_files')
+@given(st.data())
+def test_fuzz_damaged_bag_files(data):
+    import tempfile
+    metadata, storage, content = TEMPLATE
+    target = data.draw(st.sampled_from(['storage'] * 4 + ['metadata']), label='target')
+    if target == 'storage':
+        content, kind = _garble(data.draw, content)
+    else:
+        metadata, kind = _garble(data.draw, metadata)
+    note(f'{target}: {kind}')
+    with tempfile.TemporaryDirectory() as directory:
+        bag = os.path.join(directory, 'bag')
+        os.makedirs(bag)
+        with open(os.path.join(bag, 'metadata.yaml'), 'wb') as stream:
+            stream.write(metadata)
+        with open(os.path.join(bag, storage), 'wb') as stream:
+            stream.write(content)
+        _replay_checked(bag, os.path.join(directory, 'out'), 'bag_files')

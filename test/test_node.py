@@ -679,3 +679,49 @@ def test_node_and_replay_publish_the_same_messages_for_the_same_bag(ros, node_fa
             assert len(published) == len(replayed) >= least, topic.name
             for i, (mine, theirs) in enumerate(zip(published, replayed)):
                 _same_rosbags(to_rosbags(mine, topic.msgtype), theirs, f'{topic.name}[{i}]')
+
+
+# ------------------------------------------------------------------ planned motions
+def _plan_message(stamp_ns, frame_id=''):
+    from reduced_dynamics.messages import joint_trajectory_to_ros, JointTrajectorySample
+    sample = JointTrajectorySample(stamp_ns, frame_id, ('j2_x', 'j2_y', 'j3'),
+                                   [0, NS // 2, NS], [[0, 0, 0], [0.3, -0.2, 0.4], [0, 0, 0]],
+                                   numpy.zeros((3, 3)))
+    return sample, joint_trajectory_to_ros(sample, RclpyTypes())
+
+
+def test_planned_trajectory_and_base_motion_requests(ros, node_factory):
+    node = node_factory(urdf_path=str(paper_robot_urdf()), prediction_rate=2.0)
+    assert {sub.topic_name for sub in node.subscriptions} >= {
+        '/joint_trajectory', '/reduced_dynamics/predict_base_motion/request'}
+    plan, message = _plan_message(T0_NS + NS)
+    ros.deliver(node, 'joint_trajectory', message)
+    feed(ros, node, input_messages(ros, 'odom', 200))
+    assert node.received['trajectory'] == 1 and node.estimator.predictor.plan is not None
+    # The plan starts 1 s in: before it the arm is joined to its first point (planned).
+    assert [job.mode for job in node.estimator.predictor.active] == ['planned'] * 4
+    phase = ros.published(node.resolve_topic_name('~/prediction/geometric_phase_path'))
+    assert len(phase) == node.estimator.predictor.made
+    # A request answered from the latest state; the request id comes back.
+    request, message = _plan_message(0, 'request-7')
+    ros.deliver(node, '~/predict_base_motion/request', message)
+    paths = ros.published(node.resolve_topic_name('~/predict_base_motion/path'))
+    results = ros.published(node.resolve_topic_name('~/predict_base_motion/result'))
+    assert len(paths) == len(results) == 1
+    status = results[0].status[0]
+    assert status.hardware_id == 'request-7' and status.level == bytes([0])
+    expected = node.estimator.predict_base_motion(request)
+    last = paths[0].poses[-1].pose.position
+    numpy.testing.assert_allclose([last.x, last.y, last.z], expected.final_pose.translation,
+                                  rtol=0, atol=1e-12)
+    values = {kv.key: kv.value for kv in status.values}
+    assert float(values['max_attitude_deviation_rad']) == pytest.approx(
+        expected.max_attitude_deviation, rel=1e-8)
+    # A plan for unknown joints gets an error status, no path.
+    from reduced_dynamics.messages import joint_trajectory_to_ros, JointTrajectorySample
+    bad = JointTrajectorySample(0, 'request-8', ('nope',), [0, NS], [[0.0], [1.0]])
+    ros.deliver(node, '~/predict_base_motion/request', joint_trajectory_to_ros(bad, RclpyTypes()))
+    results = ros.published(node.resolve_topic_name('~/predict_base_motion/result'))
+    assert len(results) == 2 and results[1].status[0].level == bytes([2])
+    assert 'not shape joints' in results[1].status[0].message
+    assert len(ros.published(node.resolve_topic_name('~/predict_base_motion/path'))) == 1

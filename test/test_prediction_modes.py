@@ -135,15 +135,17 @@ def test_held_velocity_path_is_a_line():
 
 
 # --- the estimator: planned mode, deferred jobs, budgets ---------------------------------
-def _planned_run(robot, seconds=4.0, rate=200.0):
+def _planned_run(robot, seconds=4.0, rate=200.0, offset=0.0):
     """Return samples of a plan played by the prescribed full dynamics, and the plan."""
     times, positions, velocities, accelerations = _plan(robot.m, kind='cubic',
                                                         seconds=seconds, points=9)
     path = PlannedPath(times, positions, velocities, accelerations)
     sample_times = np.arange(int(seconds * rate) + 1) / rate
     run = PrescribedShapeDynamics(robot, path).simulate(G0, XI0, sample_times)
-    joints, bases = samples(robot, sample_times, run.poses, run.xi, run.qbar, run.qbar_dot)
-    plan = JointTrajectorySample(0, '', robot.shape_joint_names,
+    # Stamps from ``offset`` seconds; the plan's stamp is its origin (0: on arrival).
+    joints, bases = samples(robot, sample_times + offset, run.poses, run.xi, run.qbar,
+                            run.qbar_dot)
+    plan = JointTrajectorySample(int(round(offset * 1e9)), '', robot.shape_joint_names,
                                  np.round(times * 1e9).astype(np.int64), positions, velocities)
     return joints, bases, plan, run
 
@@ -254,3 +256,109 @@ def test_bad_trajectories_are_rejected_and_counted():
     np.testing.assert_allclose(path(0.5)[0][2:], 0.5)
     np.testing.assert_allclose(path(0.5)[0][:2], [0.1, 0.2])
     assert plan.path_from(2 * 10**9, np.zeros(robot.m), np.zeros(robot.m)) is None
+
+
+# --- files, the simulator's --trajectory, replay, the predict command -------------------
+PLAN_YAML = """
+joint_names: [j2_x, j2_y, j2_z, j3]
+points:
+  - {time: 0.0, positions: [0.0, 0.0, 0.0, 0.0], velocities: [0, 0, 0, 0]}
+  - {time: 2.5, positions: [0.6, -0.3, 0.4, 0.8], velocities: [0.1, 0, 0, 0]}
+  - {time: 5.0, positions: [0.2, 0.1, -0.2, 0.3], velocities: [0, 0, 0, 0]}
+"""
+
+
+def test_trajectory_files_yaml_and_csv_agree(tmp_path):
+    from reduced_dynamics.trajectory_file import load_trajectory, TrajectoryFileError
+    (tmp_path / 'plan.yaml').write_text(PLAN_YAML)
+    yaml_plan = load_trajectory(str(tmp_path / 'plan.yaml'))
+    header = 'time,j2_x,j2_y,j2_z,j3,' + ','.join(
+        f'{n}:velocity' for n in ('j2_x', 'j2_y', 'j2_z', 'j3'))
+    rows = ['0,0,0,0,0,0,0,0,0', '2.5,0.6,-0.3,0.4,0.8,0.1,0,0,0', '5,0.2,0.1,-0.2,0.3,0,0,0,0']
+    (tmp_path / 'plan.csv').write_text('\n'.join([header] + rows) + '\n')
+    csv_plan = load_trajectory(str(tmp_path / 'plan.csv'))
+    assert yaml_plan.joint_names == csv_plan.joint_names == ('j2_x', 'j2_y', 'j2_z', 'j3')
+    assert np.array_equal(yaml_plan.times_from_start_ns, [0, 2_500_000_000, 5_000_000_000])
+    np.testing.assert_array_equal(yaml_plan.positions, csv_plan.positions)
+    np.testing.assert_array_equal(yaml_plan.velocities, csv_plan.velocities)
+    assert csv_plan.accelerations is None
+    (tmp_path / 'bad.yaml').write_text('points: [{time: 0, positions: [1, nan]}]\n'
+                                       'joint_names: [a, b]\n')
+    with pytest.raises(TrajectoryFileError, match='NaN'):
+        load_trajectory(str(tmp_path / 'bad.yaml'))
+    (tmp_path / 'back.csv').write_text('time,a\n1,0\n0.5,1\n')
+    with pytest.raises(TrajectoryFileError, match='increasing'):
+        load_trajectory(str(tmp_path / 'back.csv'))
+
+
+def test_simulated_plan_replayed_in_planned_mode(tmp_path):
+    from reduced_dynamics.cli import main
+    from reduced_dynamics.params import defaults
+    from reduced_dynamics.replay import replay, ReplayOptions
+    from reduced_dynamics.robot.model import load_robot
+    (tmp_path / 'plan.yaml').write_text(PLAN_YAML)
+    bag = tmp_path / 'bag'
+    assert main(['simulate', '-o', str(bag), '--trajectory', str(tmp_path / 'plan.yaml'),
+                 '--duration', '6', '--rate', '100']) == 0
+    summary = replay(str(bag), str(tmp_path / 'out'), load_robot(),
+                     ReplayOptions(params=defaults()))
+    assert summary['trajectory_topic'] == '/joint_trajectory'
+    assert summary['trajectories_received'] == 1
+    planned = summary['prediction_residuals']['planned']
+    assert planned['predictions'] == 5 and planned['compared'] == 5
+    # The bag's base is the full dynamics with the exact shape path; the prediction is the
+    # reconstruction alone: they agree to the integrators' accuracy.
+    assert planned['position_residual_max'] <= 1e-7
+    assert planned['attitude_residual_max'] <= 1e-7
+    # After the plan the arm rests: held velocities (zero) are exact as well.
+    assert summary['prediction_residuals']['held_velocity']['position_residual_max'] <= 1e-7
+
+
+def test_predict_command_prints_and_writes_the_path(tmp_path, capsys):
+    import json
+    from reduced_dynamics.cli import main
+    (tmp_path / 'plan.yaml').write_text(PLAN_YAML)
+    out = tmp_path / 'path.json'
+    assert main(['predict', '--trajectory', str(tmp_path / 'plan.yaml'), '--mu', '1', '0', '0',
+                 '0', '0', '2', '-o', str(out)]) == 0
+    text = capsys.readouterr().out
+    assert 'final base position' in text and 'max attitude deviation' in text
+    document = json.loads(out.read_text())
+    assert len(document['times']) == 101 and document['times'][-1] == 5.0
+    # The same computation through the library (what the node's service runs).
+    from reduced_dynamics.estimator.base_motion import predict_base_motion
+    from reduced_dynamics.trajectory_file import load_trajectory
+    robot = paper_robot()
+    plan = load_trajectory(str(tmp_path / 'plan.yaml'))
+    mu = np.array([1.0, 0, 0, 0, 0, 2.0])
+    answer = predict_base_motion(robot, plan, pin.SE3.Identity(), mu, np.zeros(robot.m),
+                                 np.zeros(robot.m))
+    np.testing.assert_allclose(answer.path.positions, document['positions'], atol=1e-12)
+    assert answer.max_attitude_deviation == pytest.approx(document['max_attitude_deviation_rad'])
+    # Against the prescribed full dynamics of the same plan (arm from rest at q = 0).
+    path = PlannedPath(plan.times_from_start_ns * 1e-9,
+                       np.column_stack([plan.positions, np.zeros((3, 2))]),
+                       np.column_stack([plan.velocities, np.zeros((3, 2))]))
+    mass = robot.mass_matrix(np.zeros(robot.m))
+    xi0 = np.linalg.solve(mass[:6, :6], mu)  # g0 = identity: pi = mu
+    full = PrescribedShapeDynamics(robot, path).simulate(pin.SE3.Identity(), xi0,
+                                                         np.linspace(0, 5, 101))
+    np.testing.assert_allclose(answer.path.positions, full.poses[:, :3, 3], atol=1e-8)
+    final = pin.SE3(full.poses[-1])
+    assert np.linalg.norm(pin.log3(final.rotation.T @ answer.final_pose.rotation)) <= 1e-8
+
+
+def test_estimator_answers_a_plan_from_its_latest_state():
+    robot = paper_robot()
+    joints, bases, plan, run = _planned_run(robot, seconds=2.0, offset=1.0)
+    estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0))
+    with pytest.raises(ValueError, match='no estimated state'):
+        estimator.predict_base_motion(plan)
+    for joint, base in list(zip(joints, bases))[:101]:  # up to 0.5 s into the plan
+        estimator.add_joint_state(joint)
+        estimator.add_base_state(base)
+    # The rest of the same plan, asked 0.5 s in: the stamped plan's absolute times hold.
+    answer = estimator.predict_base_motion(plan)
+    assert answer.path.stamp_ns == joints[100].stamp_ns
+    index = [int(round((s * 1e-9 - 1.0) * 200)) for s in answer.path.stamps_ns]
+    np.testing.assert_allclose(answer.path.positions, run.poses[index, :3, 3], atol=1e-8)

@@ -21,7 +21,10 @@ bare ``.mcap`` file (ros2 profile, no metadata.yaml needed) or a bare ``.db3``
 file.  Messages are streamed in log-time order; only requested topics are
 deserialized, so unrelated topics with unknown (custom) types are harmless.
 Types missing from the typestore are registered from the definitions
-embedded in the bag when a requested topic needs them.
+embedded in the bag when a requested topic needs them. Damaged storage files
+(a truncated or partly corrupted MCAP, a damaged sqlite3 database) are read
+as far as they are intact (:mod:`reduced_dynamics.bag.damage`); what was lost
+is listed in :attr:`BagReader.damage`, and ``strict=True`` refuses them.
 """
 
 from collections.abc import Callable, Iterable, Iterator
@@ -32,7 +35,6 @@ from types import TracebackType
 from typing import Any, NamedTuple, Optional, Union
 
 from rosbags.interfaces import Connection, MessageDefinitionFormat
-from rosbags.rosbag2 import Reader
 from rosbags.typesys import (
     get_types_from_idl,
     get_types_from_msg,
@@ -41,6 +43,7 @@ from rosbags.typesys import (
     TypesysError,
 )
 
+from reduced_dynamics.bag.damage import Damage, TolerantReader
 from reduced_dynamics.bag.errors import BagError, one_line
 
 _LOG = logging.getLogger(__name__)
@@ -136,21 +139,26 @@ class BagReader:
     Public attributes: ``path`` (the opened directory or storage file),
     ``typestore`` (rosbags typestore used for deserialization; types missing
     from it are registered from the bag on demand), ``skipped`` (count of
-    skipped messages per reason) and ``skip_details`` (last error text per
-    reason).
+    skipped messages per reason), ``skip_details`` (last error text per
+    reason) and :attr:`damage` (damaged regions of the storage files).
+    With ``strict``, any damage raises BagError instead (at open, or when
+    reading reaches it; :meth:`verify` reads everything up front).
     """
 
-    def __init__(self, path: PathLike, *, typestore: Optional[Any] = None) -> None:
+    def __init__(self, path: PathLike, *, typestore: Optional[Any] = None,
+                 strict: bool = False) -> None:
         """Open the bag at ``path`` (raises BagError with a one-line reason)."""
+        self._closed_damage: list[Damage] = []
         self.path = _check_path(Path(path))
+        self.strict = strict
         self.typestore = get_typestore(Stores.ROS2_JAZZY) if typestore is None else typestore
         self.skipped: dict[str, int] = {}
         self.skip_details: dict[str, str] = {}
         self._stores: dict[tuple[str, str], Any] = {}
         self._embedded_stores: dict[str, Any] = {}
-        self._reader: Optional[Reader] = None
+        self._reader: Optional[TolerantReader] = None
         try:
-            reader = Reader(self.path)
+            reader = TolerantReader(self.path)
             reader.open()
         except Exception as exc:  # rosbags raises many exception kinds on bad input
             hint = ''
@@ -163,11 +171,46 @@ class BagReader:
             raise BagError(f'cannot open bag {self.path}: {_describe(exc)}{hint}') from exc
         self._reader = reader
         self._connections: list[Connection] = list(reader.connections)
+        #: whether message_count() describes the bag as recorded (metadata.yaml, or a
+        #: storage index that needed no repair), so that missing messages can be counted
+        self.counts_trusted = self.path.is_dir() or not self.damage
+        if strict:
+            if self.damage:
+                text = self.damage[0].text()
+                self.close()
+                raise BagError(f'damaged bag {self.path}: {text}')
+            for storage in reader.storages():
+                storage.on_damage = self._refuse
+
+    def _refuse(self, damage: Damage) -> None:
+        raise BagError(f'damaged bag {self.path}: {damage.text()}')
+
+    @property
+    def damage(self) -> list[Damage]:
+        """Return the damaged regions found so far, in file order of discovery."""
+        reader = self._reader
+        if reader is None:
+            return list(self._closed_damage)
+        return [d for storage in reader.storages() for d in getattr(storage, 'damage', [])]
+
+    def verify(self) -> list[Damage]:
+        """Read every chunk / row once and return the damage (strict mode raises at the first)."""
+        reader = self._open_reader()
+        for storage in reader.storages():
+            try:
+                storage.verify()
+            except BagError:
+                raise
+            except Exception as exc:
+                raise BagError(f'error while reading {self.path}: {_describe(exc)}') from exc
+        return self.damage
 
     # ------------------------------------------------------------ lifecycle
 
     def close(self) -> None:
-        """Close the underlying storage (idempotent)."""
+        """Close the underlying storage (idempotent); :attr:`damage` stays readable."""
+        if self._reader is not None:
+            self._closed_damage = self.damage
         reader, self._reader = self._reader, None
         if reader is not None:
             reader.close()
@@ -190,7 +233,7 @@ class BagReader:
         """Close the bag."""
         self.close()
 
-    def _open_reader(self) -> Reader:
+    def _open_reader(self) -> TolerantReader:
         """Return the rosbags reader or raise if closed."""
         if self._reader is None:
             raise BagError(f'bag {self.path} is closed')
@@ -265,7 +308,9 @@ class BagReader:
                 item = next(source)
             except StopIteration:
                 return
-            except Exception as exc:  # corrupted chunk, CRC mismatch, sqlite error...
+            except BagError:
+                raise
+            except Exception as exc:  # what the damage-tolerant readers could not handle
                 raise BagError(f'error while reading {self.path}: {_describe(exc)}') from exc
             yield item
 
@@ -377,8 +422,11 @@ class BagReader:
         return run
 
     def _skip(self, conn: Connection, exc: Exception) -> None:
-        """Count a skipped message."""
+        """Count a skipped message (strict mode: refuse the bag)."""
         reason = f'deserialization failed: {conn.topic} ({conn.msgtype})'
+        if self.strict:
+            raise BagError(f'damaged bag {self.path}: a message of {conn.topic} does not '
+                           f'deserialize ({_describe(exc)})')
         if reason not in self.skipped:
             _LOG.warning('%s: skipping message(s): %s', reason, _describe(exc))
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
@@ -435,6 +483,7 @@ class BagReader:
         )
 
 
-def open_bag(path: PathLike, *, typestore: Optional[Any] = None) -> BagReader:
+def open_bag(path: PathLike, *, typestore: Optional[Any] = None,
+             strict: bool = False) -> BagReader:
     """Open a rosbag2 directory, bare .mcap or bare .db3 file for streaming reads."""
-    return BagReader(path, typestore=typestore)
+    return BagReader(path, typestore=typestore, strict=strict)

@@ -46,6 +46,7 @@ from typing import Iterable, Optional, Sequence, Union
 import numpy as np
 import pinocchio as pin
 
+from reduced_dynamics.estimator.base_motion import BaseMotionAnswer, predict_base_motion
 from reduced_dynamics.estimator.config import EstimatorConfig
 from reduced_dynamics.estimator.cyclic import (CYCLIC_OFF, CyclicColumns, CyclicView,
                                                resolve_cyclic_joints)
@@ -882,6 +883,26 @@ class Estimator:
         return (messages.shape, messages.path, None, (messages.phase_path, None))
 
     # --- planned trajectories ------------------------------------------------------------
+    def predict_base_motion(self, trajectory: JointTrajectorySample) -> BaseMotionAnswer:
+        """
+        Answer "where will the base go if the arm executes this plan?" from the latest state.
+
+        The filtered base pose and momentum and the shape of the last processed sample
+        start the prediction (:func:`~.base_motion.predict_base_motion`); the
+        plan's stamp 0 means "from that sample". ValueError when there is no
+        state yet, the plan does not fit the robot, or it has ended.
+        """
+        if self.latest_state is None or self.filter.g is None:
+            raise ValueError('no estimated state yet')
+        stamp, _, _, qbar, qbar_dot = self.latest_state
+        config = self.config
+        # The filter's pose and momentum at that sample.
+        return predict_base_motion(self.robot, trajectory, self.filter.g,
+                                   self.filter.mu.copy(), qbar, qbar_dot, stamp,
+                                   config.prediction_step, config.prediction_tolerance,
+                                   config.prediction_max_evaluations,
+                                   config.prediction_max_wall_time, config.world_frame)
+
     def add_trajectory(self, sample: JointTrajectorySample) -> None:
         """
         Take a planned joint trajectory (prediction_mode planned follows the latest).

@@ -62,6 +62,7 @@ from reduced_dynamics.reduction.vector_field import ReducedSystem
 from reduced_dynamics.robot.model import RobotModel
 
 NS = 1_000_000_000
+_NEVER = 2 ** 63
 PREDICTION_MODES = ('planned', 'coast', 'held_velocity', 'held_torque')
 #: Modes that prescribe the shape path (the base from reconstruction alone).
 PRESCRIBED_MODES = frozenset({'planned', 'held_velocity'})
@@ -271,13 +272,13 @@ class PredictionJob:
                 qbar, qbar_dot = qbar[:, kept], qbar_dot[:, kept]
             shape = ShapePrediction(self.start_ns, '', settings.shape_names, offsets,
                                     qbar, qbar_dot)
-        path = _pose_path(self.start_ns, settings.world_frame, offsets, result.poses)
+        path = pose_path(self.start_ns, settings.world_frame, offsets, result.poses)
         phase = None if result.phase_poses is None else \
-            _pose_path(self.start_ns, settings.world_frame, offsets, result.phase_poses)
+            pose_path(self.start_ns, settings.world_frame, offsets, result.phase_poses)
         return PredictionMessages(shape, path, phase)
 
 
-def _pose_path(start_ns: int, frame: str, offsets: np.ndarray, poses: np.ndarray) -> PosePath:
+def pose_path(start_ns: int, frame: str, offsets: np.ndarray, poses: np.ndarray) -> PosePath:
     quats = np.array([pin.Quaternion(pose[:3, :3]).coeffs() for pose in poses])
     return PosePath(start_ns, frame, start_ns + offsets, poses[:, :3, 3], quats)
 
@@ -382,11 +383,16 @@ class Predictor:
         self.plan: Optional['Plan'] = None
         self._history = _History()
         self._inline_robot: Optional[RobotModel] = None
+        # The first stamp at which an active prediction's horizon has passed, and the
+        # next stamp at which the history is trimmed (per-sample work stays O(1)).
+        self._next_end = _NEVER
+        self._trim_at = -1
 
     def adopt(self, old: 'Predictor') -> None:
         """Take over another predictor's open jobs, results, history and plan."""
         self.active, self.finished, self.made = old.active, old.finished, old.made
         self.plan, self._history = old.plan, old._history
+        self._next_end, self._trim_at = old._next_end, old._trim_at
 
     # --- starting predictions -----------------------------------------------------------
     def predict(self, stamp_ns: int, g: pin.SE3, qbar: np.ndarray, qbar_dot: np.ndarray,
@@ -414,6 +420,7 @@ class Predictor:
         if not deferred:
             job.run()
         self.active.append(job)
+        self._next_end = min(self._next_end, job.end_ns)
         self.made += 1
         return job
 
@@ -425,30 +432,36 @@ class Predictor:
     def observe(self, stamp_ns: int, qbar: np.ndarray, translation: np.ndarray,
                 rotation: np.ndarray) -> None:
         """Record a measured state; close the predictions whose horizon has passed."""
-        active = self.active
-        if active and stamp_ns > min(job.end_ns for job in active):
+        # Hot path (every sample): two comparisons unless a horizon has passed.
+        if stamp_ns > self._next_end:
             still = []
-            for job in active:
+            for job in self.active:
                 if stamp_ns > job.end_ns:
                     self._close(job)
                 else:
                     still.append(job)
             self.active = still
-        self._history.append(stamp_ns, qbar, translation, rotation)
-        oldest = min((job.start_ns for job in self.active), default=None)
-        keep_from = stamp_ns - int(self.horizon * NS) - NS if oldest is None else oldest
-        if self._history.stamps[0] < keep_from:
-            self._history.trim(keep_from - 1)
+            self._next_end = min((job.end_ns for job in still), default=_NEVER)
+        history = self._history
+        history.stamps.append(stamp_ns)
+        history.rows.append((qbar, translation, rotation))
+        if stamp_ns > self._trim_at:
+            oldest = min((job.start_ns for job in self.active), default=None)
+            keep_from = stamp_ns - int(self.horizon * NS) if oldest is None else oldest
+            history.trim(keep_from - 1)
+            self._trim_at = stamp_ns + NS
 
     def finish(self) -> None:
         """Close every active prediction against the history so far (end of input)."""
         for job in self.active:
             self._close(job)
         self.active = []
+        self._next_end = _NEVER
 
     def forget_history(self) -> None:
         """Drop the measured history (the clock restarted)."""
         self._history = _History()
+        self._trim_at = -1
 
     def _close(self, job: PredictionJob) -> None:
         result = job.result

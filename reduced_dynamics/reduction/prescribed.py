@@ -35,6 +35,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 import pinocchio as pin
+from scipy.linalg.lapack import dposv
 
 from reduced_dynamics.integrators import Budget, integrate_pieces
 from reduced_dynamics.robot.model import RobotModel
@@ -69,12 +70,14 @@ class PrescribedReconstruction:
         """Return the drift I^-1 Ad_g^T mu and the geometric phase -A q_dot at (t, g)."""
         n = self.n
         q, qd, _ = self.path(t)
-        mass = self.robot.mass_matrix(q)
-        locked = mass[:n, :n]
-        right = np.empty((n, 2))
+        # crba fills the upper triangle, which is all dposv reads (I and B lie in it).
+        mass = self.robot.mass_matrix_upper(q)
+        right = np.empty((n, 2), order='F')
         right[:, 0] = self.group.Ad(g).T @ self.mu
         right[:, 1] = -(mass[:n, n:] @ qd)
-        solved = np.linalg.solve(locked, right)
+        _, solved, info = dposv(mass[:n, :n], right)
+        if info:
+            raise np.linalg.LinAlgError('locked inertia is not positive definite')
         return solved[:, 0], solved[:, 1]
 
     def rhs(self, t: float, y: np.ndarray) -> np.ndarray:
