@@ -268,7 +268,7 @@ def _mutated_bag(tmp_path, mutate):
 def clean_replay(tmp_path_factory):
     out = tmp_path_factory.mktemp('clean') / 'out'
     return replay(os.path.join(DATA, 'paper_thruster'), str(out), load_robot(),
-                  ReplayOptions(params=NOISE_FREE)), out
+                  ReplayOptions(params=NOISE_FREE, smooth=False)), out
 
 
 def _momenta(path):
@@ -289,7 +289,8 @@ def test_one_future_stamp_loses_exactly_that_sample(tmp_path, clean_replay):
         return False
 
     bag, changed = _mutated_bag(tmp_path, future)
-    summary = replay(bag, str(tmp_path / 'out'), load_robot(), ReplayOptions(params=NOISE_FREE))
+    summary = replay(bag, str(tmp_path / 'out'), load_robot(),
+                     ReplayOptions(params=NOISE_FREE, smooth=False))
     assert summary['rejected'] == {'stamp_outlier': 1}
     assert summary['processed'] == clean['processed'] - 1
     lost = changed[0][2]  # simulated bags record at the header stamp
@@ -320,7 +321,8 @@ def test_implausible_values_are_rejected_and_counted(tmp_path, clean_replay):
         return False
 
     bag, changed = _mutated_bag(tmp_path, hostile)
-    summary = replay(bag, str(tmp_path / 'out'), load_robot(), ReplayOptions(params=NOISE_FREE))
+    summary = replay(bag, str(tmp_path / 'out'), load_robot(),
+                     ReplayOptions(params=NOISE_FREE, smooth=False))
     per_topic = {t: sum(1 for c in changed if c[0] == t) for t in ('/joint_states', '/odom')}
     rejected = summary['rejected']
     assert rejected.get('joint_position_limit', 0) + rejected.get('joint_effort_limit', 0) \

@@ -662,10 +662,10 @@ def test_node_and_replay_publish_the_same_messages_for_the_same_bag(ros, node_fa
                                                                     tmp_path):
     from rclpy_double._messages import from_rosbags, to_rosbags
     from reduced_dynamics.bag.reader import open_bag
-    from reduced_dynamics.replay import replay
+    from reduced_dynamics.replay import replay, ReplayOptions
     from reduced_dynamics.topics import active_topics, resolved_name
     bag = os.path.join(os.path.dirname(__file__), 'data', 'paper_constant')
-    replay(bag, str(tmp_path / 'out'), load_robot())
+    replay(bag, str(tmp_path / 'out'), load_robot(), ReplayOptions(smooth=False))  # causal
     node = node_factory(urdf_path=str(paper_robot_urdf()))
     with open_bag(bag) as reader:
         for message in reader.messages(['/joint_states', '/odom']):

@@ -49,8 +49,9 @@ def _wrenches(messages, topic):
 @pytest.fixture(scope='module')
 def thruster_replay(tmp_path_factory):
     out = tmp_path_factory.mktemp('replay') / 'out'
+    # Causal (--no-smooth): the outputs the node publishes, compared bit for bit below.
     summary = replay(os.path.join(DATA, 'paper_thruster'), str(out), load_robot(),
-                     ReplayOptions(params=_noise_free_params()))
+                     ReplayOptions(params=_noise_free_params(), smooth=False))
     return summary, str(out)
 
 
@@ -146,7 +147,8 @@ def test_planar_puck_from_poses_only_with_custom_topic(tmp_path):
     with open_bag(bag) as reader:
         assert '/simulator/status' in reader.topics()
         assert '/joint_states' not in reader.topics() or robot.m == 0
-    summary = replay(str(bag), str(tmp_path / 'out'), robot)
+    # Causal: a smoother spreads the pulse's onset over its time constant both ways.
+    summary = replay(str(bag), str(tmp_path / 'out'), robot, ReplayOptions(smooth=False))
     assert summary['base_driven'] and not summary['rejected']
     outputs = _read_all(tmp_path / 'out', ['/reduced_dynamics/momentum'])
     truth = _read_all(bag, ['/ground_truth/momentum'])

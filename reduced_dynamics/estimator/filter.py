@@ -66,6 +66,7 @@ from reduced_dynamics.geometry.lie_group import BaseGroup
 GATE_RESET = 3
 #: Re-linearisations of an update with a twist (iterated EKF).
 ITERATIONS = 2
+LOG_2PI = math.log(2.0 * math.pi)
 
 
 @dataclass(frozen=True)
@@ -168,6 +169,10 @@ class MomentumFilter:
         self._gated_run = 0
         self.last_nis: float = 0.0
         self._eye = np.eye(3 * n)
+        #: sum of the innovations' log-likelihoods, of their NIS and of their dimensions
+        self.log_likelihood = 0.0
+        self.nis_sum = 0.0
+        self.nis_dof = 0
         self._lin: Optional[Linearisation] = None
 
     # --- pieces of the model ----------------------------------------------------------
@@ -349,6 +354,11 @@ class MomentumFilter:
         s = 0.5 * (s + s.T)
         nis = float(nu @ np.linalg.solve(s, nu))
         self.last_nis = nis
+        # Innovation log-likelihood (what `reduced-dynamics tune` maximises) and NIS sums.
+        sign, logdet = np.linalg.slogdet(s)
+        self.log_likelihood -= 0.5 * (nis + logdet + len(nu) * LOG_2PI)
+        self.nis_sum += nis
+        self.nis_dof += len(nu)
         if nis > self._gates[len(nu)]:
             self.gated += 1
             self._gated_run += 1

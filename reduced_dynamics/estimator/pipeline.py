@@ -52,7 +52,8 @@ from reduced_dynamics.estimator.cyclic import (CYCLIC_OFF, CyclicColumns, Cyclic
                                                resolve_cyclic_joints)
 from reduced_dynamics.estimator.kernel import UpdateKernel
 from reduced_dynamics.estimator.events import EventDetector, MomentumEvent
-from reduced_dynamics.estimator.filter import Linearisation, MomentumFilter, NoiseModel
+from reduced_dynamics.estimator.filter import (Linearisation, MomentumFilter, NoiseModel,
+                                               smooth)
 from reduced_dynamics.estimator.plausibility import BaseBounds, JointBounds
 from reduced_dynamics.estimator.prediction import (
     FinishedPrediction, Plan, PredictionJob, PredictionMessages, Predictor, PRESCRIBED_MODES)
@@ -362,7 +363,8 @@ class Estimator:
                                      record=self.record_steps)
         if old_filter is not None:
             # New noise and gate; the estimate and the recorded steps stay.
-            for name in ('g', 'x', 'p', 'stamp_ns', 'steps', 'gated'):
+            for name in ('g', 'x', 'p', 'stamp_ns', 'steps', 'gated', 'log_likelihood',
+                         'nis_sum', 'nis_dof', '_lin', '_gated_run'):
                 setattr(self.filter, name, getattr(old_filter, name))
         old_detector = getattr(self, 'detector', None)
         self.detector = EventDetector(self.robot.n, config.event_significance,
@@ -658,11 +660,12 @@ class Estimator:
         self._last_prediction_ns = self._last_diagnostics_ns = None
         # The filter restarts from the next sample (its recorded steps stay, the
         # smoother sees the restart); detected events stay reported.
-        steps = self.filter.steps
+        old = self.filter
         config = self.config
         self.filter = MomentumFilter(self.robot.group, self.noise, config.innovation_gate,
                                      record=self.record_steps)
-        self.filter.steps = steps
+        for name in ('steps', 'gated', 'log_likelihood', 'nis_sum', 'nis_dof'):
+            setattr(self.filter, name, getattr(old, name))
         events = self.detector.events
         self.detector = EventDetector(self.robot.n, config.event_significance,
                                       config.event_hold)
@@ -939,6 +942,62 @@ class Estimator:
                                      sample.positions, sample.velocities,
                                      sample.accelerations, self.robot.m))
 
+    def filter_statistics(self) -> dict:
+        """
+        Return the filter's innovation statistics.
+
+        ``log_likelihood``: sum over the updates of log N(nu; 0, S);
+        ``nis_per_dof``: mean normalised innovation squared per measured
+        coordinate (1 when the noise parameters fit the data); ``innovation_gated``.
+        """
+        flt = self.filter
+        return {'log_likelihood': flt.log_likelihood,
+                'nis_per_dof': flt.nis_sum / flt.nis_dof if flt.nis_dof else None,
+                'innovation_gated': flt.gated}
+
+    # --- smoothing (replay) -----------------------------------------------------------
+    def enable_smoothing(self) -> None:
+        """Record the filter's steps from now on, for :meth:`smooth_outputs` (replay)."""
+        self.record_steps = True
+        self.filter.record = True
+
+    def smooth_outputs(self, outputs: Sequence[EstimatorOutput]) -> None:
+        """
+        Replace the filtered estimates of ``outputs`` by the RTS-smoothed ones, in place.
+
+        ``outputs`` are all outputs since :meth:`enable_smoothing`, in order (one
+        recorded filter step each). Momentum, body momentum, momentum rate, drift
+        twist, mu and the covariances change; the shape state, predictions,
+        diagnostics and events stay those of the causal run.
+        """
+        steps = self.filter.steps
+        if len(steps) != len(outputs):
+            raise ValueError(f'{len(outputs)} outputs for {len(steps)} recorded filter steps')
+        if not outputs:
+            return
+        n, group, kernel = self.robot.n, self.robot.group, self.kernel
+        states = smooth(group, steps)
+        mu = np.array([state.x[:n] for state in states])
+        rate = np.array([state.x[n:] for state in states])
+        pi = np.array([group.Ad(state.g).T @ state.x[:n] for state in states])
+        drift = np.array([step.locked_inverse @ row for step, row in zip(steps, pi)])
+        momentum, body = kernel.wrenches(mu), kernel.wrenches(pi)
+        wrench, twist = kernel.wrenches(rate), kernel.twists(drift)
+        world, base = self.config.world_frame, self.robot.base_link
+        for k, output in enumerate(outputs):
+            stamp = output.stamp_ns
+            output.mu = mu[k]
+            output.momentum = trusted_sample(WrenchSample, stamp, world, momentum[k, :3],
+                                             momentum[k, 3:])
+            output.body_momentum = trusted_sample(WrenchSample, stamp, base, body[k, :3],
+                                                  body[k, 3:])
+            output.momentum_rate = trusted_sample(WrenchSample, stamp, world, wrench[k, :3],
+                                                  wrench[k, 3:])
+            output.drift_twist = trusted_sample(TwistSample, stamp, base, twist[k, :3],
+                                                twist[k, 3:])
+            output.momentum_covariance = states[k].p[n:2 * n, n:2 * n]
+            output.wrench_covariance = states[k].p[2 * n:, 2 * n:]
+
     # --- reporting -------------------------------------------------------------------
     def diagnostics(self, stamp_ns: int) -> Diagnostics:
         """Return the estimator's status (and reset the per-period rates)."""
@@ -1063,6 +1122,7 @@ class Estimator:
                         'peak_wrench': e.peak_wrench} for e in self.events],
             'predictions': self.predictor.made,
             'prediction_failures': dict(failures),
+            'filter': self.filter_statistics(),
             'prediction_shape_residual_max': max(residuals) if residuals else None,
             'prediction_shape_residual_median': float(np.median(residuals))
             if residuals else None,
