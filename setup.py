@@ -31,6 +31,7 @@ def _rel_glob(pattern):
 DATA_PACKAGE = package_name + '._data'
 config_files = _rel_glob('config/*.yaml')
 robot_files = _rel_glob('config/robots/*.urdf')
+plan_files = _rel_glob('config/plans/*.yaml')
 
 packages = find_packages(where=_here, exclude=['test', 'test.*'])
 package_dir = {}
@@ -38,7 +39,7 @@ package_data = {}
 if config_files or robot_files:
     packages.append(DATA_PACKAGE)
     package_dir[DATA_PACKAGE] = 'config'
-    package_data[DATA_PACKAGE] = ['*.yaml', 'robots/*.urdf']
+    package_data[DATA_PACKAGE] = ['*.yaml', 'robots/*.urdf', 'plans/*.yaml']
 
 setup(
     name=package_name,
@@ -53,6 +54,7 @@ setup(
         ('share/' + package_name + '/launch', _rel_glob('launch/*.launch.py')),
         ('share/' + package_name + '/config', config_files),
         ('share/' + package_name + '/config/robots', robot_files),
+        ('share/' + package_name + '/config/plans', plan_files),
     ],
     python_requires='>=3.10',
     install_requires=[

@@ -81,6 +81,8 @@ class Settings:
     scaling_samples: int = 600
     scaling_evaluations: int = 300
     shape_joints: tuple = SHAPE_JOINTS
+    #: the torque-varying 200 Hz bag of section planned (issue 13: 60 s)
+    planned_bag_seconds: float = 60.0
     quick: bool = False
 
     @classmethod
@@ -90,7 +92,7 @@ class Settings:
                    full_rtols=(1e-6, 1e-8, 1e-10, 1e-12), reduced_rtols=(1e-8, 1e-10),
                    dg_steps=(0.05, 0.025), replay_seconds=3.0, memory_short_seconds=5.0,
                    memory_long_seconds=20.0, scaling_samples=200, scaling_evaluations=60,
-                   quick=True)
+                   planned_bag_seconds=20.0, quick=True)
 
 
 @dataclass
@@ -432,6 +434,152 @@ def _count_evaluations(system: Any, counter: Optional[list]) -> None:
     system.rhs = counted
 
 
+# --------------------------------------------------------------------------- planned motions
+#: Shipped bags replayed with predictions on (defaults) and off, with their robots.
+SHIPPED_BAGS = (('paper_thruster', '', None, None), ('paper_constant', '', None, None),
+                ('paper_realistic', '', None, None),
+                ('planar_pose_only', 'robots/planar_testbed.urdf', 'planar', (0.0, 0.0, -9.81)),
+                ('freeflyer_realistic', 'robots/freeflyer.urdf', None, None))
+
+
+def bench_plan(seconds: float = 10.0, points: int = 11, seed: int = 1) -> tuple:
+    """Return (path, g0, xi0, mu) of a seeded cubic plan for the paper robot's shape."""
+    from reduced_dynamics.reduction.shape_path import PlannedPath
+    from reduced_dynamics.robot.model import load_robot
+    from reduced_dynamics.robot.momentum import momentum_map
+    robot = load_robot()
+    rng = np.random.default_rng(seed)
+    times = np.linspace(0.0, seconds, points)
+    positions = 0.4 * rng.standard_normal((points, robot.m))
+    velocities = 0.2 * rng.standard_normal((points, robot.m))
+    velocities[0] = velocities[-1] = 0.0
+    path = PlannedPath(times, positions, velocities)
+    g0 = pin.SE3(pin.exp3(np.array([0.1, 0.2, -0.3])), np.array([1.0, 2.0, 3.0]))
+    xi0 = np.array([0.01, -0.02, 0.03, 0.02, -0.01, 0.015])
+    n = robot.n
+    mass = robot.mass_matrix(path(0.0)[0])
+    mu = momentum_map(robot.group, g0, mass[:n] @ np.concatenate([xi0, path(0.0)[1]]))
+    return robot, path, g0, xi0, mu
+
+
+def bench_planned(report: Report, settings: Settings, workdir: str) -> None:
+    """
+    Section planned (issue 13): base motion for a 10 s plan, and replay cost of predictions.
+
+    (a) The reconstruction alone (what ``~/predict_base_motion`` runs) against
+    one full-dynamics simulation of the same plan (shape prescribed, base by
+    the full equations), each swept over tolerances; time at equal base-pose
+    error. (b) Replay with default settings against predictions off, side by
+    side (interleaved repeats) on the shipped bags and a 60 s, 200 Hz bag with
+    varying (PD) torques.
+    """
+    from reduced_dynamics.full_dynamics import PrescribedShapeDynamics
+    from reduced_dynamics.reduction.prescribed import PrescribedReconstruction, relative_angles
+    robot, path, g0, xi0, mu = bench_plan()
+    times = np.linspace(0.0, 10.0, 201)
+    reference = PrescribedShapeDynamics(robot, path).simulate(g0, xi0, times, 1e-13, 1e-13)
+
+    def error_of(poses: np.ndarray) -> float:
+        position = np.abs(poses[:, :3, 3] - reference.poses[:, :3, 3]).max()
+        attitude = relative_angles(poses[:, :3, :3], reference.poses[:, :3, :3]).max()
+        return float(max(position, attitude))
+
+    def reduced(tol: float) -> Callable[[], Any]:
+        return lambda: PrescribedReconstruction(robot, mu, g0, path).propagate(
+            times, tol, tol, path.breakpoints).poses
+
+    def full(tol: float) -> Callable[[], Any]:
+        return lambda: PrescribedShapeDynamics(robot, path).simulate(g0, xi0, times, tol,
+                                                                     tol).poses
+
+    full_tols = (1e-6, 1e-8, 1e-10, 1e-12)
+    reduced_tols = (1e-8, 1e-10) if settings.quick else (1e-6, 1e-8, 1e-10, 1e-12)
+    runs = [('full', t, full(t)) for t in full_tols] + \
+        [('reduced', t, reduced(t)) for t in reduced_tols]
+    seconds = [[] for _ in runs]
+    errors = [0.0] * len(runs)
+    for _ in range(settings.repeats):
+        for index, (_, _, run) in enumerate(runs):
+            poses, timing = _timed(run, 1)
+            seconds[index] += timing
+            errors[index] = error_of(poses)
+    full_rows = [(e, s) for (kind, _, _), e, s in zip(runs, errors, seconds) if kind == 'full']
+    sweep = {f'{kind} {tol:g}': {'error': e, 'seconds': s}
+             for (kind, tol, _), e, s in zip(runs, errors, seconds)}
+    report.details['planned_sweep'] = sweep
+    for (kind, tol, _), error, timing in zip(runs, errors, seconds):
+        if kind != 'reduced':
+            continue
+        baseline, inside = [], True
+        for repeat in range(settings.repeats):
+            value, inside = matched_time([e for e, _ in full_rows],
+                                         [s[repeat] for _, s in full_rows], error)
+            baseline.append(value)
+        is_default = tol == 1e-10
+        note = f'paper robot, 10 s cubic plan, base pose error {error:.1e} (m and rad)'
+        if not inside:
+            note += ' (outside the full sweep: nearest end)'
+        report.add(make_figure(
+            'planned', f'base motion for a 10 s plan, reconstruction rtol {tol:g}', 'ms',
+            [1e3 * t for t in timing], 'full dynamics, shape prescribed, at equal error',
+            [1e3 * b for b in baseline], [t / b for t, b in zip(timing, baseline)],
+            'ratio < 1' if is_default else '', (lambda r: r < 1.0) if is_default else None,
+            note))
+    _bench_replay_predictions(report, settings, workdir)
+
+
+def _bench_replay_predictions(report: Report, settings: Settings, workdir: str) -> None:
+    """Replay with default settings against predictions off, interleaved, per bag."""
+    from reduced_dynamics.params import defaults
+    from reduced_dynamics.replay import replay, ReplayOptions
+    from reduced_dynamics.resources import config_path
+    from reduced_dynamics.robot.model import load_robot
+    from reduced_dynamics.simulator import SimulationOptions, simulate_bag
+    data = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                        'test', 'data')
+    bags = []
+    for name, urdf, joint, gravity in SHIPPED_BAGS:
+        if os.path.isdir(os.path.join(data, name)):
+            robot = load_robot(str(config_path(urdf)) if urdf else '', joint,
+                               None if gravity is None else np.array(gravity))
+            bags.append((name, os.path.join(data, name), robot))
+    varying = os.path.join(workdir, 'pd60')
+    seconds = settings.planned_bag_seconds
+    paper = load_robot()
+    simulate_bag(paper, varying, SimulationOptions(duration=seconds, rate=200.0, torque='pd',
+                                                   overwrite=True))
+    varying_label = f'{seconds:g} s, 200 Hz, PD torques (simulated)'
+    bags.append((varying_label, varying, paper))
+    out = os.path.join(workdir, 'replayed')
+    off = {**defaults(), 'prediction_rate': 0.0}
+    for label, bag, robot in bags:
+        variants = [('default', defaults())]
+        if bag == varying:
+            # The torque-driven mode for comparison (the default before issue 13).
+            variants.append(('held_torque', {**defaults(), 'prediction_mode': 'held_torque'}))
+        rates = {key: [] for key in ['off'] + [v[0] for v in variants]}
+        summaries = {}
+        for _ in range(settings.repeats):
+            for key, params in [('off', off)] + variants:
+                start = time.perf_counter()
+                result = replay(bag, out, robot, ReplayOptions(params=params, overwrite=True))
+                rates[key].append(result['processed'] / (time.perf_counter() - start))
+                summaries[key] = result
+        for key, _ in variants:
+            summary = summaries[key]
+            modes = ', '.join(f'{m} {v["predictions"]}'
+                              for m, v in summary['prediction_residuals'].items())
+            name = 'defaults' if key == 'default' else f'prediction_mode {key}'
+            report.add(make_figure(
+                'planned', f'replay with {name}, {label}', 'samples/s', rates[key],
+                'same bag, predictions off', rates['off'],
+                [d / o for d, o in zip(rates[key], rates['off'])],
+                'ratio >= 0.5' if key == 'default' else '',
+                (lambda r: r >= 0.5) if key == 'default' else None,
+                f'{summary["processed"]} samples; predictions: {modes or "none"}'))
+    shutil.rmtree(out, ignore_errors=True)
+
+
 # --------------------------------------------------------------------------- 3. replay
 def simulate_input_bag(robot, path: str, seconds: float) -> None:
     """Simulate the robot and write a 1 kHz bag (Odometry base) at ``path``."""
@@ -700,7 +848,7 @@ def write_csv(report: Report, path: str) -> None:
             writer.writerow(asdict(figure))
 
 
-SECTIONS = ('update', 'prediction', 'replay', 'scaling')
+SECTIONS = ('update', 'prediction', 'replay', 'scaling', 'planned')
 
 
 def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
@@ -726,6 +874,13 @@ def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
     if 'scaling' in sections:
         say('scaling...')
         bench_scaling(report, settings)
+    if 'planned' in sections:
+        say('planned...')
+        workdir = tempfile.mkdtemp(prefix='reduced_dynamics_bench_')
+        try:
+            bench_planned(report, settings, workdir)
+        finally:
+            shutil.rmtree(workdir, ignore_errors=True)
     return report
 
 
@@ -735,7 +890,7 @@ def _run(args: argparse.Namespace) -> int:
         settings.repeats = args.repeats
     if settings.repeats < 1:
         raise ValueError('--repeats must be at least 1')
-    sections = args.sections or ('update', 'prediction', 'replay', 'scaling')
+    sections = args.sections or SECTIONS
     report = run_bench(settings, sections,
                        lambda text: print(f'bench: {text}', file=sys.stderr, flush=True))
     print(format_report(report))
@@ -760,6 +915,6 @@ def register_command(commands: Any) -> None:
     parser.add_argument('--json', metavar='FILE', help='write the report as JSON')
     parser.add_argument('--csv', metavar='FILE', help='write the figures as CSV')
     parser.add_argument('--sections', nargs='+',
-                        choices=('update', 'prediction', 'replay', 'scaling'),
+                        choices=SECTIONS,
                         help='run only these sections (default: all)')
     parser.set_defaults(func=_run)

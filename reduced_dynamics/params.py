@@ -35,8 +35,9 @@ NODE_PARAMETERS: dict[str, ParameterSpec] = {
                                        'in until it arrives)'),
     'urdf_path': ParameterSpec('', None, None, (), 'URDF file used when robot_description '
                                                    'is empty'),
-    'base_joint': ParameterSpec('floating', None, None, ('floating', 'planar'),
-                                'free base: floating (SE(3)) or planar (SE(2), air bearing)'),
+    'base_joint': ParameterSpec('auto', None, None, ('auto', 'floating', 'planar'),
+                                'free base: auto (the URDF\'s own world joint, else '
+                                'floating), floating (SE(3)) or planar (SE(2), air bearing)'),
     'gravity': ParameterSpec([0.0, 0.0, 0.0], None, None, (),
                              'gravity [m/s^2], world frame; nonzero only for a planar base '
                              '(along z)'),

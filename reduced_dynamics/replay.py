@@ -307,7 +307,9 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
             emit(estimator.flush_batch().outputs(), final=True)
         written = {topic: count for topic, count in writer.message_counts.items() if count}
         skipped = dict(reader.skipped)
-        damage = damage_report(reader, wanted, read)
+        # A --start/--end window reads part of the bag on purpose: no missing count then.
+        damage = damage_report(reader, wanted, read,
+                               whole=start_ns is None and end_ns is None)
     if options.progress is not None:
         options.progress.write('\rreplay: 100.0%\n')
     elapsed = time.perf_counter() - started
@@ -329,7 +331,8 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
     return summary
 
 
-def damage_report(reader: BagReader, topics: list[str], read: Counter) -> dict[str, Any]:
+def damage_report(reader: BagReader, topics: list[str], read: Counter,
+                  whole: bool = True) -> dict[str, Any]:
     """
     Return what the damaged parts of the bag cost: regions, messages and bytes lost.
 
@@ -339,7 +342,7 @@ def damage_report(reader: BagReader, topics: list[str], read: Counter) -> dict[s
     regions = reader.damage
     undecodable = sum(reader.skipped.values())
     missing: dict[str, int] = {}
-    if reader.counts_trusted and (regions or undecodable):
+    if whole and reader.counts_trusted and (regions or undecodable):
         for topic in topics:
             got = read[topic] + sum(n for reason, n in reader.skipped.items()
                                     if reason.split(': ', 1)[-1].startswith(topic + ' ('))
@@ -459,6 +462,17 @@ def format_summary(summary: dict[str, Any]) -> str:
     lines.append(f'predictions: {summary["predictions"]}, shape residual max '
                  + ('n/a' if residual is None else f'{residual:.2e} rad, median '
                     f'{summary["prediction_shape_residual_median"]:.2e} rad'))
+    for mode, entry in summary.get('prediction_residuals', {}).items():
+        # Prescribed modes are judged by the base path, torque modes by the shape.
+        if entry['compared'] == 0:
+            lines.append(f'  {mode}: {entry["predictions"]} predictions, none compared')
+            continue
+        lines.append(
+            f'  {mode}: {entry["predictions"]} predictions ({entry["failed"]} stopped), '
+            f'judged by the {entry["judged_by"]}: position residual median '
+            f'{entry["position_residual_median"]:.2e} m, attitude '
+            f'{entry["attitude_residual_median"]:.2e} rad, shape '
+            f'{entry["shape_residual_median"]:.2e} rad')
     if summary.get('plots'):
         lines.append('plots: ' + ', '.join(summary['plots']))
     damage = summary.get('damage') or {}
@@ -482,6 +496,8 @@ def _run(args: argparse.Namespace) -> int:
     params = load_params_file(args.params) if args.params else defaults()
     if args.cyclic_joints is not None:
         params['cyclic_joints'] = args.cyclic_joints
+    if args.prediction_mode is not None:
+        params['prediction_mode'] = args.prediction_mode
     robot = load_robot_from_params(params, args.urdf, args.base_joint, args.gravity)
     options = ReplayOptions(params=params, joint_states_topic=args.joint_states_topic,
                             odom_topic=args.odom_topic, base_pose_topic=args.base_pose_topic,
@@ -523,6 +539,10 @@ def register_command(commands: Any) -> None:
     parser.add_argument('--cyclic-joints', metavar='NAMES',
                         help='second-stage reduction: "auto" or comma-separated cyclic '
                              'joints (overrides the parameters file)')
+    parser.add_argument('--prediction-mode',
+                        choices=('planned', 'coast', 'held_velocity', 'held_torque'),
+                        help='what the arm does over a prediction (overrides the parameters '
+                             'file; default planned, held_velocity while there is no plan)')
     parser.add_argument('--start', type=float, help='seconds from the bag start')
     parser.add_argument('--end', type=float, help='seconds from the bag start')
     parser.add_argument('--plots', metavar='DIR', help='write PNG plots into DIR')

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass, field
+import functools
 import heapq
 import json
 import math
@@ -221,6 +222,8 @@ class SimulationOptions:
     thrust_gain: tuple[float, ...] = (1.0,) * 6
     thrust_bias: tuple[float, ...] = (0.0,) * 6
     command_rate: float = 10.0
+    joint_rate: Optional[float] = None
+    base_rate: Optional[float] = None
     base_pose_only: bool = False
     momentum_class: str = 'generic'
     status: bool = False
@@ -249,6 +252,10 @@ class SimulationOptions:
         _check_positive('bunch_gap', self.bunch_gap)
         _check_positive('outage_duration', self.outage_duration)
         _check_positive('command_rate', self.command_rate)
+        for name in ('joint_rate', 'base_rate'):
+            if getattr(self, name) is not None:
+                _check_positive(name, getattr(self, name))
+                self.decimation(getattr(self, name), name)
         for name in ('noise_effort', 'stamp_jitter', 'latency', 'latency_jitter',
                      'outage_rate'):
             _check_nonnegative(name, getattr(self, name))
@@ -331,6 +338,17 @@ class SimulationOptions:
             force = LAYOUT_FORCE.get(self.thruster_layout, 1.0)
         return ThrusterSet(np.array(units), force, np.array(self.thrust_gain),
                            np.array(self.thrust_bias))
+
+    def decimation(self, topic_rate: Optional[float], name: str = 'rate') -> int:
+        """Return how many samples apart a topic at ``topic_rate`` publishes (rate / it)."""
+        if topic_rate is None:
+            return 1
+        ratio = self.rate / topic_rate
+        every = int(round(ratio))
+        if every < 1 or abs(ratio - every) > 1e-9 * ratio:
+            raise ValueError(f'{name} ({topic_rate:g} Hz) must divide the sample rate '
+                             f'({self.rate:g} Hz) a whole number of times')
+        return every
 
     def timing(self) -> TimingOptions:
         """Return the timing effects of every measured topic."""
@@ -727,9 +745,15 @@ class _Recorder:
         self.reference_cond: Optional[float] = None
         self.base_topic = TOPIC_BASE_POSE if options.base_pose_only else TOPIC_ODOM
         timing = options.timing()
-        self.timing = {topic: TopicTiming(timing, options.seed, SENSOR_TOPICS.index(topic),
-                                          self.stamp, options.duration)
-                       for topic in bag.topics if topic in SENSOR_TOPICS}
+        # Each measured topic publishes every `every` samples; its timing model counts
+        # the topic's own messages (its "next message" is `every` samples later).
+        self.every = {TOPIC_JOINT_STATES: options.decimation(options.joint_rate),
+                      self.base_topic: options.decimation(options.base_rate)}
+        self.timing = {
+            topic: TopicTiming(timing, options.seed, SENSOR_TOPICS.index(topic),
+                               functools.partial(self._topic_stamp, self.every[topic]),
+                               options.duration)
+            for topic in bag.topics if topic in SENSOR_TOPICS}
         self.thrusters = options.thruster_set()
         self.commands = command_times(options) if self.thrusters is not None else []
         self.next_command = 0
@@ -741,6 +765,9 @@ class _Recorder:
     def stamp(self, k: int) -> int:
         """Return the bag time of sample k."""
         return self.options.start_time_ns + int(round(k * NS_PER_S / self.options.rate))
+
+    def _topic_stamp(self, every: int, j: int) -> int:
+        return self.stamp(j * every)
 
     def _push(self, record_ns: int, topic: str, msg: Any) -> None:
         heapq.heappush(self.queue, (record_ns, self.order, topic, msg))
@@ -774,14 +801,19 @@ class _Recorder:
         self._commands(t)
         self._flush(stamp)
         timing = self.timing.get(TOPIC_JOINT_STATES)
-        if timing is not None:
+        every = self.every[TOPIC_JOINT_STATES]
+        if timing is not None and k % every == 0:
             position, velocity, effort = self.noise.joints(state.qbar, state.qbar_dot, tau)
-            times = timing.message(k, t)
+            times = timing.message(k // every, t)
             if times is not None:
                 sample = JointStateSample(times[0], '', self.names, position, velocity, effort)
                 self._push(times[1], TOPIC_JOINT_STATES, joint_state_to_ros(sample, types))
-        position, quaternion, twist6 = self.noise.base(state.g, robot.group.twist(state.xi))
-        times = self.timing[self.base_topic].message(k, t)
+        every = self.every[self.base_topic]
+        times = None
+        if k % every == 0:
+            position, quaternion, twist6 = self.noise.base(state.g,
+                                                           robot.group.twist(state.xi))
+            times = self.timing[self.base_topic].message(k // every, t)
         if times is not None:
             base = BaseStateSample(times[0], WORLD_FRAME, robot.base_link, position,
                                    quaternion, twist6[:3], twist6[3:])
@@ -1086,6 +1118,12 @@ def register_command(subparsers: Any) -> None:
     parser.add_argument('--duration', type=_positive, default=10.0, help='seconds (default 10)')
     parser.add_argument('--rate', type=_positive, default=200.0,
                         help='sample rate of every topic, Hz (default 200)')
+    parser.add_argument('--joint-rate', type=_positive, default=None,
+                        help='rate of /joint_states, Hz: --rate divided by a whole number '
+                             '(default --rate)')
+    parser.add_argument('--base-rate', type=_positive, default=None,
+                        help='rate of /odom or /base_pose, Hz: --rate divided by a whole '
+                             'number (default --rate)')
     parser.add_argument('--seed', type=_seed, default=0, help='random seed (default 0)')
     parser.add_argument('--torque', choices=TORQUE_MODES, default='sinusoid',
                         help='joint torques: zero, constant (held --torque-hold s, alternating '
@@ -1192,6 +1230,7 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         thruster_force=args.thruster_force, firings=tuple(args.fire),
         thrust_gain=tuple(args.thrust_gain), thrust_bias=tuple(args.thrust_bias),
         command_rate=args.command_rate, trajectory=args.trajectory or '',
+        joint_rate=args.joint_rate, base_rate=args.base_rate,
         momentum_class=args.momentum_class, status=args.status, overwrite=args.overwrite,
         start_time_ns=int(round(args.start_time * NS_PER_S)))
 

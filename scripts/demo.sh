@@ -50,7 +50,11 @@ rd simulate -o "$OUT/recorded" --overwrite --duration 10 --rate 200 --seed 1 \
 
 step "replay: estimator over the recorded bag"
 rd replay "$OUT/recorded" -o "$OUT/estimates" --overwrite --plots "$OUT/plots" \
-  --summary-json "$OUT/summary.json"
+  --summary-json "$OUT/summary.json" --prediction-mode held_torque
+
+step "predict: where does the base go if the arm executes a planned motion? (10 s plan)"
+rd predict --trajectory config/plans/example_plan.yaml --mu 1 0 0 0 0 2 \
+  -o "$OUT/planned_base_path.json"
 
 step "done"
 echo "output bag: $OUT/estimates   plots: $OUT/plots/*.png   summary: $OUT/summary.json"

@@ -29,7 +29,7 @@ def _tiny() -> bench.Settings:
                           dg_steps=(0.05,), prediction_points=11, replay_seconds=0.3,
                           memory_short_seconds=0.2, memory_long_seconds=0.4,
                           scaling_samples=40, scaling_evaluations=3,
-                          shape_joints=(6, 12), quick=True)
+                          shape_joints=(6, 12), planned_bag_seconds=2.0, quick=True)
 
 
 def test_statistics_helpers():
@@ -60,6 +60,8 @@ def test_bench_sections_tiny(tmp_path):
     assert any(n.startswith('reduced discrete_gradient') for n in names)
     assert 'replay throughput (prediction off)' in names
     assert 'update cost exponent' in names
+    assert any(n.startswith('base motion for a 10 s plan') for n in names)
+    assert any(n.startswith('replay with defaults, paper_thruster') for n in names)
     sweep = report.details['prediction_sweep']
     assert all(row['error'] < 1e-2 for row in sweep['full dop853'])
     assert report.details['replay_memory']['long']['processed'] > \

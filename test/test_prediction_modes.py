@@ -126,6 +126,25 @@ def test_geometric_phase_alone_equals_the_zero_momentum_motion(robot_name):
     assert np.abs(predicted.poses[-1, :3, 3] - predicted.phase_poses[-1, :3, 3]).max() > 1e-2
 
 
+@pytest.mark.parametrize('kind', ['linear', 'cubic', 'quintic'])
+def test_planned_path_joins_the_current_state_to_its_first_point(kind):
+    # Like the controller joining its state at arrival: a cubic from (q0, qd0), linear
+    # without velocities; a quintic plan's join is a cubic too (the state has no accelerations).
+    times, positions, velocities, accelerations = _plan(2, kind=kind, points=3, seconds=2.0)
+    q0, qd0 = np.array([0.5, -0.5]), np.array([0.3, 0.1])
+    path = PlannedPath(times + 1.0, positions, velocities, accelerations, start=(0.0, q0, qd0))
+    np.testing.assert_allclose(path(0.0)[0], q0, atol=1e-15)
+    if velocities is not None:
+        np.testing.assert_allclose(path(0.0)[1], qd0, atol=1e-15)
+        np.testing.assert_allclose(path.velocity_limits(1.0)[0], velocities[0], atol=1e-12)
+        # Third derivative constant on the join (a cubic), by differences of q_ddot.
+        jerk = [(path(t + 1e-4)[2] - path(t - 1e-4)[2]) / 2e-4 for t in (0.2, 0.5, 0.8)]
+        np.testing.assert_allclose(jerk[0], jerk[2], rtol=1e-6, atol=1e-6)
+    else:
+        np.testing.assert_allclose(path(0.5)[0], 0.5 * (q0 + positions[0]), atol=1e-14)
+    np.testing.assert_allclose(path(1.0)[0], positions[0], atol=1e-12)
+
+
 def test_held_velocity_path_is_a_line():
     path = HeldVelocityPath(0.0, np.array([0.1, 0.2]), np.array([1.0, -2.0]))
     q, qd, qdd = path(0.5)
@@ -362,3 +381,19 @@ def test_estimator_answers_a_plan_from_its_latest_state():
     assert answer.path.stamp_ns == joints[100].stamp_ns
     index = [int(round((s * 1e-9 - 1.0) * 200)) for s in answer.path.stamps_ns]
     np.testing.assert_allclose(answer.path.positions, run.poses[index, :3, 3], atol=1e-8)
+
+
+def test_budget_counts_evaluations_and_wall_time(monkeypatch):
+    from reduced_dynamics import integrators
+    from reduced_dynamics.integrators import Budget, BudgetExceeded
+    budget = Budget(max_evaluations=3)
+    budget.charge(3)
+    with pytest.raises(BudgetExceeded, match='evaluation budget exceeded'):
+        budget.charge()
+    clock = iter([100.0, 100.2, 100.9])  # start, then two charges: a fake clock
+    monkeypatch.setattr(integrators.time, 'perf_counter', lambda: next(clock))
+    budget = Budget(max_wall_time=0.5)
+    budget.charge()
+    with pytest.raises(BudgetExceeded, match='wall-time budget exceeded') as caught:
+        budget.charge()
+    assert caught.value.reason.startswith('wall-time budget exceeded (0.5 s, 2 evaluations)')

@@ -287,3 +287,14 @@ def test_bad_input_messages_are_counted_and_change_no_output(tmp_path):
     assert summary['messages_out'] == good['messages_out']
     estimates = [m for m in _raw_outputs(tmp_path / 'out') if m[0] != '/diagnostics']
     assert estimates == [m for m in _raw_outputs(tmp_path / 'good') if m[0] != '/diagnostics']
+
+
+def test_replay_base_joint_auto_follows_the_urdf_world_joint(tmp_path) -> None:
+    """A URDF declaring a planar world joint loads with the default parameters (auto)."""
+    from reduced_dynamics.params import ALL_PARAMETERS
+    from reduced_dynamics.replay import load_robot_from_params
+    from reduced_dynamics.resources import config_path
+    defaults = {name: spec.default for name, spec in ALL_PARAMETERS.items()}
+    robot = load_robot_from_params(defaults, str(config_path('robots/freeflyer.urdf')))
+    assert robot.base_joint_type == 'planar'
+    assert load_robot_from_params(defaults).base_joint_type == 'floating'

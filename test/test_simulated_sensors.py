@@ -471,3 +471,21 @@ def test_cli_options_reach_the_simulation(tmp_path: Path, capsys: pytest.Capture
     options = dataclasses.fields(SimulationOptions)
     assert {'stamp_jitter', 'bunch_fraction', 'latency', 'outage_rate', 'quantize',
             'firings'} <= {f.name for f in options}
+
+
+def test_topics_at_their_own_rates(tmp_path: Path) -> None:
+    summary = simulate(tmp_path, 'bag', paper_robot(), duration=1.0, rate=200.0, seed=3,
+                       torque='sinusoid', joint_rate=100.0, base_rate=50.0,
+                       bunch_fraction=0.2, noise_pose=1e-3)
+    joints = read(tmp_path / 'bag', '/joint_states')
+    odom = read(tmp_path / 'bag', '/odom')
+    assert [t - START for t, _ in joints] == [k * 10_000_000 for k in range(101)]
+    assert [t - START for t, _ in odom] == [k * 20_000_000 for k in range(51)]
+    assert summary.message_counts['/ground_truth/momentum'] == 201
+    # A bunched base message is stamped just before the next *base* message.
+    stamps = np.array([stamp_ns(m) for _, m in odom])
+    gaps = np.diff(stamps)
+    assert summary.sensors['/odom'].bunched == np.count_nonzero(gaps < 100_000) > 0
+    assert np.all((gaps == 20_000_000) | (gaps < 100_000) | (gaps > 20_000_000))
+    with pytest.raises(ValueError, match='whole number'):
+        SimulationOptions(rate=200.0, base_rate=120.0)

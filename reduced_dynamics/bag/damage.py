@@ -611,9 +611,13 @@ class TolerantSqlite3Reader(Sqlite3Reader):
         try:
             super().open()
         except ReaderError as exc:
-            if not isinstance(exc.__cause__, apsw.Error):
-                raise
-            self._open_damaged(_describe(exc.__cause__))
+            if 'missing tables' in str(exc):
+                raise  # not a rosbag2 database at all
+            cause = exc.__cause__ if isinstance(exc.__cause__, apsw.Error) else exc
+            try:
+                self._open_damaged(_describe(cause))
+            except Exception:
+                raise exc from None
 
     def _rows_lost(self, first: int, last: int, detail: str) -> None:
         """Record unreadable rows once (the open scan and the read find the same ones)."""
@@ -664,6 +668,11 @@ class TolerantSqlite3Reader(Sqlite3Reader):
             raise ReaderError(f'Cannot open database {self.path}: {_describe(exc)}') from exc
         self._damaged = True
         rows = self._readable_rows(reason)
+        known = {c.id for c in self.connections}
+        garbled = [r[0] for r in rows if not (type(r[2]) is int and r[1] in known)]
+        for first, last in _runs([i for i in garbled if type(i) is int]):
+            self._rows_lost(first, last, 'rows with a garbled topic id or timestamp')
+        rows = [r for r in rows if type(r[2]) is int and r[1] in known]
         counts: dict[int, int] = {}
         first, last = 2**63 - 1, 0
         for _, topic_id, timestamp in rows:
@@ -696,12 +705,16 @@ class TolerantSqlite3Reader(Sqlite3Reader):
         self.connections = []
         for cid, topic, msgtype, fmt, qos, digest in cur.execute(
                 f'SELECT {", ".join(wanted)} FROM topics ORDER BY id'):
+            try:
+                profiles = parse_qos(qos) if qos else []
+            except Exception:  # a garbled QoS string costs only the QoS
+                profiles = []
             encoding, text = definitions.get(msgtype, ('', ''))
             msgdef = MessageDefinition(formats[encoding], text) if encoding in formats \
                 else MessageDefinition(MessageDefinitionFormat.NONE, '')
             self.connections.append(Connection(
                 cid, topic, msgtype, msgdef, digest or '', 0,
-                ConnectionExtRosbag2(fmt, parse_qos(qos) if qos else []), self))
+                ConnectionExtRosbag2(fmt, profiles), self))
 
     def _query(self, lo: int, hi: int, columns: str, extra: str = '', args: tuple = ()
                ) -> list[tuple]:
@@ -783,6 +796,9 @@ class TolerantSqlite3Reader(Sqlite3Reader):
                      f'ORDER BY timestamp, id')
             try:
                 for timestamp, rowid, cid, data in self.dbconn.execute(query, args):
+                    if type(timestamp) is not int or type(data) is not bytes:
+                        self._rows_lost(rowid, rowid, 'a row with a garbled timestamp or blob')
+                        continue
                     last = (timestamp, rowid)
                     yield connmap[cid], timestamp, data
                 return
@@ -796,7 +812,13 @@ class TolerantSqlite3Reader(Sqlite3Reader):
                                     'timestamp, id, topic_id, data', where, args, bad)
                 for first, end in _runs(bad):
                     self._rows_lost(first, end, 'sqlite cannot read these rows')
-                for timestamp, rowid, cid, data in sorted(rows):
+                good = []
+                for row in rows:
+                    if type(row[0]) is int and row[2] in connmap and type(row[3]) is bytes:
+                        good.append(row)
+                    elif type(row[1]) is int:
+                        self._rows_lost(row[1], row[1], 'a row with a garbled timestamp or blob')
+                for timestamp, rowid, cid, data in sorted(good):
                     if (timestamp, rowid) > last:
                         yield connmap[cid], timestamp, data
 

@@ -38,7 +38,9 @@ class PlannedPath:
     ``times`` (K,) strictly increasing seconds; ``positions`` (K, m);
     ``velocities`` / ``accelerations`` (K, m) or None. With ``start`` =
     (t0, q0, qd0) and t0 before the first waypoint, a first segment joins the
-    start state to it (cubic; linear when the plan has no velocities).
+    start state to it (cubic, as the controller joins its current state, which has no
+    accelerations; linear when the plan has no velocities). After the last waypoint
+    its positions are held at zero velocity (the controller holds them).
     """
 
     def __init__(self, times: np.ndarray, positions: np.ndarray,
@@ -61,7 +63,8 @@ class PlannedPath:
             else None
         acc = np.asarray(accelerations, dtype=float).reshape(times.size, m) \
             if has_acceleration else None
-        if start is not None and start[0] < times[0]:
+        joined = start is not None and start[0] < times[0]
+        if joined:
             t0, q0, qd0 = start
             times = np.concatenate([[t0], times])
             positions = np.vstack([q0, positions])
@@ -80,9 +83,11 @@ class PlannedPath:
         for i in range(count):
             h = times[i + 1] - times[i]
             p0, p1 = positions[i], positions[i + 1]
-            if has_acceleration:
+            if has_acceleration and not (joined and i == 0):
                 coefficients[i] = _quintic(p0, vel[i], acc[i], p1, vel[i + 1], acc[i + 1], h)
             elif has_velocity:
+                # Also the join from a measured state, which has no accelerations: the
+                # controller interpolates that segment as a cubic too.
                 coefficients[i, :4] = _cubic(p0, vel[i], p1, vel[i + 1], h)
             else:
                 coefficients[i, 0] = p0

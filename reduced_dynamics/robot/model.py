@@ -284,10 +284,18 @@ class RobotModel:
         return out
 
 
+#: ``base_joint`` value meaning "as the URDF declares it (floating if it does not)".
+AUTO_BASE_JOINT = 'auto'
+
+
 def load_robot(urdf: str = '', base_joint: Optional[str] = None,
                gravity: Optional[np.ndarray] = None) -> RobotModel:
-    """Load a robot model; URDF problems raise :class:`ModelError` with the reason."""
+    """
+    Load a robot model; URDF problems raise :class:`ModelError` with the reason.
+
+    ``base_joint`` ``'auto'`` or None: the URDF's own world joint, else floating.
+    """
     try:
-        return RobotModel(urdf, base_joint, gravity)
+        return RobotModel(urdf, None if base_joint == AUTO_BASE_JOINT else base_joint, gravity)
     except UrdfError as error:
         raise ModelError(str(error)) from error
