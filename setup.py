@@ -2,6 +2,7 @@
 
 from glob import glob
 import os
+import sys
 
 from setuptools import find_packages
 from setuptools import setup
@@ -41,6 +42,15 @@ if config_files or robot_files:
     package_dir[DATA_PACKAGE] = 'config'
     package_data[DATA_PACKAGE] = ['*.yaml', 'robots/*.urdf', 'plans/*.yaml']
 
+# colcon (`setup.py install`/`develop`) puts the console scripts into lib/reduced_dynamics
+# (setup.cfg), where `ros2 run` looks and which is not on PATH. colcon-core's environment
+# hook puts <prefix>/bin on PATH when it holds a file, so a colcon build also ships
+# bin/reduced-dynamics, a wrapper running lib/'s executable. pip builds a wheel, whose
+# console scripts go to bin/ already: the wrapper would clash with them, so wheel builds
+# (PEP 517: bdist_wheel, editable_wheel, dist_info) leave it out.
+_WHEEL_COMMANDS = {'bdist_wheel', 'editable_wheel', 'dist_info', 'sdist', 'bdist_egg'}
+colcon_bin = [] if _WHEEL_COMMANDS & set(sys.argv) else [('bin', ['bin/reduced-dynamics'])]
+
 setup(
     name=package_name,
     version='0.1.0',
@@ -55,7 +65,7 @@ setup(
         ('share/' + package_name + '/config', config_files),
         ('share/' + package_name + '/config/robots', robot_files),
         ('share/' + package_name + '/config/plans', plan_files),
-    ],
+    ] + colcon_bin,
     python_requires='>=3.10',
     install_requires=[
         'numpy',
@@ -68,6 +78,10 @@ setup(
     ],
     extras_require={
         'test': ['pytest', 'hypothesis'],
+        # Real ROS 2 Jazzy rclpy (Fast DDS) and the message packages the node uses, as PyPI
+        # wheels, for machines without a ROS 2 install (the rosdep keys of package.xml
+        # are the same dependencies for a ROS 2 install). lifecycle_msgs comes with rclpy.
+        'ros': ['ros-jazzy-rclpy[fastrtps]', 'ros-jazzy-common-interfaces'],
     },
     tests_require=['pytest', 'hypothesis'],
     zip_safe=False,
@@ -82,6 +96,7 @@ setup(
         'console_scripts': [
             'reduced-dynamics = reduced_dynamics.cli:main',
             'reduced_dynamics_node = reduced_dynamics.node:main',
+            'reduced_dynamics_lifecycle_node = reduced_dynamics.node:lifecycle_main',
         ],
     },
 )

@@ -37,6 +37,14 @@ same run (machines are noisy: ratios, not absolutes):
 4. ``scaling``: random trees with 6, 12, 24 and 48 shape joints: update (both
    paths) and reduced-vector-field cost, with exponents fitted by log-log least
    squares.
+5. ``planned``: base motion for a planned arm motion against the shape-prescribed
+   full dynamics; replay with the default predictions against predictions off.
+6. ``node``: the node over real DDS (separate processes, a ROS_DOMAIN_ID of its
+   own): joint states delivered per second, drops and input-to-output latency
+   p50/p99 at 1 kHz joint states with 200 Hz and 1 kHz odometry, predictions on, and
+   the highest joint-state rate (of a sweep) sustained without a drop,
+   against a bare rclpy relay node measured in windows of the same run
+   (:mod:`reduced_dynamics.node_bench`). Skipped when rclpy is not importable.
 """
 
 from __future__ import annotations
@@ -48,6 +56,7 @@ import json
 import os
 import platform
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -83,6 +92,11 @@ class Settings:
     shape_joints: tuple = SHAPE_JOINTS
     #: the torque-varying 200 Hz bag of section planned (issue 13: 60 s)
     planned_bag_seconds: float = 60.0
+    #: measured window and warm-up of each node/relay phase of section node [s]
+    node_seconds: float = 5.0
+    node_warmup: float = 1.0
+    #: window of each rate of the sustained-rate sweep of section node [s]
+    node_sweep_seconds: float = 2.0
     quick: bool = False
 
     @classmethod
@@ -92,7 +106,8 @@ class Settings:
                    full_rtols=(1e-6, 1e-8, 1e-10, 1e-12), reduced_rtols=(1e-8, 1e-10),
                    dg_steps=(0.05, 0.025), replay_seconds=3.0, memory_short_seconds=5.0,
                    memory_long_seconds=20.0, scaling_samples=200, scaling_evaluations=60,
-                   planned_bag_seconds=20.0, quick=True)
+                   planned_bag_seconds=20.0, node_seconds=2.0,
+                   node_warmup=1.0, node_sweep_seconds=1.0, quick=True)
 
 
 @dataclass
@@ -807,6 +822,190 @@ def bench_scaling(report: Report, settings: Settings) -> None:
                            note=f'm={sizes_text}'))
 
 
+# --------------------------------------------------------------------------- 6. node
+#: Input configurations of the node section: (label, joint-state rate, odometry rate).
+NODE_RATES = (('joints 1 kHz + odom 200 Hz', 1000.0, 200.0),
+              ('joints 1 kHz + odom 1 kHz', 1000.0, 1000.0))
+#: Joint-state rates [Hz] of the sustained-rate sweep (odometry 200 Hz, at most the joints').
+NODE_SWEEP = (250.0, 500.0, 1000.0, 2000.0)
+
+
+def node_domain_id() -> int:
+    """Return a ROS_DOMAIN_ID of its own for this run (RD_BENCH_DOMAIN_ID overrides)."""
+    if os.environ.get('RD_BENCH_DOMAIN_ID'):
+        return int(os.environ['RD_BENCH_DOMAIN_ID'])
+    # 0..101 are safe with Fast DDS's port mapping on Linux; stay off the common 0.
+    return 60 + os.getpid() % 40
+
+
+def node_phase_figures(sent: Sequence[int], received: Sequence[tuple]) -> dict:
+    """
+    Summarise one measured window: inputs sent, outputs that came back, latency.
+
+    ``sent`` are the stamps (send times, ns) of the joint states of the window,
+    ``received`` (stamp, receive time) pairs of every output the probe took.
+    Latency is receive time minus stamp; an input without an output is a drop.
+    """
+    arrival = dict(received)
+    latency = np.array([arrival[s] - s for s in sent if s in arrival], dtype=float) * 1e-6
+    count = len(sent)
+    rate = (count - 1) / ((sent[-1] - sent[0]) * 1e-9) if count > 1 else 0.0
+    delivered = latency.size
+    return {'sent': count, 'delivered': delivered, 'drops': count - delivered,
+            'input_rate': rate, 'delivered_rate': rate * delivered / count if count else 0.0,
+            'p50_ms': float(np.percentile(latency, 50)) if delivered else float('nan'),
+            'p99_ms': float(np.percentile(latency, 99)) if delivered else float('nan')}
+
+
+def _stop(process: subprocess.Popen, timeout: float = 10.0) -> Optional[int]:
+    """SIGINT, then SIGKILL after ``timeout``; return the exit code (None: killed)."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+        try:
+            return process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+            return None
+    return process.returncode
+
+
+def run_node_phases(workdir: str, joint_rates: Sequence[float], base_rate: float,
+                    seconds: float, warmup: float, repeats: int,
+                    env: dict) -> tuple[list, dict]:
+    """
+    One configuration over real DDS: the node, the relay, the probe and the publisher.
+
+    Four processes: ``python -m reduced_dynamics.node`` (defaults: predictions on),
+    the relay and the probe of :mod:`reduced_dynamics.node_bench`, then the publisher,
+    which feeds ``repeats`` windows per joint-state rate to the relay, then as many to the
+    node (each stream pauses 0.5 s between windows). Returns the
+    publisher's phases and the probe's records.
+    """
+    python = sys.executable
+    log = open(os.path.join(workdir, 'processes.log'), 'a', encoding='utf-8')
+    probe_out = os.path.join(workdir, 'probe.json')
+    ready = os.path.join(workdir, 'probe.ready')
+    publish_out = os.path.join(workdir, 'publish.json')
+    for path in (probe_out, ready, publish_out):
+        if os.path.exists(path):
+            os.remove(path)
+    spawn = [[python, '-m', 'reduced_dynamics.node'],
+             [python, '-m', 'reduced_dynamics.node_bench', 'relay']]
+    targets = [subprocess.Popen(argv, env=env, stdout=log, stderr=log) for argv in spawn]
+    probe = subprocess.Popen([python, '-m', 'reduced_dynamics.node_bench', 'probe',
+                              '--out', probe_out, '--ready', ready],
+                             env=env, stdout=log, stderr=log)
+    try:
+        deadline = time.monotonic() + 120.0
+        while not os.path.exists(ready):
+            if time.monotonic() > deadline or any(p.poll() is not None
+                                                  for p in targets + [probe]):
+                raise RuntimeError('node bench: processes did not come up (see '
+                                   f'{log.name})')
+            time.sleep(0.1)
+        subprocess.run([python, '-m', 'reduced_dynamics.node_bench', 'publish',
+                        '--out', publish_out,
+                        '--joint-rates', ','.join(str(r) for r in joint_rates),
+                        '--base-rate', str(base_rate), '--seconds', str(seconds),
+                        '--warmup', str(warmup), '--repeats', str(repeats)],
+                       env=env, stdout=log, stderr=log, check=True, timeout=600)
+        time.sleep(0.5)  # outputs still in flight
+    finally:
+        _stop(probe)
+        for process in targets:
+            _stop(process)
+        log.close()
+    with open(publish_out, encoding='utf-8') as stream:
+        phases = json.load(stream)['phases']
+    with open(probe_out, encoding='utf-8') as stream:
+        records = json.load(stream)
+    return phases, records
+
+
+def bench_node(report: Report, settings: Settings, workdir: str,
+               rates: Sequence[tuple] = NODE_RATES,
+               sweep: Sequence[float] = NODE_SWEEP) -> None:
+    """
+    Section 6: the node over real DDS against a bare rclpy relay, same run.
+
+    Per configuration of :data:`NODE_RATES`: the input rate sustained (joint states
+    delivered per second), drops (joint states without an output) and input-to-output
+    latency p50/p99 of the node's ``~/momentum``, each with the relay's figure of the
+    window of the same rank as baseline. Separate processes, a ROS_DOMAIN_ID of its own,
+    discovery on localhost only.
+    """
+    import importlib.util
+    if importlib.util.find_spec('rclpy') is None:
+        report.details['node'] = 'skipped: rclpy is not importable (pip install .[ros])'
+        return
+    env = dict(os.environ, ROS_DOMAIN_ID=str(node_domain_id()),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
+    from reduced_dynamics.node_bench import NODE_OUTPUT, RELAY_OUTPUT
+    details = {'domain_id': env['ROS_DOMAIN_ID'], 'configurations': {}}
+    for label, joint_rate, base_rate in rates:
+        phases, records = run_node_phases(workdir, [joint_rate], base_rate,
+                                          settings.node_seconds, settings.node_warmup,
+                                          settings.repeats, env)
+        rows: dict[str, list] = {'relay': [], 'node': []}
+        for phase in phases:
+            output = NODE_OUTPUT if phase['target'] == 'node' else RELAY_OUTPUT
+            rows[phase['target']].append(node_phase_figures(
+                phase['joint_stamps'], [tuple(r) for r in records[output]]))
+        details['configurations'][label] = rows
+        node, relay = rows['node'], rows['relay']
+
+        def column(rows: list, key: str) -> list:
+            return [row[key] for row in rows]
+        window = (f'{settings.node_seconds:g} s windows after {settings.node_warmup:g} s '
+                  f'warm-up; {int(np.median(column(node, "sent")))} joint states each')
+        report.add(make_figure(
+            'node', f'{label}: joint states delivered/s', 'msg/s',
+            column(node, 'delivered_rate'), 'bare rclpy relay', column(relay, 'delivered_rate'),
+            [n / r for n, r in zip(column(node, 'delivered_rate'),
+                                   column(relay, 'delivered_rate'))],
+            'no drops', lambda _r: max(column(node, 'drops')) == 0,
+            f'{window}; input {np.median(column(node, "input_rate")):.0f}/s'))
+        report.add(make_figure(
+            'node', f'{label}: drops', 'msgs', column(node, 'drops'), 'bare rclpy relay',
+            column(relay, 'drops'), note='joint states of the window without ~/momentum'))
+        for key, name in (('p50_ms', 'latency p50'), ('p99_ms', 'latency p99')):
+            report.add(make_figure(
+                'node', f'{label}: {name}', 'ms', column(node, key), 'bare rclpy relay',
+                column(relay, key), [n / r for n, r in zip(column(node, key),
+                                                           column(relay, key))],
+                note='joint state sent -> ~/momentum received (relay: -> relayed copy)'))
+    if sweep:
+        bench_node_sweep(report, settings, workdir, env, sweep, details)
+    report.details['node'] = details
+
+
+def bench_node_sweep(report: Report, settings: Settings, workdir: str, env: dict,
+                     sweep: Sequence[float], details: dict) -> None:
+    """Measure the highest joint-state rate (odometry 200 Hz) that no window dropped from."""
+    from reduced_dynamics.node_bench import NODE_OUTPUT, RELAY_OUTPUT
+    repeats = min(settings.repeats, 3)
+    phases, records = run_node_phases(workdir, sweep, 200.0, settings.node_sweep_seconds,
+                                      settings.node_warmup, repeats, env)
+    drops: dict[str, dict] = {'relay': {}, 'node': {}}
+    for phase in phases:
+        output = NODE_OUTPUT if phase['target'] == 'node' else RELAY_OUTPUT
+        row = node_phase_figures(phase['joint_stamps'], [tuple(r) for r in records[output]])
+        drops[phase['target']].setdefault(phase['joint_rate'], []).append(row['drops'])
+    details['sweep_drops'] = {t: {str(r): d for r, d in rows.items()} for t, rows in drops.items()}
+
+    def sustained(target: str) -> float:
+        clean = [rate for rate, d in drops[target].items() if max(d) == 0]
+        return max(clean, default=0.0)
+    node, relay = sustained('node'), sustained('relay')
+    report.add(make_figure(
+        'node', 'sustained joint-state rate without drops (odom 200 Hz)', 'Hz', [node],
+        'bare rclpy relay', [relay], [node / relay] if relay else None,
+        '>= 1000 Hz', lambda _r: node >= 1000.0,
+        f'highest of {", ".join(f"{r:g}" for r in sweep)} Hz with 0 drops in {repeats} '
+        f'windows of {settings.node_sweep_seconds:g} s'))
+
+
 # --------------------------------------------------------------------------- output
 def _number(value: Optional[float]) -> str:
     if value is None:
@@ -848,7 +1047,7 @@ def write_csv(report: Report, path: str) -> None:
             writer.writerow(asdict(figure))
 
 
-SECTIONS = ('update', 'prediction', 'replay', 'scaling', 'planned')
+SECTIONS = ('update', 'prediction', 'replay', 'scaling', 'planned', 'node')
 
 
 def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
@@ -881,6 +1080,13 @@ def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
             bench_planned(report, settings, workdir)
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
+    if 'node' in sections:
+        say('node (real DDS)...')
+        workdir = tempfile.mkdtemp(prefix='reduced_dynamics_bench_')
+        try:
+            bench_node(report, settings, workdir)
+        finally:
+            shutil.rmtree(workdir, ignore_errors=True)
     return report
 
 
@@ -909,7 +1115,8 @@ def register_command(commands: Any) -> None:
         description='Measure each figure as a median over repeats (with its interquartile '
                     'range) and as a ratio to a baseline measured in the same run.')
     parser.add_argument('--quick', action='store_true',
-                        help='small sizes (short bags, fewer tolerances): about a minute')
+                        help='small sizes (short bags, fewer tolerances); the node section '
+                             'over DDS alone takes ~2 min')
     parser.add_argument('--repeats', type=int, default=None,
                         help='repeats per figure (default 7, or 3 with --quick)')
     parser.add_argument('--json', metavar='FILE', help='write the report as JSON')

@@ -19,14 +19,28 @@ It subscribes to joint states and to the base state (nav_msgs/Odometry or
 geometry_msgs/PoseStamped), feeds the estimator and publishes every output on
 the topics of :data:`reduced_dynamics.topics.OUTPUT_TOPICS` (``~/<name>`` and
 ``/diagnostics``). Output stamps are the input stamps; the node clock (which
-follows ``/clock`` under ``use_sim_time``) only times the diagnostics watchdog
-and the log throttle.
+follows ``/clock`` under ``use_sim_time``) times the node status, the log
+throttle and the reset on a backwards jump of ROS time.
+
+Inputs are taken as serialized CDR and decoded by the fixed-layout decoders
+the replay uses; outputs are published as the CDR bytes the replay writes
+(:mod:`reduced_dynamics.messages.cdr`). So the node and the replay share one
+decoding, one estimator and one encoding: the same messages give the same
+bytes, and no rclpy message object is built on the hot path. Predictions are
+computed by a worker thread (``Estimator(defer_predictions=True)``), never on
+the input path, and published when ready with the stamp of the sample they
+start from.
 
 Robot model: the ``robot_description`` parameter if non-empty, else
 ``urdf_path``, else the latched ``robot_description`` topic, with the built-in
 paper robot standing in until that topic delivers. A model that fails to load
-is logged; the node keeps running, counts its inputs as rejected and reports
-the error on ``/diagnostics``.
+is logged and, if a working model exists, that one is kept.
+
+Two shells share the logic: :class:`ReducedDynamicsNode` (plain, the default:
+configured and active at construction) and
+:class:`ReducedDynamicsLifecycleNode` (managed: configure loads and checks the
+model, activate subscribes and publishes). ``main()`` picks one
+(``--lifecycle`` or the ``reduced_dynamics_lifecycle_node`` executable).
 
 This is the only module importing rclpy, and it stays importable without it:
 ``main()`` then prints one line saying ROS 2 is not sourced and returns 1.
@@ -36,41 +50,50 @@ from __future__ import annotations
 
 import array
 from collections import Counter
+import queue
+import signal
 import sys
+import threading
 from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
 from reduced_dynamics.estimator import Estimator, EstimatorConfig, EstimatorOutput
-from reduced_dynamics.estimator.config import PARAMETERS as ESTIMATOR_PARAMETERS
 from reduced_dynamics.estimator.base_motion import answer_messages
+from reduced_dynamics.estimator.config import PARAMETERS as ESTIMATOR_PARAMETERS
 from reduced_dynamics.estimator.config import ParameterSpec
 from reduced_dynamics.messages import (
-    DIAG_ERROR, DIAG_WARN, Diagnostics, diagnostics_to_ros, DiagnosticStatusSample,
-    joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros, pose_path_to_ros,
+    cdr, DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample,
+    joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros,
     pose_stamped_from_ros, RclpyTypes, string_from_ros)
+from reduced_dynamics.messages.samples import with_receive_time
 from reduced_dynamics.params import ALL_PARAMETERS, check_any_parameter, RUNTIME_PARAMETERS
 from reduced_dynamics.robot.model import load_robot, ModelError
-from reduced_dynamics.topics import DIAGNOSTICS_TOPIC, NODE_NAME, OUTPUT_TOPICS, output_messages
+from reduced_dynamics.topics import DIAGNOSTICS_TOPIC, NODE_NAME, OUTPUT_TOPICS
 
 try:
     # rclpy first: if it is missing, ROS 2 is not sourced (rcl_interfaces comes with it).
     import rclpy
+    from rclpy.duration import Duration
     from rclpy.exceptions import ParameterException
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
     from rclpy.node import Node
     from rclpy.parameter import Parameter
     from rclpy.qos import DurabilityPolicy
     from rclpy.qos import HistoryPolicy
-    from rclpy.qos import qos_profile_sensor_data
     from rclpy.qos import QoSProfile
     from rclpy.qos import ReliabilityPolicy
+    from rclpy.qos_overriding_options import QoSOverridingOptions
+    from rclpy.serialization import deserialize_message
+    from rclpy.signals import SignalHandlerOptions
+    from rclpy.clock import JumpThreshold
     from rcl_interfaces.msg import FloatingPointRange
     from rcl_interfaces.msg import ParameterDescriptor
     from rcl_interfaces.msg import SetParametersResult
 except ImportError:  # main() explains; the ROS-free core must stay usable
     rclpy = None
-    Node = object
+    Node = LifecycleNode = object
 
 ROS_NOT_SOURCED = ('reduced_dynamics_node: ROS 2 Jazzy is not sourced (rclpy not importable); '
                    'source /opt/ros/jazzy/setup.bash')
@@ -79,11 +102,22 @@ ROBOT_DESCRIPTION_TOPIC = 'robot_description'
 #: Node-clock time between two log lines about the same kind of rejected input.
 LOG_THROTTLE_NS = 5_000_000_000
 OUTPUT_QOS_DEPTH = 10
+#: History depth of the sensor inputs. Sensor-data policies (best effort, volatile) as
+#: other drivers use, but 100 deep instead of 5: at 1 kHz, 5 messages are 5 ms, less
+#: than one scheduler time slice or one GIL switch interval of a busy 2-core machine,
+#: so a depth of 5 loses input that did reach the node; 100 covers 100 ms of stall.
+INPUT_QOS_DEPTH = 100
 #: ~/predict_base_motion as a request/response topic pair (standard types; README).
 PREDICT_REQUEST_TOPIC = '~/predict_base_motion/request'
 PREDICT_PATH_TOPIC = '~/predict_base_motion/path'
 PREDICT_RESULT_TOPIC = '~/predict_base_motion/result'
 NS_PER_S = 1_000_000_000
+#: Name of the node's own status in /diagnostics (the estimator's is separate).
+NODE_STATUS_NAME = f'{NODE_NAME}: node'
+#: A stamp gap above this many nominal periods counts as missing samples.
+GAP_FACTOR = 1.5
+
+_DOUBLE_TYPES = (float, int)
 
 
 def _plain(value: Any) -> Any:
@@ -94,17 +128,47 @@ def _plain(value: Any) -> Any:
     return value
 
 
+def received_ns(info: Any) -> Optional[int]:
+    """Return the receive time [ns] of rclpy's message info (a dict), None if absent."""
+    value = info.get('received_timestamp') if isinstance(info, dict) else None
+    return value if isinstance(value, int) and value > 0 else None
+
+
+def _is_double(spec: ParameterSpec) -> bool:
+    return isinstance(spec.default, float)
+
+
+def _coerced(name: str, value: Any) -> Any:
+    """Return a value in the parameter's own type: an integer given for a double is a double."""
+    spec = ALL_PARAMETERS.get(name)
+    value = _plain(value)
+    if spec is not None and _is_double(spec):
+        if isinstance(value, bool) or not isinstance(value, _DOUBLE_TYPES):
+            raise ValueError(f'{name} must be a number, got {value!r}')
+        return float(value)
+    return value
+
+
 def parameter_descriptor(name: str, spec: ParameterSpec) -> 'ParameterDescriptor':
-    """Return the ParameterDescriptor of one row of ALL_PARAMETERS."""
+    """
+    Return the ParameterDescriptor of one row of ALL_PARAMETERS.
+
+    Double parameters are dynamically typed so that ``-p prediction_rate:=2`` (an
+    integer on the command line) is accepted; the node's own check then enforces
+    the number type and the range (rclpy checks floating_point_range on doubles only).
+    """
+    double = _is_double(spec)
     descriptor = ParameterDescriptor(
         name=name, description=spec.description,
         type=Parameter.Type.from_parameter_value(_default(spec)).value,
-        read_only=name not in RUNTIME_PARAMETERS)
+        read_only=name not in RUNTIME_PARAMETERS, dynamic_typing=double)
     if spec.low is not None:
         descriptor.floating_point_range = [FloatingPointRange(
             from_value=float(spec.low), to_value=float(spec.high), step=0.0)]
     if spec.choices:
         descriptor.additional_constraints = 'one of: ' + ', '.join(spec.choices)
+    elif double:
+        descriptor.additional_constraints = 'a number (integers are taken as doubles)'
     return descriptor
 
 
@@ -113,27 +177,127 @@ def _default(spec: ParameterSpec) -> Any:
     return list(spec.default) if isinstance(spec.default, list) else spec.default
 
 
-class ReducedDynamicsNode(Node):
-    """Estimate momentum, shape state, drift and predictions from joint and base states."""
+def input_qos() -> 'QoSProfile':
+    """Return the default QoS of the sensor inputs (see INPUT_QOS_DEPTH)."""
+    return QoSProfile(depth=INPUT_QOS_DEPTH, history=HistoryPolicy.KEEP_LAST,
+                      reliability=ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.VOLATILE)
 
-    def __init__(self, **node_options: Any) -> None:
-        """Create the node; ``node_options`` go to rclpy's Node (parameter_overrides, ...)."""
-        super().__init__(NODE_NAME, **node_options)
+
+def reliable_qos(depth: int = OUTPUT_QOS_DEPTH) -> 'QoSProfile':
+    """Return the default QoS of the outputs, plans and requests."""
+    return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
+                      reliability=ReliabilityPolicy.RELIABLE)
+
+
+class InputStats:
+    """Received count, stamp gaps (samples lost before the node) and rates, per input."""
+
+    def __init__(self) -> None:
+        """Start empty."""
+        self.received = 0
+        self.missing = 0
+        self._last_ns: Optional[int] = None
+        self._period_ns = 0.0
+        self._window_received = 0
+
+    def take(self, stamp_ns: int) -> None:
+        """Count one message; estimate the nominal period and count stamp gaps."""
+        self.received += 1
+        last, self._last_ns = self._last_ns, stamp_ns
+        if last is None or stamp_ns <= last:
+            return
+        gap = stamp_ns - last
+        period = self._period_ns
+        if period and gap > GAP_FACTOR * period:
+            self.missing += int(round(gap / period)) - 1
+            return  # a gap does not retune the nominal period
+        # Slow exponential average: one late message does not move the period.
+        self._period_ns = gap if not period else 0.95 * period + 0.05 * gap
+
+    def window(self) -> int:
+        """Return the messages received since the last call."""
+        count = self.received - self._window_received
+        self._window_received = self.received
+        return count
+
+
+class _PredictionWorker:
+    """Run deferred prediction jobs off the input path and publish their messages."""
+
+    def __init__(self, publish: Callable[[Any], None], on_error: Callable[[str], None]
+                 ) -> None:
+        self._jobs: queue.Queue = queue.Queue()
+        self._publish = publish
+        self._on_error = on_error
+        self.done = 0
+        self._thread = threading.Thread(target=self._run, name='predictions', daemon=True)
+        self._thread.start()
+
+    def submit(self, job: Any) -> None:
+        self._jobs.put(job)
+
+    @property
+    def pending(self) -> int:
+        return self._jobs.qsize()
+
+    def _run(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            try:
+                messages = job.run()
+                if messages is not None:
+                    self._publish(messages)
+            except Exception as error:  # noqa: B902 - a failed job must not end the worker
+                self._on_error(f'prediction failed: {type(error).__name__}: {error}')
+            finally:
+                self.done += 1
+                self._jobs.task_done()
+
+    def wait_idle(self) -> None:
+        """Block until every submitted job is published (tests, orderly shutdown)."""
+        self._jobs.join()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Finish the queued jobs (bounded by ``timeout``), then end the thread."""
+        self._jobs.put(None)
+        self._thread.join(timeout)
+
+
+class _Shell:
+    """The node logic shared by the plain and the lifecycle node (a mixin over rclpy's Node)."""
+
+    def _init_shell(self) -> None:
         self._types = RclpyTypes()
         self._started = False
+        self._shell_active = False
         self._estimator: Optional[Estimator] = None
         self._robot_source = ''
         self._model_error: Optional[str] = None
         self._description_text: Optional[str] = None
         self._description_sub = None
         self._watchdog = None
-        self._diagnostics_published = False
         self._last_log_ns: dict[str, int] = {}
         self._suppressed: Counter = Counter()
+        self._publishers_by_topic: dict[str, Any] = {}
+        self._encoders: dict[str, Callable[[Any], bytes]] = {}
+        self._input_subscriptions: list = []
+        self._answer_path = self._answer_result = None
+        self._worker: Optional[_PredictionWorker] = None
+        self._publish_lock = threading.Lock()  # publishers vs. the worker during deactivate
+        self._last_status_ns: Optional[int] = None
+        self._processed_at_status = 0
+        self._jump_handler = None
         #: Messages taken by the input callbacks, per input.
         self.received: Counter = Counter()
-        #: Inputs rejected while there is no estimator (no usable robot model).
+        #: Inputs rejected while there is no estimator (and rejected robot models).
         self.rejected: Counter = Counter()
+        #: Per sensor input: counts, stamp gaps and rates.
+        self.input_stats = {'joint_states': InputStats(), 'base': InputStats()}
+        #: Times the estimator was reset because ROS time jumped back.
+        self.time_resets = 0
 
         # Validation is in place before declaring, so bad overrides fail at start-up.
         self.add_on_set_parameters_callback(self._validate_parameters)
@@ -142,18 +306,12 @@ class ReducedDynamicsNode(Node):
         self.add_post_set_parameters_callback(self._apply_parameters)
         self._config = EstimatorConfig.from_mapping(
             {name: self._value(name) for name in ESTIMATOR_PARAMETERS})
-
-        reliable = QoSProfile(depth=OUTPUT_QOS_DEPTH, history=HistoryPolicy.KEEP_LAST,
-                              reliability=ReliabilityPolicy.RELIABLE)
-        self._publishers_by_topic = {
-            topic.name: self.create_publisher(
-                self._types.get(topic.msgtype),
-                topic.name if topic.name.startswith('/') else '~/' + topic.name, reliable)
-            for topic in OUTPUT_TOPICS}
-
-        self._load_initial_model()
-        self._subscribe_inputs()
-        self._restart_watchdog()
+        # robot_localization's answer to a bag loop or a simulator restart: a backwards
+        # jump of ROS time resets the filter (it cannot be continued across the jump).
+        self._jump_handler = self.get_clock().create_jump_callback(
+            JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1),
+                          on_clock_change=False),
+            post_callback=self._on_time_jump)
         self._started = True
 
     # --- public state -----------------------------------------------------------------
@@ -167,24 +325,34 @@ class ReducedDynamicsNode(Node):
         """Return why the robot model could not be used (None when it could)."""
         return self._model_error
 
+    @property
+    def predictions_pending(self) -> int:
+        """Return the prediction jobs waiting for the worker."""
+        return self._worker.pending if self._worker else 0
+
+    def wait_for_predictions(self) -> None:
+        """Block until every prediction started so far is published."""
+        if self._worker is not None:
+            self._worker.wait_idle()
+
     # --- parameters -------------------------------------------------------------------
     def _value(self, name: str) -> Any:
-        return _plain(self.get_parameter(name).value)
+        return _coerced(name, self.get_parameter(name).value)
 
     def _validate_parameters(self, parameters: list) -> 'SetParametersResult':
         """Accept or reject a change (on-set callback: no side effects here)."""
         changes = {}
         for parameter in parameters:
             if parameter.name not in ALL_PARAMETERS:
-                continue  # use_sim_time and the like: rclpy's own callbacks decide
+                continue  # use_sim_time, qos_overrides.*: rclpy's own checks decide
             if self._started and parameter.name not in RUNTIME_PARAMETERS:
                 # The read_only descriptor already stops this; kept so the rule holds even
                 # if a descriptor is ever relaxed.
                 return SetParametersResult(
                     successful=False,
                     reason=f'{parameter.name} is read at start-up only; restart the node')
-            value = _plain(parameter.value)
             try:
+                value = _coerced(parameter.name, parameter.value)
                 check_any_parameter(parameter.name, value)
             except ValueError as error:
                 return SetParametersResult(successful=False, reason=str(error))
@@ -199,19 +367,21 @@ class ReducedDynamicsNode(Node):
 
     def _apply_parameters(self, parameters: list) -> None:
         """Adopt accepted estimator settings (post-set callback)."""
-        changes = {p.name: _plain(p.value) for p in parameters if p.name in ESTIMATOR_PARAMETERS}
-        if not changes:
+        changes = {p.name: _coerced(p.name, p.value) for p in parameters
+                   if p.name in ESTIMATOR_PARAMETERS}
+        if not changes or not self._started:
             return
         self._config = self._config.replaced(**changes)
         if self._estimator is not None:
             self._estimator.apply_config(self._config)
-        if 'diagnostics_rate' in changes:
+        if 'diagnostics_rate' in changes and self._shell_active:
             self._restart_watchdog()
         self.get_logger().info('parameters changed: ' + ', '.join(
             f'{name}={value!r}' for name, value in sorted(changes.items())))
 
     # --- robot model ------------------------------------------------------------------
-    def _load_initial_model(self) -> None:
+    def _configure(self) -> Optional[str]:
+        """Load the robot model (and wait for the topic if none is given); return an error."""
         description = self._value('robot_description')
         path = self._value('urdf_path')
         if description:
@@ -230,31 +400,58 @@ class ReducedDynamicsNode(Node):
                 f'robot_description and urdf_path are empty: waiting for a URDF on {topic}; '
                 'the built-in paper robot is used until it arrives')
             self._set_robot('', 'the built-in paper robot (stand-in)')
+        return self._model_error
 
-    def _set_robot(self, urdf: str, source: str) -> None:
-        """Build the robot model and a fresh estimator; on failure stop estimating."""
-        self._robot_source = source
+    def _cleanup(self) -> None:
+        """Forget the robot model and the estimator (lifecycle cleanup)."""
+        if self._description_sub is not None:
+            self.destroy_subscription(self._description_sub)
+            self._description_sub = None
+        self._description_text = None
+        self._estimator = None
+        self._model_error = None
+
+    def _set_robot(self, urdf: str, source: str) -> bool:
+        """
+        Build the robot model and a fresh estimator; return whether it replaced the old.
+
+        A model that cannot be used is rejected with the reason; a working model, if
+        there is one, stays (its estimator state too).
+        """
         try:
             robot = load_robot(urdf, self._value('base_joint'),
                                np.array(self._value('gravity'), dtype=float))
             # cyclic_joints that the robot cannot be reduced by fail here, with the reason.
-            self._estimator = Estimator(robot, self._config,
-                                        use_odometry=self._value('base_input') == 'odom',
-                                        cyclic_joints=self._value('cyclic_joints'))
-        except (ModelError, OSError) as error:
-            self._estimator = None
-            self._model_error = f'cannot use the robot model from {source}: {error}'
-            self.get_logger().error(self._model_error + '; not estimating until a usable '
-                                                        'model is given')
-            return
+            estimator = Estimator(robot, self._config,
+                                  use_odometry=self._value('base_input') == 'odom',
+                                  cyclic_joints=self._value('cyclic_joints'),
+                                  defer_predictions=True)
+        except (ModelError, OSError, ValueError) as error:
+            problem = f'cannot use the robot model from {source}: {error}'
+            if self._estimator is not None:
+                self.rejected['robot_model'] += 1
+                self.get_logger().error(
+                    f'{problem}; keeping robot {self._estimator.robot.model.name} from '
+                    f'{self._robot_source}')
+            else:
+                self._model_error = problem
+                self.get_logger().error(problem + '; not estimating until a usable model '
+                                                  'is given')
+            return False
+        replaced = self._estimator is not None
+        self._estimator = estimator
+        self._robot_source = source
         self._model_error = None
         self.get_logger().info(
-            f'robot {robot.model.name} from {source}: base {robot.group.name} '
-            f'({robot.base_link}), {robot.m} shape joints {list(robot.shape_joint_names)}')
-        if self._estimator.cyclic_joints:
+            f'robot {robot.model.name} from {source}'
+            + (' replaces the previous model (estimator state reset)' if replaced else '')
+            + f': base {robot.group.name} ({robot.base_link}), {robot.m} shape joints '
+            f'{list(robot.shape_joint_names)}')
+        if estimator.cyclic_joints:
             self.get_logger().info(
                 'second-stage reduction (Theorem 57) by the cyclic joints '
-                f'{list(self._estimator.cyclic_joints)}: their momenta on cyclic_momenta')
+                f'{list(estimator.cyclic_joints)}: their momenta on cyclic_momenta')
+        return True
 
     def _on_robot_description(self, msg: Any) -> None:
         text = string_from_ros(msg)
@@ -263,35 +460,69 @@ class ReducedDynamicsNode(Node):
         self._description_text = text
         self._set_robot(text, f'the {self.resolve_topic_name(ROBOT_DESCRIPTION_TOPIC)} topic')
 
-    # --- inputs and outputs -----------------------------------------------------------
-    def _subscribe_inputs(self) -> None:
-        self.create_subscription(
-            self._types.get('sensor_msgs/msg/JointState'), self._value('joint_states_topic'),
-            self._on_joint_state, qos_profile_sensor_data)
-        if self._value('base_input') == 'odom':
-            self.create_subscription(
-                self._types.get('nav_msgs/msg/Odometry'), self._value('odom_topic'),
-                self._on_odometry, qos_profile_sensor_data)
-        else:
-            self.create_subscription(
-                self._types.get('geometry_msgs/msg/PoseStamped'),
-                self._value('base_pose_topic'), self._on_pose, qos_profile_sensor_data)
+    # --- activation -------------------------------------------------------------------
+    def _activate(self) -> None:
+        """Advertise the outputs, subscribe to the inputs, start the worker and the status."""
+        overridable = QoSOverridingOptions.with_default_policies()
+        for topic in OUTPUT_TOPICS:
+            self._publishers_by_topic[topic.name] = self.create_publisher(
+                self._types.get(topic.msgtype),
+                topic.name if topic.name.startswith('/') else '~/' + topic.name,
+                reliable_qos(), qos_overriding_options=overridable)
+            self._encoders[topic.name] = cdr.ENCODERS[topic.msgtype]
+        self._subscribe_inputs(overridable)
+        self._worker = _PredictionWorker(self._publish_prediction, self._on_worker_error)
+        self._shell_active = True
+        self._restart_watchdog()
 
+    def _deactivate(self) -> None:
+        """Stop taking input and publishing (outputs of running predictions are dropped)."""
+        self._shell_active = False
+        if self._watchdog is not None:
+            self.destroy_timer(self._watchdog)
+            self._watchdog = None
+        for subscription in self._input_subscriptions:
+            self.destroy_subscription(subscription)
+        self._input_subscriptions = []
+        if self._worker is not None:
+            self._worker.stop()
+            self._worker = None
+        with self._publish_lock:
+            for publisher in (*self._publishers_by_topic.values(), self._answer_path,
+                              self._answer_result):
+                if publisher is not None:
+                    self.destroy_publisher(publisher)
+            self._publishers_by_topic = {}
+            self._answer_path = self._answer_result = None
+
+    def _subscribe_inputs(self, overridable: 'QoSOverridingOptions') -> None:
+        def subscribe(msgtype: str, topic: str, callback: Callable, qos: 'QoSProfile',
+                      raw: bool = False) -> None:
+            self._input_subscriptions.append(self.create_subscription(
+                self._types.get(msgtype), topic, callback, qos, raw=raw,
+                qos_overriding_options=overridable))
+
+        subscribe('sensor_msgs/msg/JointState', self._value('joint_states_topic'),
+                  self._on_joint_state, input_qos(), raw=True)
+        if self._value('base_input') == 'odom':
+            subscribe('nav_msgs/msg/Odometry', self._value('odom_topic'), self._on_odometry,
+                      input_qos(), raw=True)
+        else:
+            subscribe('geometry_msgs/msg/PoseStamped', self._value('base_pose_topic'),
+                      self._on_pose, input_qos(), raw=True)
         # Planned arm motions (prediction_mode planned) and the base-motion requests:
         # reliable, a plan must not be dropped.
-        trajectory_type = self._types.get('trajectory_msgs/msg/JointTrajectory')
-        reliable = QoSProfile(depth=OUTPUT_QOS_DEPTH, history=HistoryPolicy.KEEP_LAST,
-                              reliability=ReliabilityPolicy.RELIABLE)
-        self.create_subscription(trajectory_type, self._value('trajectory_topic'),
-                                 self._on_trajectory, reliable)
-        self.create_subscription(trajectory_type, PREDICT_REQUEST_TOPIC,
-                                 self._on_predict_request, reliable)
+        subscribe('trajectory_msgs/msg/JointTrajectory', self._value('trajectory_topic'),
+                  self._on_trajectory, reliable_qos())
+        subscribe('trajectory_msgs/msg/JointTrajectory', PREDICT_REQUEST_TOPIC,
+                  self._on_predict_request, reliable_qos())
         self._answer_path = self.create_publisher(self._types.get('nav_msgs/msg/Path'),
-                                                  PREDICT_PATH_TOPIC, reliable)
+                                                  PREDICT_PATH_TOPIC, reliable_qos())
         self._answer_result = self.create_publisher(
             self._types.get('diagnostic_msgs/msg/DiagnosticArray'), PREDICT_RESULT_TOPIC,
-            reliable)
+            reliable_qos())
 
+    # --- inputs -----------------------------------------------------------------------
     def _on_trajectory(self, msg: Any) -> None:
         """Take a planned trajectory (what prediction_mode planned follows)."""
         self.received['trajectory'] += 1
@@ -325,27 +556,45 @@ class ReducedDynamicsNode(Node):
             error = str(failure)
         path, result = answer_messages(answer, stamp, request_id, error)
         if path is not None:
-            self._answer_path.publish(pose_path_to_ros(path, self._types))
-        self._answer_result.publish(diagnostics_to_ros(result, self._types))
+            self._answer_path.publish(cdr.encode_path(path))
+        self._answer_result.publish(cdr.encode_diagnostic_array(result))
 
-    def _on_joint_state(self, msg: Any) -> None:
-        self._take('joint_states', msg, joint_state_from_ros, 'add_joint_state')
+    # Two parameters: rclpy then passes the message info, whose receive time the
+    # estimator's stamp policy compares header stamps with (estimator/stamps.py).
+    def _on_joint_state(self, data: bytes, info: Any) -> None:
+        self._take('joint_states', data, cdr.decode_joint_state, 'sensor_msgs/msg/JointState',
+                   joint_state_from_ros, 'add_joint_state', received_ns(info))
 
-    def _on_odometry(self, msg: Any) -> None:
-        self._take('base', msg, odometry_from_ros, 'add_base_state')
+    def _on_odometry(self, data: bytes, info: Any) -> None:
+        self._take('base', data, cdr.decode_odometry, 'nav_msgs/msg/Odometry',
+                   odometry_from_ros, 'add_base_state', received_ns(info))
 
-    def _on_pose(self, msg: Any) -> None:
+    def _on_pose(self, data: bytes, info: Any) -> None:
         base_link = self._estimator.robot.base_link if self._estimator else ''
-        self._take('base', msg, lambda m: pose_stamped_from_ros(m, base_link), 'add_base_state')
+        self._take('base', data, lambda d: cdr.decode_pose_stamped(d, base_link),
+                   'geometry_msgs/msg/PoseStamped',
+                   lambda m: pose_stamped_from_ros(m, base_link), 'add_base_state',
+                   received_ns(info))
 
-    def _take(self, kind: str, msg: Any, convert: Callable[[Any], Any], method: str) -> None:
-        """Convert one input message and feed it to the estimator; publish what is ready."""
+    def _decode(self, data: bytes, fast: Callable[[bytes], Any], msgtype: str,
+                convert: Callable[[Any], Any]) -> Any:
+        """Decode like the replay: the fixed layout first, rclpy's deserializer if it refuses."""
+        try:
+            return fast(data)
+        except cdr.CdrError:
+            return convert(deserialize_message(data, self._types.get(msgtype)))
+
+    def _take(self, kind: str, data: bytes, fast: Callable[[bytes], Any], msgtype: str,
+              convert: Callable[[Any], Any], method: str,
+              receive_ns: Optional[int] = None) -> None:
+        """Decode one input message and feed it to the estimator; publish what is ready."""
         self.received[kind] += 1
         try:
-            sample = convert(msg)
-        except (ValueError, TypeError) as error:
+            sample = with_receive_time(self._decode(data, fast, msgtype, convert), receive_ns)
+        except Exception as error:  # noqa: B902 - rclpy raises several types on bad bytes
             self._reject('malformed', f'{kind} message: {error}')
             return
+        self.input_stats[kind].take(sample.stamp_ns)
         estimator = self._estimator
         if estimator is None:
             self._reject('no_robot_model', self._model_error or 'no robot model')
@@ -355,8 +604,7 @@ class ReducedDynamicsNode(Node):
             outputs = getattr(estimator, method)(sample)
         except (ArithmeticError, RuntimeError, ValueError) as error:
             # The estimator rejects bad input itself; anything it raises is a numerical
-            # failure (e.g. a prediction that did not converge). One sample is lost; a
-            # crashed node would lose them all.
+            # failure. One sample is lost; a crashed node would lose them all.
             self._reject('estimator_error', f'{type(error).__name__}: {error}', error=True)
             return
         if sum(estimator.rejected.values()) != rejected_before and estimator.last_rejection:
@@ -370,17 +618,50 @@ class ReducedDynamicsNode(Node):
         if self._estimator is None:
             self.rejected[reason] += 1
         else:
-            # The estimator's own counter feeds its diagnostics (rejected_<reason>, WARN
-            # level); it has no public method for rejections made outside it yet.
             self._estimator.reject(reason, detail)
         # An estimator failure is this package's fault, not the input's: log an error.
         self._warn_throttled(reason, f'input rejected ({reason}): {detail}', error)
 
+    def _on_time_jump(self, jump: Any) -> None:
+        """Reset the estimator when ROS time went backwards (bag loop, simulator restart)."""
+        delta_ns = jump.delta.nanoseconds
+        if delta_ns >= 0 or self._estimator is None:
+            return
+        self.time_resets += 1
+        self._last_log_ns.clear()  # throttle times of the old clock are meaningless
+        self.get_logger().warning(
+            f'ROS time jumped back {-delta_ns * 1e-9:.6g} s: estimator reset '
+            f'(reset {self.time_resets})')
+        for output in self._estimator.reset(f'ROS time jumped back {-delta_ns * 1e-9:.6g} s'):
+            self._publish(output)
+
+    # --- outputs ----------------------------------------------------------------------
     def _publish(self, output: EstimatorOutput) -> None:
-        for topic, msg in output_messages(output, self._types):
-            self._publishers_by_topic[topic.name].publish(msg)
-            if topic.name == DIAGNOSTICS_TOPIC:
-                self._diagnostics_published = True
+        publishers, encoders = self._publishers_by_topic, self._encoders
+        if not publishers:
+            return  # deactivated
+        for topic in OUTPUT_TOPICS:
+            sample = getattr(output, topic.field)
+            if sample is not None:
+                publishers[topic.name].publish(encoders[topic.name](sample))
+        job = output.prediction_job
+        if job is not None and self._worker is not None:
+            self._worker.submit(job)
+
+    def _publish_prediction(self, messages: Any) -> None:
+        """Publish a finished prediction (worker thread), stamped with its start sample."""
+        with self._publish_lock:
+            publishers = self._publishers_by_topic
+            if not publishers:
+                return
+            for name, sample in (('prediction/shape', messages.shape),
+                                 ('prediction/base_path', messages.path),
+                                 ('prediction/geometric_phase_path', messages.phase_path)):
+                if sample is not None:
+                    publishers[name].publish(self._encoders[name](sample))
+
+    def _on_worker_error(self, message: str) -> None:
+        self.get_logger().error(message)
 
     # --- node-clock duties ------------------------------------------------------------
     def _warn_throttled(self, key: str, message: str, error: bool = False) -> None:
@@ -406,64 +687,205 @@ class ReducedDynamicsNode(Node):
         if rate > 0.0:
             self._watchdog = self.create_timer(1.0 / rate, self._on_watchdog)
 
-    def _on_watchdog(self) -> None:
-        """Publish the node's own status when the estimator published no diagnostics."""
-        if self._diagnostics_published:
-            self._diagnostics_published = False
-            return
-        stamp_ns = self.get_clock().now().nanoseconds
+    def node_status(self) -> DiagnosticStatusSample:
+        """
+        Return the node's own status: model, input and processed rates, losses seen.
+
+        Rates are per second of node time since the previous status. ``missing_*``
+        counts samples absent from the input stamps (gaps beyond GAP_FACTOR nominal
+        periods): lost before the node (transport, queue overflow) or never sent.
+        """
+        now = self.get_clock().now().nanoseconds
         estimator = self._estimator
+        processed = estimator.processed if estimator else 0
+        elapsed = (now - self._last_status_ns) * 1e-9 if self._last_status_ns else 0.0
+        self._last_status_ns = now
         rejected = Counter(self.rejected)
         if estimator is not None:
             rejected.update(estimator.rejected)
         values = {'robot_model': self._robot_source,
-                  'received_joint_states': str(self.received['joint_states']),
-                  'received_base': str(self.received['base']),
-                  'processed': str(estimator.processed if estimator else 0),
-                  'rejected_total': str(sum(rejected.values()))}
+                  'processed': str(processed),
+                  'rejected_total': str(sum(rejected.values())),
+                  'predictions_pending': str(self.predictions_pending),
+                  'time_resets': str(self.time_resets)}
+        lost = 0
+        for kind, stats in self.input_stats.items():
+            window = stats.window()
+            values[f'received_{kind}'] = str(stats.received)
+            values[f'missing_{kind}'] = str(stats.missing)
+            lost += stats.missing
+            if elapsed > 0.0:
+                values[f'input_rate_{kind}'] = f'{window / elapsed:.1f}'
+        if elapsed > 0.0:
+            values['processed_rate'] = f'{(processed - self._processed_at_status) / elapsed:.1f}'
+        self._processed_at_status = processed
         values.update({f'rejected_{k}': str(v) for k, v in sorted(rejected.items())})
         if self._model_error:
             level, message = DIAG_ERROR, self._model_error
-        else:
+        elif lost:
             level = DIAG_WARN
-            message = 'no input processed since the last status'
-            if self._description_sub is not None and self._description_text is None:
-                message += '; waiting for robot_description (paper robot stands in)'
+            message = f'{lost} input samples missing (stamp gaps): input lost before the node'
+        elif not sum(s.received for s in self.input_stats.values()):
+            level, message = DIAG_WARN, 'no input received yet'
+        else:
+            level, message = DIAG_OK, 'running'
+        if self._description_sub is not None and self._description_text is None:
+            message += '; waiting for robot_description (paper robot stands in)'
         hardware = estimator.robot.model.name if estimator else ''
-        status = DiagnosticStatusSample(level, f'{NODE_NAME}: node', message, hardware, values)
-        self._publishers_by_topic[DIAGNOSTICS_TOPIC].publish(
-            diagnostics_to_ros(Diagnostics(stamp_ns, (status,)), self._types))
+        return DiagnosticStatusSample(level, NODE_STATUS_NAME, message, hardware, values)
 
-    def destroy_node(self) -> None:
-        """Log what was processed, then destroy the node."""
+    def _on_watchdog(self) -> None:
+        """Publish the node's status at diagnostics_rate (node clock)."""
+        if not self._publishers_by_topic:
+            return
+        status = self.node_status()
+        stamp_ns = self.get_clock().now().nanoseconds
+        self._publishers_by_topic[DIAGNOSTICS_TOPIC].publish(
+            cdr.encode_diagnostic_array(Diagnostics(stamp_ns, (status,))))
+
+    def _summary(self) -> None:
         estimator = self._estimator
         if estimator is not None:
             self.get_logger().info(
                 f'processed {estimator.processed} samples; rejected '
                 f'{dict(estimator.rejected + self.rejected) or "none"}')
-        super().destroy_node()
 
 
-def main(args: Optional[Sequence[str]] = None) -> int:
-    """Run the node until Ctrl-C, SIGTERM or an external shutdown (Jazzy demo pattern)."""
+class ReducedDynamicsNode(_Shell, Node):
+    """Estimate momentum, shape state, drift and predictions (plain node: active at once)."""
+
+    def __init__(self, **node_options: Any) -> None:
+        """Create the node; ``node_options`` go to rclpy's Node (parameter_overrides, ...)."""
+        Node.__init__(self, NODE_NAME, **node_options)
+        self._init_shell()
+        self._configure()
+        self._activate()
+
+    def destroy_node(self) -> None:
+        """Stop the worker, log what was processed, then destroy the node."""
+        if self._shell_active:
+            self._deactivate()
+        self._summary()
+        if self._jump_handler is not None:
+            self._jump_handler.unregister()
+            self._jump_handler = None
+        Node.destroy_node(self)
+
+
+class ReducedDynamicsLifecycleNode(_Shell, LifecycleNode):
+    """
+    The same node as a managed (lifecycle) node.
+
+    configure: read the parameters, load and check the robot model (FAILURE with
+    the reason if unusable); activate: subscribe and publish; deactivate: stop
+    both; cleanup: forget the model; shutdown: from any state.
+    """
+
+    def __init__(self, **node_options: Any) -> None:
+        """Create the node unconfigured; ``node_options`` go to rclpy's LifecycleNode."""
+        LifecycleNode.__init__(self, NODE_NAME, **node_options)
+        self._init_shell()
+
+    def on_configure(self, state: Any) -> 'TransitionCallbackReturn':
+        """Load and check the robot model."""
+        error = self._configure()
+        if error:
+            self._cleanup()
+            return TransitionCallbackReturn.FAILURE
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: Any) -> 'TransitionCallbackReturn':
+        """Subscribe and publish."""
+        self._activate()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_deactivate(self, state: Any) -> 'TransitionCallbackReturn':
+        """Stop taking input and publishing; keep the model and the estimator state."""
+        self._deactivate()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_cleanup(self, state: Any) -> 'TransitionCallbackReturn':
+        """Forget the robot model and the estimator."""
+        self._cleanup()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: Any) -> 'TransitionCallbackReturn':
+        """Stop everything, from any primary state."""
+        if self._shell_active:
+            self._deactivate()
+        self._summary()
+        self._cleanup()
+        return TransitionCallbackReturn.SUCCESS
+
+    def destroy_node(self) -> None:
+        """Stop the worker, then destroy the node."""
+        if self._shell_active:
+            self._deactivate()
+        if self._jump_handler is not None:
+            self._jump_handler.unregister()
+            self._jump_handler = None
+        LifecycleNode.destroy_node(self)
+
+
+def spin_until_signal(node: Any, executor: Optional[Any] = None) -> None:
+    """
+    Spin ``node`` until SIGINT or SIGTERM (or an external shutdown).
+
+    rclpy's own signal handler shuts the context down at once, under the
+    callbacks' feet: a message being taken then fails inside rclpy.spin
+    ("Unable to convert call argument"), and the shutdown log lines cannot
+    reach /rosout. Here the signal only sets a flag and wakes the executor; the
+    node is destroyed while the context is still valid, then rclpy shuts down.
+    """
+    stop = threading.Event()
+    executor = executor or SingleThreadedExecutor()
+    executor.add_node(node)
+
+    def on_signal(signum: int, frame: Any) -> None:
+        stop.set()
+        executor.wake()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        executor.remove_node(node)
+        executor.shutdown(timeout_sec=1.0)
+
+
+def main(args: Optional[Sequence[str]] = None, lifecycle: bool = False) -> int:
+    """Run the node until Ctrl-C, SIGTERM or an external shutdown; ``--lifecycle``: managed."""
     if rclpy is None:
         print(ROS_NOT_SOURCED, file=sys.stderr)
         return 1
-    rclpy.init(args=args)
+    argv = list(sys.argv if args is None else args)
+    if '--lifecycle' in argv:
+        argv.remove('--lifecycle')
+        lifecycle = True
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    node_class = ReducedDynamicsLifecycleNode if lifecycle else ReducedDynamicsNode
     try:
-        node = ReducedDynamicsNode()
+        node = node_class()
     except ParameterException as error:  # bad params file / -p value: one line, no traceback
         print(f'reduced_dynamics_node: invalid parameters: {error}', file=sys.stderr)
         rclpy.try_shutdown()
         return 2
     try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        spin_until_signal(node)
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def lifecycle_main(args: Optional[Sequence[str]] = None) -> int:
+    """Run the managed (lifecycle) node: the ``reduced_dynamics_lifecycle_node`` executable."""
+    return main(args, lifecycle=True)
 
 
 if __name__ == '__main__':

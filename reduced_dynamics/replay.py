@@ -50,6 +50,7 @@ from reduced_dynamics.messages.convert import (
 from reduced_dynamics.messages.samples import JointTrajectorySample, with_receive_time
 from reduced_dynamics.messages.types import RosbagsTypes
 from reduced_dynamics.params import defaults, load_params_file
+from reduced_dynamics.plot_marks import draw_marks, read_marks
 from reduced_dynamics.robot.model import load_robot, RobotModel
 from reduced_dynamics.topics import active_topics, cdr_encoder, resolved_name
 
@@ -327,7 +328,18 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
             if prediction.compared:
                 series['residual'].append((prediction.start_ns, prediction.shape_residual,
                                            prediction.position_residual))
-        summary['plots'] = write_plots(options.plots_dir, series, robot)
+        try:
+            marks = read_marks(str(bag_path), joint_topic, start_ns, end_ns)
+        except (BagError, OSError, ValueError, AttributeError) as error:  # marks are optional
+            marks = {'torque_steps': [], 'pulses': [], 'pulse_topic': None,
+                     'error': str(error)}
+        summary['plots'] = write_plots(options.plots_dir, series, robot, marks)
+        t0 = series['mu'].rows[0][0] if series['mu'].rows else 0
+        summary['plot_marks'] = {
+            'torque_steps_s': [round((s - t0) * 1e-9, 6) for s in marks['torque_steps']],
+            'thruster_pulses_s': [[round((a - t0) * 1e-9, 6), round((b - t0) * 1e-9, 6)]
+                                  for a, b in marks['pulses']],
+            'pulse_topic': marks['pulse_topic']}
     return summary
 
 
@@ -362,8 +374,14 @@ def damage_report(reader: BagReader, topics: list[str], read: Counter,
     }
 
 
-def write_plots(directory: str, series: dict, robot: RobotModel) -> list[str]:
-    """Write PNG plots of mu, drift, shape state and prediction residual; return paths."""
+def write_plots(directory: str, series: dict, robot: RobotModel,
+                marks: Optional[dict] = None) -> list[str]:
+    """
+    Write PNG plots of mu, drift, shape state and prediction residual; return paths.
+
+    ``marks`` (:func:`reduced_dynamics.plot_marks.read_marks`): thruster pulses are
+    shaded and joint-torque changes drawn on every plot.
+    """
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -377,12 +395,17 @@ def write_plots(directory: str, series: dict, robot: RobotModel) -> list[str]:
         plt.close(fig)
         paths.append(path)
 
+    marks = marks or {}
+    mu_rows = series['mu'].rows
+    t0 = mu_rows[0][0] if mu_rows else 0
+
     def wrench_plot(rows: np.ndarray, names: tuple, units: tuple, title: str,
                     file: str) -> None:
         # rows: stamp then six (force-like, torque-like) columns, world frame.
-        t = (rows[:, 0] - rows[0, 0]) * 1e-9
+        t = (rows[:, 0] - t0) * 1e-9
         fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
         for half, ax in enumerate(axes):
+            draw_marks(ax, marks, t0)
             for i in range(3):
                 ax.plot(t, rows[:, 1 + 3 * half + i], label=f'{names[half]}_{"xyz"[i]}')
             ax.set_ylabel(units[half])
@@ -404,8 +427,9 @@ def write_plots(directory: str, series: dict, robot: RobotModel) -> list[str]:
                     'momentum drift: estimated external wrench dμ/dt', 'drift.png')
     shape = np.array(series['shape'].rows)
     if shape.size and shape.shape[1] > 1:
-        t = (shape[:, 0] - shape[0, 0]) * 1e-9
+        t = (shape[:, 0] - t0) * 1e-9
         fig, ax = plt.subplots(figsize=(9, 4))
+        draw_marks(ax, marks, t0)
         for i, name in enumerate(robot.shape_joint_names):
             ax.plot(t, shape[:, 1 + i], label=name)
         ax.set_xlabel('time [s]')
@@ -416,6 +440,7 @@ def write_plots(directory: str, series: dict, robot: RobotModel) -> list[str]:
         save(fig, 'shape.png')
     residual = np.array(series['residual'])
     fig, ax = plt.subplots(figsize=(9, 4))
+    draw_marks(ax, marks, t0 if mu_rows else (int(residual[0, 0]) if residual.size else 0))
     if residual.size:
         t = (residual[:, 0] - (mu[0, 0] if mu.size else residual[0, 0])) * 1e-9
         ax.semilogy(t, np.maximum(residual[:, 1], 1e-16), 'o-', label='shape [rad]')

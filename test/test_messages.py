@@ -539,35 +539,24 @@ def test_fake_double_is_strict(fake_rclpy: FakeRclpyMessages) -> None:
         js(bogus=1)
 
 
-def test_with_shared_rclpy_double_if_present() -> None:
-    """Cross-check against the project's shared rclpy TEST DOUBLE when it is available."""
-    double = pytest.importorskip('rclpy_double._messages')
-    module_cache: dict[str, types.ModuleType] = {}
-
-    def importer(name: str) -> types.ModuleType:
-        if name not in module_cache:
-            pkg = name.split('.')[0]
-            module = types.ModuleType(name)
-            for key in double.TYPESTORE.fielddefs:
-                if key.startswith(pkg + '/msg/'):
-                    setattr(module, key.rsplit('/', 1)[1], double.get_class(key))
-            module_cache[name] = module
-        return module_cache[name]
-
-    rclpy_types = RclpyTypes(importer=importer)
+def test_cdr_encoders_give_what_real_rclpy_reads_as_the_converted_message() -> None:
+    """The node publishes cdr.ENCODERS bytes: rclpy must read them as the converters' messages."""
+    from rclpy.serialization import deserialize_message
+    from reduced_dynamics.messages import cdr
+    rclpy_types = RclpyTypes()
     samples = [
-        joint_state_to_ros(JointStateSample(T0, 'b', ('a',), [1.0], [2.0], [3.0]), rclpy_types),
-        base_state_to_odometry(BaseStateSample(T0, 'w', 'b', np.ones(3), unit_quat(), np.ones(3),
-                                               np.ones(3)), rclpy_types),
-        diagnostics_to_ros(Diagnostics(T0, [DiagnosticStatusSample(1, 'n', values={'k': 'v'})]),
-                           rclpy_types),
-        shape_prediction_to_ros(ShapePrediction(T0, 'b', ('a',), [0, 1], np.ones((2, 1)),
-                                                np.ones((2, 1))), rclpy_types),
-        pose_path_to_ros(PosePath(T0, 'o', [T0], np.ones((1, 3)), [unit_quat()]), rclpy_types),
+        (JointStateSample(T0, 'b', ('a', 'bc'), [1.0, 2.0], [2.0, 3.0], [3.0, 4.0]),
+         joint_state_to_ros, 'sensor_msgs/msg/JointState'),
+        (Diagnostics(T0, [DiagnosticStatusSample(1, 'n', values={'k': 'v'})]),
+         diagnostics_to_ros, 'diagnostic_msgs/msg/DiagnosticArray'),
+        (ShapePrediction(T0, 'b', ('a',), [0, 1], np.ones((2, 1)), np.ones((2, 1))),
+         shape_prediction_to_ros, 'trajectory_msgs/msg/JointTrajectory'),
+        (PosePath(T0, 'o', [T0], np.ones((1, 3)), [unit_quat()]), pose_path_to_ros,
+         'nav_msgs/msg/Path'),
     ]
-    for msg in samples:
-        double.check_message(msg)
-    assert diagnostics_from_ros(samples[2]).statuses[0].level == 1
+    for sample, to_ros, msgtype in samples:
+        expected = to_ros(sample, rclpy_types)
+        assert deserialize_message(cdr.ENCODERS[msgtype](sample), type(expected)) == expected
 
 
 def test_no_rclpy_import_in_sources() -> None:

@@ -15,11 +15,10 @@
 """
 Tests of the rclpy node shell (reduced_dynamics.node).
 
-They run on real rclpy when it is importable and on the rclpy TEST DOUBLE
-(test/rclpy_double) otherwise; ``REDUCED_DYNAMICS_RCLPY=real|double`` forces one.
-Only the checks that need double-only helpers (``logs()``, ``on_spin()``) are
-skipped on real rclpy, and the SIGTERM check needs real rclpy. Nodes are built
-directly and driven through ``deliver()``/``fire_timers()``; no executor spins.
+They run on real rclpy (Jazzy wheels). Nodes are built directly and driven
+through ``deliver()``/``fire_timers()`` (test/ros_harness.py), which call the
+node's real callbacks; what goes over DDS through a real executor, and the
+installed executable as a process, is in test_node_dds.py.
 """
 
 import array
@@ -46,22 +45,20 @@ from reduced_dynamics.topics import DIAGNOSTICS_TOPIC, OUTPUT_TOPICS, output_mes
 from reduced_dynamics.validation import random_scenario
 
 try:
-    from rclpy_double import rclpy_backend
+    from ros_harness import real_ros, Ros
 except ImportError:  # test/ imported as a package
-    from test.rclpy_double import rclpy_backend
+    from test.ros_harness import real_ros, Ros
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 NS = 1_000_000_000
 T0_NS = 1000 * NS  # input stamps: far from the (sim) clock, so a clock stamp would show
 SAMPLES = 300
 PERIOD_NS = 10_000_000
-NEEDS_DOUBLE = 'needs the rclpy double: {} has no real-rclpy equivalent'
 
 
 @pytest.fixture
 def ros():
-    with rclpy_backend(purge=('reduced_dynamics.node',)) as backend:
-        backend.rclpy.init()
+    with real_ros() as backend:
         yield backend
 
 
@@ -77,6 +74,7 @@ def node_factory(ros):
             namespace=namespace,
             parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
         nodes.append(node)
+        node.logs = Ros.record_logs(node).records  # what it logs from now on
         return node
     yield make
     for node in nodes:
@@ -209,11 +207,7 @@ def assert_same_message(actual, expected, path='msg'):
 def feed(ros, node, messages):
     for topic, msg in messages:
         ros.deliver(node, topic, msg)
-
-
-def _require_double(ros, what):
-    if ros.is_real:
-        pytest.skip(NEEDS_DOUBLE.format(what))
+    node.wait_for_predictions()
 
 
 # ------------------------------------------------------------------ parameters
@@ -254,7 +248,8 @@ def test_params_yaml_overrides_are_applied(node_factory):
 @pytest.mark.parametrize('name, value, error', [
     ('prediction_rate', 500.0, 'InvalidParameterValueException'),   # descriptor range
     ('base_input', 'twist', 'InvalidParameterValueException'),       # choices: on-set check
-    ('prediction_rate', 5, 'InvalidParameterTypeException'),         # int is not a double
+    ('prediction_rate', 'fast', 'InvalidParameterValueException'),   # not a number
+    ('prediction_rate', 500, 'InvalidParameterValueException'),      # int: node's range check
     ('gravity', [0.0, 9.81], 'InvalidParameterValueException'),     # needs three numbers
 ])
 def test_bad_overrides_fail_at_start_up(ros, name, value, error):
@@ -268,7 +263,8 @@ def test_bad_overrides_fail_at_start_up(ros, name, value, error):
 @pytest.mark.parametrize('name, value, reason', [
     ('prediction_rate', 500.0,
      'Parameter prediction_rate out of range Min: 0.0, Max: 100.0, value: 500.0'),
-    ('prediction_rate', 5, "Wrong parameter type, expected 'Type.DOUBLE' got 'Type.INTEGER'"),
+    ('prediction_rate', 'x', "prediction_rate must be a number, got 'x'"),
+    ('prediction_rate', 500, 'prediction_rate = 500.0 is outside [0.0, 100.0]'),
     ('world_frame', 5.0, "Wrong parameter type, expected 'Type.STRING' got 'Type.DOUBLE'"),
     ('base_joint', 'planar', 'Trying to set a read-only parameter: base_joint.'),
     ('joint_states_topic', 'js', 'Trying to set a read-only parameter: joint_states_topic.'),
@@ -289,6 +285,17 @@ def test_rejected_changes_leave_everything_unchanged(node_factory, name, value, 
     assert result.reason == reason
     assert node.get_parameter(name).value == before
     assert node.estimator.config is config
+
+
+def test_integers_are_accepted_for_double_parameters(node_factory):
+    # `-p prediction_rate:=2` on the command line arrives as an integer (issue 14, item 6).
+    from rclpy.parameter import Parameter
+    node = node_factory(prediction_rate=2, diagnostics_rate=4)
+    assert node.estimator.config.prediction_rate == 2.0
+    assert isinstance(node.estimator.config.prediction_rate, float)
+    assert [t.timer_period_ns for t in node.timers] == [NS // 4]
+    assert node.set_parameters([Parameter('observer_bandwidth', value=20)])[0].successful
+    assert node.estimator.config.observer_bandwidth == 20.0
 
 
 def test_accepted_changes_reach_the_estimator_and_outputs(ros, node_factory):
@@ -342,8 +349,8 @@ def test_diagnostics_rate_retunes_the_watchdog_timer(node_factory):
 # ------------------------------------------------------------------ topics and outputs
 def test_topic_names_and_qos(node_factory):
     from rclpy.qos import DurabilityPolicy
-    from rclpy.qos import qos_profile_sensor_data
     from rclpy.qos import ReliabilityPolicy
+    from reduced_dynamics.node import input_qos, INPUT_QOS_DEPTH
     node = node_factory(namespace='robot', joint_states_topic='/arm/joint_states')
     publishers = {pub.topic_name: pub for pub in node.publishers}
     assert set(publishers) >= {'/robot/reduced_dynamics/' + t.name for t in OUTPUT_TOPICS
@@ -352,8 +359,10 @@ def test_topic_names_and_qos(node_factory):
         qos = publishers[_resolved(node, topic)].qos_profile
         assert qos.depth == 10 and qos.reliability == ReliabilityPolicy.RELIABLE
     subscriptions = {sub.topic_name: sub for sub in node.subscriptions}
-    assert subscriptions['/arm/joint_states'].qos_profile == qos_profile_sensor_data
-    assert subscriptions['/robot/odom'].qos_profile == qos_profile_sensor_data
+    for name in ('/arm/joint_states', '/robot/odom'):
+        qos = subscriptions[name].qos_profile
+        assert qos == input_qos() and qos.depth == INPUT_QOS_DEPTH == 100, name
+        assert qos.reliability == ReliabilityPolicy.BEST_EFFORT, name  # sensor data
     assert '/robot/base_pose' not in subscriptions
     latched = subscriptions['/robot/robot_description'].qos_profile
     assert latched.depth == 1 and latched.durability == DurabilityPolicy.TRANSIENT_LOCAL
@@ -442,10 +451,13 @@ def test_sim_time_stamps_clock_outputs_and_inputs_keep_theirs(ros, node_factory)
     assert momentum and min(m.header.stamp.sec for m in momentum) >= T0_NS // NS
     published = len(diagnostics)
     assert diagnostics[-1].header.stamp.sec >= T0_NS // NS  # the estimator's, input time
-    ros.fire_timers(node)  # the estimator reported during this period: nothing to add
-    assert len(diagnostics) == published
-    ros.fire_timers(node)  # inputs stopped: the watchdog reports at clock time
+    ros.fire_timers(node)  # the node's own status: at clock time, with its input counts
     assert len(diagnostics) == published + 1 and diagnostics[-1].header.stamp.sec == 12
+    status = diagnostics[-1].status[0]
+    values = {kv.key: kv.value for kv in status.values}
+    assert status.level == b'\x00' and values['received_joint_states'] == '150'
+    assert values['missing_joint_states'] == '0' and values['processed'] == str(
+        node.estimator.processed)
 
 
 def test_wall_clock_without_sim_time(ros, node_factory):
@@ -499,24 +511,22 @@ def test_an_estimator_failure_loses_one_sample_not_the_node(ros, node_factory, m
     feed(ros, node, messages[10:])
     assert node.estimator.rejected['estimator_error'] == 1
     assert len(ros.published('~/momentum', node)) > published
-    if not ros.is_real:  # logs() is double-only
-        assert any(s == 'ERROR' and 'no convergence' in m for s, m in ros.logs(node))
+    assert any(s == 'ERROR' and 'no convergence' in m for s, m in node.logs)
 
 
 def test_rejection_logs_are_throttled_on_the_node_clock(ros, node_factory):
-    _require_double(ros, 'logs()')
     node = node_factory(use_sim_time=True)
     ros.set_sim_time(node, 100.0)
     malformed = joint_state(ros, T0_NS, ['a', 'b'], [1.0])
     for _ in range(3):
         ros.deliver(node, 'joint_states', malformed)
-    warnings = [m for s, m in ros.logs(node) if s == 'WARN' and 'malformed' in m]
+    warnings = [m for s, m in node.logs if s == 'WARN' and 'malformed' in m]
     assert len(warnings) == 1 and 'joint_states message' in warnings[0]
     ros.set_sim_time(node, 104.0)
     ros.deliver(node, 'joint_states', malformed)
     ros.set_sim_time(node, 105.0)
     ros.deliver(node, 'joint_states', malformed)
-    warnings = [m for s, m in ros.logs(node) if s == 'WARN' and 'malformed' in m]
+    warnings = [m for s, m in node.logs if s == 'WARN' and 'malformed' in m]
     assert len(warnings) == 2 and warnings[1].endswith('(3 similar suppressed)')
     assert node.estimator.rejected['malformed'] == 5
 
@@ -533,16 +543,21 @@ def test_robot_description_topic_replaces_the_stand_in(ros, node_factory):
     ros.deliver(node, 'robot_description', String(data=random_tree_urdf(3, seed=1)))
     assert node.estimator is estimator  # republished unchanged: state kept
 
+    # A malformed model republished: rejected with the reason, the working one kept.
     ros.deliver(node, 'robot_description', String(data='<robot name="broken"/>'))
-    assert node.estimator is None and 'root link' in node.model_error
-    feed(ros, node, input_messages(ros, count=3))  # no model: counted, never raised
-    assert node.rejected == {'no_robot_model': 6}
-    ros.fire_timers(node)
-    status = ros.published('/diagnostics')[-1].status[0]
-    assert status.level == b'\x02' and 'root link' in status.message  # ERROR
-
-    ros.deliver(node, 'robot_description', String(data=random_tree_urdf(3, seed=1)))
-    assert node.estimator is not None and node.model_error is None
+    assert node.estimator is estimator and node.model_error is None
+    assert node.rejected == {'robot_model': 1}
+    assert any(s == 'ERROR' and 'root link' in m and 'keeping robot' in m
+               for s, m in node.logs)
+    feed(ros, node, input_messages(ros, count=3))
+    assert node.rejected == {'robot_model': 1}
+    # A different valid robot replaces it cleanly, said once.
+    ros.deliver(node, 'robot_description', String(data=str(paper_robot_urdf().read_text())))
+    assert node.estimator is not estimator and node.estimator.processed == 0
+    assert node.estimator.robot.model.name == 'paper_robot'
+    assert sum('replaces the previous model' in m for _, m in node.logs) == 2
+    feed(ros, node, input_messages(ros, count=20))
+    assert node.estimator.processed > 10
 
 
 def test_robot_description_parameter_wins_and_urdf_path_is_second(node_factory):
@@ -566,34 +581,9 @@ def test_model_errors_keep_the_node_running(ros, node_factory, overrides, reason
     feed(ros, node, input_messages(ros, count=2))
     assert node.rejected['no_robot_model'] == 4
     assert ros.published('~/momentum', node) == []
-    if not ros.is_real:  # logs() is double-only; the behaviour above is checked on both
-        assert any(s == 'ERROR' and reason in m for s, m in ros.logs(node))
 
 
 # ------------------------------------------------------------------ process lifecycle
-@pytest.mark.parametrize('interrupt', ['KeyboardInterrupt', 'ExternalShutdownException'])
-def test_main_shuts_down_cleanly(ros, interrupt):
-    _require_double(ros, 'on_spin()')
-    from rclpy.executors import ExternalShutdownException
-    from reduced_dynamics.node import main
-    error = KeyboardInterrupt if interrupt == 'KeyboardInterrupt' else ExternalShutdownException
-    ros.rclpy.try_shutdown()  # main() initialises rclpy itself
-    spun = []
-
-    def stop(node):
-        spun.append(node)
-        assert len(list(node.subscriptions)) == 3
-        assert len(list(node.publishers)) == len(OUTPUT_TOPICS)
-        raise error()
-    ros.on_spin(stop)
-    assert main([]) == 0
-    node, = spun
-    assert list(node.publishers) == [] and list(node.subscriptions) == []  # destroyed
-    assert list(node.timers) == []
-    assert not ros.rclpy.ok()
-    assert ros.logs(node)[-1][0] == 'INFO' and 'processed 0 samples' in ros.logs(node)[-1][1]
-
-
 def test_main_reports_invalid_parameters_in_one_line(ros, monkeypatch, capsys):
     from rclpy.exceptions import InvalidParameterValueException
     import reduced_dynamics.node as node_module
@@ -628,8 +618,6 @@ def test_without_rclpy_main_prints_one_line_and_returns_1():
 
 
 def test_sigterm_ends_the_node_cleanly(ros):
-    if not ros.is_real:
-        pytest.skip('needs real rclpy: SIGTERM handling lives in its C signal handler')
     import signal
     import time
     proc = subprocess.Popen([sys.executable, '-m', 'reduced_dynamics.node'], cwd=REPO_ROOT,
@@ -641,44 +629,32 @@ def test_sigterm_ends_the_node_cleanly(ros):
     assert 'Traceback' not in err
 
 
-def _same_rosbags(actual, expected, path='msg'):
-    """Assert two rosbags messages are equal field by field (arrays exactly)."""
-    if hasattr(expected, '__dataclass_fields__'):
-        assert type(actual).__name__ == type(expected).__name__, path
-        for name in expected.__dataclass_fields__:
-            if name != '__msgtype__':
-                _same_rosbags(getattr(actual, name), getattr(expected, name), f'{path}.{name}')
-    elif isinstance(expected, (list, tuple)):
-        assert len(actual) == len(expected), path
-        for i, (a, e) in enumerate(zip(actual, expected)):
-            _same_rosbags(a, e, f'{path}[{i}]')
-    elif isinstance(expected, numpy.ndarray):
-        assert numpy.array_equal(numpy.asarray(actual), expected), path
-    else:
-        assert actual == expected, f'{path}: {actual!r} != {expected!r}'
-
-
-def test_node_and_replay_publish_the_same_messages_for_the_same_bag(ros, node_factory,
-                                                                    tmp_path):
-    from rclpy_double._messages import from_rosbags, to_rosbags
+# The paper robot's bags (joint states + odometry); the freeflyer and planar bags need
+# their own URDF and base input.
+@pytest.mark.parametrize('bag', ['paper_constant', 'paper_realistic', 'paper_thruster'])
+def test_node_and_replay_publish_the_same_bytes_for_the_same_bag(ros, node_factory, tmp_path,
+                                                                 bag):
+    """Every output topic, every message, bit for bit: the CDR bytes the replay writes."""
     from reduced_dynamics.bag.reader import open_bag
     from reduced_dynamics.replay import replay, ReplayOptions
     from reduced_dynamics.topics import active_topics, resolved_name
-    bag = os.path.join(os.path.dirname(__file__), 'data', 'paper_constant')
-    replay(bag, str(tmp_path / 'out'), load_robot(), ReplayOptions(smooth=False))  # causal
+    path = REPO_ROOT / 'test' / 'data' / bag
+    replay(str(path), str(tmp_path / 'out'), load_robot(), ReplayOptions(smooth=False))  # causal
     node = node_factory(urdf_path=str(paper_robot_urdf()))
-    with open_bag(bag) as reader:
-        for message in reader.messages(['/joint_states', '/odom']):
-            ros.deliver(node, message.topic, from_rosbags(message.msg))
+    with open_bag(path) as reader:
+        for message in reader.raw_messages(['/joint_states', '/odom']):
+            # The record time is the receive time, as the replay takes it.
+            ros.deliver(node, message.topic, bytes(message.data), message.timestamp_ns)
+    node.wait_for_predictions()
     with open_bag(tmp_path / 'out') as reader:
         for topic in active_topics(False):
-            replayed = [m.msg for m in reader.messages([resolved_name(topic)])]
-            published = ros.published(_resolved(node, topic))
+            replayed = [bytes(m.data) for m in reader.raw_messages([resolved_name(topic)])]
+            published = ros.published_raw(_resolved(node, topic))
             # Default mode (planned, held_velocity without a plan): no shape predictions.
             least = 0 if topic.name == 'prediction/shape' else 1
             assert len(published) == len(replayed) >= least, topic.name
             for i, (mine, theirs) in enumerate(zip(published, replayed)):
-                _same_rosbags(to_rosbags(mine, topic.msgtype), theirs, f'{topic.name}[{i}]')
+                assert mine == theirs, f'{topic.name}[{i}]'
 
 
 # ------------------------------------------------------------------ planned motions

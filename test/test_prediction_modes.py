@@ -397,3 +397,24 @@ def test_budget_counts_evaluations_and_wall_time(monkeypatch):
     with pytest.raises(BudgetExceeded, match='wall-time budget exceeded') as caught:
         budget.charge()
     assert caught.value.reason.startswith('wall-time budget exceeded (0.5 s, 2 evaluations)')
+
+
+def test_planar_base_with_gravity_predicts_a_plan():
+    # SE(2) base, gravity normal to the plane: the potential does not enter the
+    # reconstruction (it is invariant under the base group), only the shape's torques.
+    from conftest_robots import planar_robot
+    from reduced_dynamics.reduction.prescribed import relative_angles
+    robot = planar_robot()
+    n = robot.n
+    path = PlannedPath(*_plan(robot.m, seed=2, points=6))
+    g0 = robot.project_pose(pin.SE3(pin.utils.rotate('z', 0.3), np.array([1.0, 2.0, 0.0])))
+    xi0 = np.array([0.05, -0.02, 0.1])
+    q0, qd0, _ = path(0.0)
+    mass = robot.mass_matrix(q0)
+    mu = momentum_map(robot.group, g0, mass[:n, :n] @ xi0 + mass[:n, n:] @ qd0)
+    times = np.linspace(0.0, 10.0, 101)
+    full = PrescribedShapeDynamics(robot, path).simulate(g0, xi0, times)
+    predicted = PrescribedReconstruction(robot, mu, g0, path).propagate(
+        times, 1e-10, 1e-12, path.breakpoints)
+    assert np.abs(full.poses[:, :3, 3] - predicted.poses[:, :3, 3]).max() <= 1e-6
+    assert relative_angles(full.poses[:, :3, :3], predicted.poses[:, :3, :3]).max() <= 1e-6

@@ -1,0 +1,251 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The ROS 2 processes of ``reduced-dynamics bench --sections node`` (real DDS).
+
+``python -m reduced_dynamics.node_bench ROLE ...`` with ROLE one of
+
+* ``relay``: the baseline, a bare rclpy node that republishes every joint state
+  and odometry message it takes (sensor-data QoS in, reliable out, as the node);
+* ``publish``: the input source, joint states and odometry at fixed rates, in
+  phases, first the relay's input topics, then the node's; the
+  header stamp of each message is its send time (system clock), so an output
+  stamped with its input's stamp carries the send time with it;
+* ``probe``: subscribes to the relay's and the node's outputs and records, per
+  message, the stamp and the receive time.
+
+The orchestration (processes, statistics) is ROS-free, in
+:func:`reduced_dynamics.bench.bench_node`. Besides the node shell this is the
+only module importing rclpy, and only inside these roles.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import time
+from typing import Any, Optional, Sequence
+
+import numpy as np
+
+#: Input topics of the relay and the node (the node's defaults, relative names).
+RELAY_INPUTS = ('relay_in/joint_states', 'relay_in/odom')
+NODE_INPUTS = ('joint_states', 'odom')
+#: Output topics the probe records: a relayed joint state, the node's momentum (one per
+#: processed joint state, stamped with it).
+RELAY_OUTPUT = '/relay/joint_states'
+NODE_OUTPUT = '/reduced_dynamics/momentum'
+PROBE_DEPTH = 100_000
+
+
+def _rclpy() -> Any:
+    import rclpy
+    return rclpy
+
+
+def relay(_args: argparse.Namespace) -> int:
+    """Republish joint states and odometry unchanged (subscribe, republish)."""
+    rclpy = _rclpy()
+    from nav_msgs.msg import Odometry
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.qos import qos_profile_sensor_data, QoSProfile
+    from sensor_msgs.msg import JointState
+    rclpy.init()
+    node = rclpy.create_node('relay')
+    out_qos = QoSProfile(depth=10)
+    joints_out = node.create_publisher(JointState, '~/joint_states', out_qos)
+    odom_out = node.create_publisher(Odometry, '~/odom', out_qos)
+    node.create_subscription(JointState, RELAY_INPUTS[0], joints_out.publish,
+                             qos_profile_sensor_data)
+    node.create_subscription(Odometry, RELAY_INPUTS[1], odom_out.publish,
+                             qos_profile_sensor_data)
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        rclpy.try_shutdown()
+    return 0
+
+
+def probe(args: argparse.Namespace) -> int:
+    """Record (stamp, receive time) of every output until SIGINT/SIGTERM; write JSON."""
+    rclpy = _rclpy()
+    from geometry_msgs.msg import WrenchStamped
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+    rclpy.init(signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    node = rclpy.create_node('bench_probe')
+    qos = QoSProfile(depth=PROBE_DEPTH, history=HistoryPolicy.KEEP_LAST,
+                     reliability=ReliabilityPolicy.RELIABLE)
+    records: dict[str, list] = {RELAY_OUTPUT: [], NODE_OUTPUT: []}
+    clock = time.time_ns
+
+    def recorder(topic: str) -> Any:
+        rows = records[topic]
+
+        def record(msg: Any) -> None:
+            stamp = msg.header.stamp
+            rows.append((stamp.sec * 1_000_000_000 + stamp.nanosec, clock()))
+        return record
+    node.create_subscription(JointState, RELAY_OUTPUT, recorder(RELAY_OUTPUT), qos)
+    node.create_subscription(WrenchStamped, NODE_OUTPUT, recorder(NODE_OUTPUT), qos)
+    stop = []
+    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    ready = False
+    while not stop:
+        rclpy.spin_once(node, timeout_sec=0.05)
+        if not ready and all(node.count_publishers(t) for t in records):
+            ready = True
+            with open(args.ready, 'w', encoding='utf-8') as stream:
+                stream.write('ready\n')
+    with open(args.out, 'w', encoding='utf-8') as stream:
+        json.dump(records, stream)
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+class _Motion:
+    """Joint positions and velocities of a smooth motion at time t (lists)."""
+
+    def __init__(self, m: int, seed: int = 0) -> None:
+        rng = np.random.default_rng(seed)
+        self.amplitude = rng.uniform(0.1, 0.4, m)
+        self.frequency = rng.uniform(0.5, 2.0, m)
+        self.phase = rng.uniform(0.0, 2.0 * np.pi, m)
+
+    def __call__(self, t: float) -> tuple[list, list]:
+        angle = self.frequency * t + self.phase
+        return ((self.amplitude * np.sin(angle)).tolist(),
+                (self.amplitude * self.frequency * np.cos(angle)).tolist())
+
+
+def publish(args: argparse.Namespace) -> int:
+    """Publish the phases; write the stamps sent in each phase's measured window."""
+    rclpy = _rclpy()
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import JointState
+    from reduced_dynamics.robot.model import load_robot
+    robot = load_robot()
+    names = list(robot.shape_joint_names)
+    rclpy.init()
+    node = rclpy.create_node('bench_publisher')
+    targets = {'relay': RELAY_INPUTS, 'node': NODE_INPUTS}
+    publishers = {name: (node.create_publisher(JointState, topics[0], qos_profile_sensor_data),
+                         node.create_publisher(Odometry, topics[1], qos_profile_sensor_data))
+                  for name, topics in targets.items()}
+    deadline = time.monotonic() + args.discovery_timeout
+    while not all(p.get_subscription_count() for pair in publishers.values() for p in pair):
+        if time.monotonic() > deadline:
+            print('bench publisher: no subscriber on the inputs', file=sys.stderr)
+            return 1
+        rclpy.spin_once(node, timeout_sec=0.05)
+    phase_seconds = args.warmup + args.seconds
+    motion = _Motion(len(names))
+    joint_msg = JointState()
+    joint_msg.name = names
+    joint_msg.effort = [0.0] * len(names)
+    odom_msg = Odometry()
+    odom_msg.header.frame_id = 'world'
+    odom_msg.child_frame_id = robot.base_link
+    odom_msg.twist.twist.linear.x = 0.01
+    odom_msg.twist.twist.angular.z = 0.05
+    phases = []
+    clock = time.time_ns
+    joint_rates = [float(r) for r in args.joint_rates.split(',')]
+    # All relay windows, then all node windows: a target's input stream pauses only
+    # args.pause between its windows (a longer pause would be a clock jump to the node's
+    # stamp policy, stamp_outlier_tolerance 1 s). Motion time runs on per target.
+    for name in ('relay', 'node'):
+        joints_pub, odom_pub = publishers[name]
+        motion_time = 0.0
+        for joint_rate in joint_rates:
+            base_rate = min(args.base_rate, joint_rate)
+            for repeat in range(args.repeats):
+                events = sorted([(k / joint_rate, 0) for k in
+                                 range(int(phase_seconds * joint_rate))]
+                                + [(k / base_rate, 1) for k in
+                                   range(int(phase_seconds * base_rate))])
+                sent: list[int] = []
+                base_sent = 0
+                start = time.monotonic()
+                for offset, kind in events:
+                    delay = start + offset - time.monotonic()
+                    if delay > 0.0:
+                        time.sleep(delay)
+                    measured = offset >= args.warmup
+                    stamp = clock()
+                    t = motion_time + offset
+                    if kind == 0:
+                        joint_msg.header.stamp.sec, joint_msg.header.stamp.nanosec = divmod(
+                            stamp, 1_000_000_000)
+                        joint_msg.position, joint_msg.velocity = motion(t)
+                        joints_pub.publish(joint_msg)
+                        if measured:
+                            sent.append(stamp)
+                    else:
+                        odom_msg.header.stamp.sec, odom_msg.header.stamp.nanosec = divmod(
+                            stamp, 1_000_000_000)
+                        odom_msg.pose.pose.position.x = 0.01 * t
+                        odom_msg.pose.pose.orientation.z = float(np.sin(0.025 * t))
+                        odom_msg.pose.pose.orientation.w = float(np.cos(0.025 * t))
+                        odom_pub.publish(odom_msg)
+                        base_sent += measured
+                lateness = time.monotonic() - start - events[-1][0]
+                motion_time += phase_seconds + args.pause
+                phases.append({'repeat': repeat, 'target': name, 'joint_rate': joint_rate,
+                               'base_rate': base_rate, 'joint_stamps': sent,
+                               'base_sent': base_sent, 'seconds': args.seconds,
+                               'late_at_end_s': lateness})
+                time.sleep(args.pause)
+    with open(args.out, 'w', encoding='utf-8') as stream:
+        json.dump({'phases': phases}, stream)
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Run one role (see the module docstring)."""
+    parser = argparse.ArgumentParser(prog='python -m reduced_dynamics.node_bench')
+    roles = parser.add_subparsers(dest='role', required=True)
+    roles.add_parser('relay').set_defaults(func=relay)
+    p = roles.add_parser('probe')
+    p.add_argument('--out', required=True)
+    p.add_argument('--ready', required=True)
+    p.set_defaults(func=probe)
+    p = roles.add_parser('publish')
+    p.add_argument('--out', required=True)
+    p.add_argument('--joint-rates', default='1000',
+                   help='comma-separated joint-state rates [Hz], windows at each')
+    p.add_argument('--base-rate', type=float, default=200.0,
+                   help='odometry rate [Hz] (at most the joint-state rate)')
+    p.add_argument('--seconds', type=float, default=3.0)
+    p.add_argument('--warmup', type=float, default=1.0)
+    p.add_argument('--pause', type=float, default=0.5)
+    p.add_argument('--repeats', type=int, default=3)
+    p.add_argument('--discovery-timeout', type=float, default=60.0)
+    p.set_defaults(func=publish)
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,72 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""The node section of ``bench``: window statistics, and one tiny run over real DDS."""
+
+import importlib.util
+import math
+
+import pytest
+
+from reduced_dynamics import bench
+
+
+def test_phase_figures_count_drops_and_latency():
+    ms = 1_000_000
+    sent = [10 * ms * k for k in range(1, 101)]  # 100 joint states, 100 Hz
+    # Every fourth one lost; the others come back 1 ms (and one 50 ms) later.
+    received = [(s, s + ms) for k, s in enumerate(sent) if k % 4]
+    received[0] = (received[0][0], received[0][0] + 50 * ms)
+    received.append((123, 456))  # an output of another window: ignored
+    row = bench.node_phase_figures(sent, received)
+    assert row['sent'] == 100 and row['delivered'] == 75 and row['drops'] == 25
+    assert math.isclose(row['input_rate'], 100.0)
+    assert math.isclose(row['delivered_rate'], 75.0)
+    assert math.isclose(row['p50_ms'], 1.0)
+    assert 1.0 < row['p99_ms'] <= 50.0
+    empty = bench.node_phase_figures(sent, [])
+    assert empty['drops'] == 100 and math.isnan(empty['p50_ms'])
+
+
+def test_domain_id_is_its_own(monkeypatch):
+    monkeypatch.delenv('RD_BENCH_DOMAIN_ID', raising=False)
+    assert 60 <= bench.node_domain_id() < 100
+    monkeypatch.setenv('RD_BENCH_DOMAIN_ID', '77')
+    assert bench.node_domain_id() == 77
+
+
+@pytest.mark.skipif(importlib.util.find_spec('rclpy') is None,
+                    reason='rclpy not importable (CI installs it: pip install .[ros])')
+def test_node_section_over_real_dds(tmp_path):
+    # One configuration, one short window each for the relay and the node: the structure
+    # and that messages flowed through both (no figure is asserted: machines are noisy).
+    settings = bench.Settings(repeats=1, node_seconds=0.5, node_warmup=1.0,
+                              node_sweep_seconds=0.5, quick=True)
+    report = bench.Report(bench.machine_info(), {})
+    bench.bench_node(report, settings, str(tmp_path),
+                     rates=(('joints 200 Hz + odom 100 Hz', 200.0, 100.0),), sweep=(50.0,))
+    names = [f.name for f in report.figures]
+    assert names == ['joints 200 Hz + odom 100 Hz: ' + n for n in
+                     ('joint states delivered/s', 'drops', 'latency p50', 'latency p99')] + \
+        ['sustained joint-state rate without drops (odom 200 Hz)']
+    sweep = report.details['node']['sweep_drops']
+    assert set(sweep) == {'relay', 'node'} and all(list(d) == ['50.0'] for d in sweep.values())
+    assert report.figures[-1].median in (0.0, 50.0)
+    rows = report.details['node']['configurations']['joints 200 Hz + odom 100 Hz']
+    for target in ('relay', 'node'):
+        (row,) = rows[target]
+        assert row['sent'] >= 90, row
+        assert row['delivered'] > 0, (target, row)
+        assert 0.0 < row['p50_ms'] <= row['p99_ms'], row
+    assert all(f.section == 'node' for f in report.figures)
