@@ -294,8 +294,8 @@ def test_integers_are_accepted_for_double_parameters(node_factory):
     assert node.estimator.config.prediction_rate == 2.0
     assert isinstance(node.estimator.config.prediction_rate, float)
     assert [t.timer_period_ns for t in node.timers] == [NS // 4]
-    assert node.set_parameters([Parameter('observer_bandwidth', value=20)])[0].successful
-    assert node.estimator.config.observer_bandwidth == 20.0
+    assert node.set_parameters([Parameter('event_hold', value=1)])[0].successful
+    assert node.estimator.config.event_hold == 1.0
 
 
 def test_accepted_changes_reach_the_estimator_and_outputs(ros, node_factory):
