@@ -13,7 +13,9 @@
 # limitations under the License.
 
 """
-Command line: ``reduced-dynamics validate | symmetries | simulate | replay | predict | bench``.
+Command line: ``reduced-dynamics validate | symmetries | simulate | replay | ...``.
+
+Subcommands: validate, symmetries, simulate, replay, predict, tune, bench.
 
 One subcommand per task; ``--help`` on each lists its options.
 """
@@ -119,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _extra_commands() -> list:
     registrars = []
-    for module in ('simulator', 'replay', 'predict', 'bench'):
+    for module in ('simulator', 'replay', 'predict', 'tune', 'bench'):
         try:
             imported = __import__(f'reduced_dynamics.{module}', fromlist=['register_command'])
         except ImportError:

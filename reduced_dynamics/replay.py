@@ -81,6 +81,9 @@ class ReplayOptions:
     progress: Optional[TextIO] = None
     #: refuse a damaged bag (BagError) instead of reading what is intact
     strict: bool = False
+    #: fixed-interval (RTS) smoothing of the filter's estimates; False: exactly the
+    #: causal outputs the node publishes (memory then stays flat in the bag's length)
+    smooth: bool = True
 
 
 class _Series:
@@ -205,6 +208,8 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
         base_driven = joint_topic is None or robot.m == 0
         estimator = Estimator(robot, config, use_odometry=is_odom, base_driven=base_driven,
                               cyclic_joints=options.params.get('cyclic_joints', ''))
+        if options.smooth:
+            estimator.enable_smoothing()
         start_ns = None if options.start is None else reader.start_ns + int(options.start * 1e9)
         end_ns = None if options.end is None else reader.start_ns + int(options.end * 1e9)
         trajectory_topic = _topic(options.trajectory_topic
@@ -238,7 +243,16 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
         with BagWriter(out_path, out_topics, overwrite=options.overwrite) as writer:
             write = writer.write_raw
 
-            def emit(outputs: list[EstimatorOutput]) -> None:
+            held: list[EstimatorOutput] = []
+
+            def emit(outputs: list[EstimatorOutput], final: bool = False) -> None:
+                if options.smooth:
+                    # The smoother needs the whole bag: outputs are written at the end.
+                    held.extend(outputs)
+                    if not final:
+                        return
+                    estimator.smooth_outputs(held)
+                    outputs = held
                 for output in outputs:
                     stamp = output.stamp_ns
                     for name, topic, encode in encoders:
@@ -291,7 +305,7 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                                                f'({sum(read.values())} messages)')
                         options.progress.flush()
             emit(estimator.add_samples(batch).outputs())
-            emit(estimator.flush_batch().outputs())
+            emit(estimator.flush_batch().outputs(), final=True)
         written = {topic: count for topic, count in writer.message_counts.items() if count}
         skipped = dict(reader.skipped)
         # A --start/--end window reads part of the bag on purpose: no missing count then.
@@ -302,6 +316,7 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
     elapsed = time.perf_counter() - started
     summary = estimator.summary()
     summary.update({'input_bag': str(bag_path), 'output_bag': str(out_path),
+                    'smoothed': options.smooth,
                     'robot': robot.model.name, 'joint_states_topic': joint_topic,
                     'base_topic': base_topic, 'trajectory_topic': trajectory_topic,
                     'base_driven': base_driven,
@@ -514,6 +529,7 @@ def _run(args: argparse.Namespace) -> int:
                             trajectory_topic=args.trajectory_topic,
                             start=args.start, end=args.end, plots_dir=args.plots,
                             overwrite=args.overwrite, strict=args.strict,
+                            smooth=not args.no_smooth,
                             progress=None if args.quiet else sys.stderr)
     existed = os.path.exists(args.output)
     try:
@@ -562,4 +578,7 @@ def register_command(commands: Any) -> None:
                              'that do not deserialize) instead of replaying what is intact '
                              f'and exiting {EXIT_DAMAGED}')
     parser.add_argument('--quiet', action='store_true', help='no progress display')
+    parser.add_argument('--no-smooth', action='store_true',
+                        help='write the causal filter\'s estimates, exactly what the node '
+                             'publishes (default: fixed-interval RTS smoothing over the bag)')
     parser.set_defaults(func=_run)

@@ -17,8 +17,7 @@
 import numpy as np
 import pytest
 
-from reduced_dynamics.estimator.filter import (Linearisation, MomentumFilter, NoiseModel,
-                                               smooth)
+from reduced_dynamics.estimator.filter import Linearisation, MomentumFilter, NoiseModel, smooth
 from reduced_dynamics.geometry.lie_group import SUBGROUPS
 
 
@@ -162,3 +161,15 @@ def test_nees_within_chi_square_bounds(name: str, twist: bool) -> None:
         low = chi2.ppf(0.025, runs * dim) / runs
         high = chi2.ppf(0.975, runs * dim) / runs
         assert low <= mean <= high, (mean, low, high)
+
+
+def test_spacecraft_params_file_loads_and_configures_the_filter() -> None:
+    from reduced_dynamics.estimator import Estimator, EstimatorConfig
+    from reduced_dynamics.params import load_params_file
+    from reduced_dynamics.resources import config_path
+    from reduced_dynamics.robot.model import load_robot
+    params = load_params_file(str(config_path('spacecraft.yaml')))
+    assert params['pose_angle_noise'] == 5e-5 and params['base_input'] == 'odom'
+    estimator = Estimator(load_robot(), EstimatorConfig.from_mapping(params))
+    assert estimator.filter.noise.pose_angle == 5e-5
+    assert estimator.filter.noise.jerk_angular == 0.05

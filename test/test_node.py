@@ -294,22 +294,22 @@ def test_integers_are_accepted_for_double_parameters(node_factory):
     assert node.estimator.config.prediction_rate == 2.0
     assert isinstance(node.estimator.config.prediction_rate, float)
     assert [t.timer_period_ns for t in node.timers] == [NS // 4]
-    assert node.set_parameters([Parameter('observer_bandwidth', value=20)])[0].successful
-    assert node.estimator.config.observer_bandwidth == 20.0
+    assert node.set_parameters([Parameter('event_hold', value=1)])[0].successful
+    assert node.estimator.config.event_hold == 1.0
 
 
 def test_accepted_changes_reach_the_estimator_and_outputs(ros, node_factory):
     from rclpy.parameter import Parameter
     node = node_factory()
     estimator = node.estimator
-    changes = {'observer_bandwidth': 20.0, 'prediction_integrator': 'discrete_gradient',
+    changes = {'wrench_jerk_linear': 0.2, 'prediction_integrator': 'discrete_gradient',
                'world_frame': 'map', 'event_hold': 0.0, 'sync_tolerance': 1.0}
     for name, value in changes.items():
         assert node.set_parameters([Parameter(name, value=value)])[0].successful, name
         assert node.get_parameter(name).value == value
     assert node.estimator is estimator  # settings change, state is kept
     assert estimator.config == EstimatorConfig().replaced(**changes)
-    assert estimator.observer.bandwidth == 20.0
+    assert estimator.filter.noise.jerk_linear == 0.2
     feed(ros, node, input_messages(ros, count=5))
     momentum = ros.published('~/momentum', node)
     assert momentum and all(m.header.frame_id == 'map' for m in momentum)
@@ -320,11 +320,11 @@ def test_accepted_changes_reach_the_estimator_and_outputs(ros, node_factory):
 def test_atomic_change_is_all_or_nothing(node_factory):
     from rclpy.parameter import Parameter
     node = node_factory()
-    result = node.set_parameters_atomically([Parameter('observer_bandwidth', value=30.0),
+    result = node.set_parameters_atomically([Parameter('wrench_jerk_linear', value=0.3),
                                              Parameter('prediction_rate', value=500.0)])
     assert not result.successful
-    assert node.get_parameter('observer_bandwidth').value == 50.0
-    assert node.estimator.config.observer_bandwidth == 50.0
+    assert node.get_parameter('wrench_jerk_linear').value == 0.05
+    assert node.estimator.config.wrench_jerk_linear == 0.05
 
 
 def test_start_up_only_rule_holds_without_the_read_only_flag(node_factory):
@@ -636,10 +636,10 @@ def test_node_and_replay_publish_the_same_bytes_for_the_same_bag(ros, node_facto
                                                                  bag):
     """Every output topic, every message, bit for bit: the CDR bytes the replay writes."""
     from reduced_dynamics.bag.reader import open_bag
-    from reduced_dynamics.replay import replay
+    from reduced_dynamics.replay import replay, ReplayOptions
     from reduced_dynamics.topics import active_topics, resolved_name
     path = REPO_ROOT / 'test' / 'data' / bag
-    replay(str(path), str(tmp_path / 'out'), load_robot())
+    replay(str(path), str(tmp_path / 'out'), load_robot(), ReplayOptions(smooth=False))  # causal
     node = node_factory(urdf_path=str(paper_robot_urdf()))
     with open_bag(path) as reader:
         for message in reader.raw_messages(['/joint_states', '/odom']):

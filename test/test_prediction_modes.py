@@ -20,7 +20,7 @@ from conftest_robots import paper_robot, tree_robot
 import numpy as np
 import pinocchio as pin
 import pytest
-from sim_samples import samples
+from sim_samples import NOISE_FREE, samples
 
 from reduced_dynamics.estimator import Estimator, EstimatorConfig
 from reduced_dynamics.full_dynamics import PrescribedShapeDynamics
@@ -181,7 +181,11 @@ def _feed(estimator, joints, bases, plan):
 def test_planned_mode_predicts_the_measured_base_path():
     robot = paper_robot()
     joints, bases, plan, _ = _planned_run(robot)
-    config = EstimatorConfig(prediction_rate=1.0, prediction_horizon=1.0)
+    # Noise-free odometry, and the filter is told so: it then follows the sensors.
+    config = EstimatorConfig(prediction_rate=1.0, prediction_horizon=1.0,
+                             pose_position_noise=1e-10, pose_angle_noise=1e-10,
+                             twist_linear_noise=1e-10, twist_angular_noise=1e-10,
+                             joint_velocity_noise=0.0, innovation_gate=0.0)
     estimator = Estimator(robot, config)
     outputs = _feed(estimator, joints, bases, plan)
     started = [o for o in outputs if o.prediction_path is not None]
@@ -316,7 +320,7 @@ def test_simulated_plan_replayed_in_planned_mode(tmp_path):
     assert main(['simulate', '-o', str(bag), '--trajectory', str(tmp_path / 'plan.yaml'),
                  '--duration', '6', '--rate', '100']) == 0
     summary = replay(str(bag), str(tmp_path / 'out'), load_robot(),
-                     ReplayOptions(params=defaults()))
+                     ReplayOptions(params={**defaults(), **NOISE_FREE}))
     assert summary['trajectory_topic'] == '/joint_trajectory'
     assert summary['trajectories_received'] == 1
     planned = summary['prediction_residuals']['planned']
@@ -366,7 +370,7 @@ def test_predict_command_prints_and_writes_the_path(tmp_path, capsys):
 def test_estimator_answers_a_plan_from_its_latest_state():
     robot = paper_robot()
     joints, bases, plan, run = _planned_run(robot, seconds=2.0, offset=1.0)
-    estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0))
+    estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0, **NOISE_FREE))
     with pytest.raises(ValueError, match='no estimated state'):
         estimator.predict_base_motion(plan)
     for joint, base in list(zip(joints, bases))[:101]:  # up to 0.5 s into the plan

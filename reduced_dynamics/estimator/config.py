@@ -42,15 +42,48 @@ PARAMETERS: dict[str, ParameterSpec] = {
                                     'largest gap [s] between a joint-state stamp and the '
                                     'nearest base sample; beyond it the sample is rejected '
                                     'as stale'),
-    'observer_bandwidth': ParameterSpec(50.0, 0.1, 1000.0, (),
-                                        'bandwidth K [rad/s] of the momentum observer: the '
-                                        'external-wrench estimate r obeys dr/dt = K (w - r)'),
-    'event_threshold': ParameterSpec(1.0, 1e-9, 1e6, (),
-                                     'norm of the estimated external wrench [N, N m] above '
-                                     'which a thruster/contact event is flagged'),
+    # Kalman filter (estimator/filter.py); README "The filter". Sensor noise as
+    # standard deviations, process noise as densities, all in physical units.
+    'pose_position_noise': ParameterSpec(
+        1e-3, 1e-12, 1e3, (),
+        'standard deviation [m] of a measured base position (motion capture: ~1 mm)'),
+    'pose_angle_noise': ParameterSpec(
+        2e-3, 1e-12, 3.2, (),
+        'standard deviation [rad] of a measured base orientation, per axis (motion '
+        'capture: ~0.1 deg)'),
+    'twist_linear_noise': ParameterSpec(
+        1e-2, 1e-12, 1e3, (),
+        'standard deviation [m/s] of an Odometry base linear velocity'),
+    'twist_angular_noise': ParameterSpec(
+        1e-2, 1e-12, 1e3, (),
+        'standard deviation [rad/s] of an Odometry base angular velocity'),
+    'joint_velocity_noise': ParameterSpec(
+        1e-2, 0.0, 1e3, (),
+        'standard deviation [rad/s or m/s] of a measured joint velocity (enters the base '
+        'motion through the connection A)'),
+    'wrench_jerk_linear': ParameterSpec(
+        0.05, 1e-9, 1e6, (),
+        'random-walk density [m/s^3/sqrt(Hz)] of the external force per unit mass: the '
+        'external wrench w is a random walk whose body-frame acceleration changes by about '
+        'this much in one second (scaled by the locked inertia, so one value fits any mass)'),
+    'wrench_jerk_angular': ParameterSpec(
+        0.25, 1e-9, 1e6, (),
+        'random-walk density [rad/s^3/sqrt(Hz)] of the external torque per unit inertia '
+        '(the linear density over a 0.2 m lever arm)'),
+    'innovation_gate': ParameterSpec(
+        1e-6, 0.0, 0.5, (),
+        'false-alarm probability of the innovation chi-square gate: a base measurement '
+        'less likely than this under the filter is rejected (innovation_gate), 3 in a '
+        'row are accepted as a momentum jump (0: gate off)'),
+    'event_significance': ParameterSpec(
+        1e-6, 0.0, 0.5, (),
+        'false-alarm probability per sample of the event test w^T P_ww^-1 w > '
+        'chi2_n quantile: a thruster/contact event starts above it (dimensionless, '
+        'the same at any mass; 0: no events)'),
     'event_hold': ParameterSpec(0.1, 0.0, 10.0, (),
-                                'quiet time [s] below half the threshold before an event '
-                                'ends and the model is re-reduced at the new momentum'),
+                                'quiet time [s] with w consistent with zero (chi-square '
+                                'below its 99 % quantile) before an event ends and the model '
+                                'is re-reduced at the new momentum'),
     'prediction_rate': ParameterSpec(1.0, 0.0, 100.0, (),
                                      'predictions per second of stamp time (0: off)'),
     'prediction_horizon': ParameterSpec(2.0, 0.0, 60.0, (), 'prediction horizon [s]'),
@@ -124,8 +157,15 @@ class EstimatorConfig:
 
     world_frame: str = PARAMETERS['world_frame'].default
     sync_tolerance: float = PARAMETERS['sync_tolerance'].default
-    observer_bandwidth: float = PARAMETERS['observer_bandwidth'].default
-    event_threshold: float = PARAMETERS['event_threshold'].default
+    pose_position_noise: float = PARAMETERS['pose_position_noise'].default
+    pose_angle_noise: float = PARAMETERS['pose_angle_noise'].default
+    twist_linear_noise: float = PARAMETERS['twist_linear_noise'].default
+    twist_angular_noise: float = PARAMETERS['twist_angular_noise'].default
+    joint_velocity_noise: float = PARAMETERS['joint_velocity_noise'].default
+    wrench_jerk_linear: float = PARAMETERS['wrench_jerk_linear'].default
+    wrench_jerk_angular: float = PARAMETERS['wrench_jerk_angular'].default
+    innovation_gate: float = PARAMETERS['innovation_gate'].default
+    event_significance: float = PARAMETERS['event_significance'].default
     event_hold: float = PARAMETERS['event_hold'].default
     prediction_rate: float = PARAMETERS['prediction_rate'].default
     prediction_horizon: float = PARAMETERS['prediction_horizon'].default

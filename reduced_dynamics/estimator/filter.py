@@ -64,6 +64,9 @@ from reduced_dynamics.geometry.lie_group import BaseGroup
 
 #: Consecutive gated measurements after which a momentum jump is accepted.
 GATE_RESET = 3
+#: Re-linearisations of an update with a twist (iterated EKF).
+ITERATIONS = 2
+LOG_2PI = math.log(2.0 * math.pi)
 
 
 @dataclass(frozen=True)
@@ -166,6 +169,10 @@ class MomentumFilter:
         self._gated_run = 0
         self.last_nis: float = 0.0
         self._eye = np.eye(3 * n)
+        #: sum of the innovations' log-likelihoods, of their NIS and of their dimensions
+        self.log_likelihood = 0.0
+        self.nis_sum = 0.0
+        self.nis_dof = 0
         self._lin: Optional[Linearisation] = None
 
     # --- pieces of the model ----------------------------------------------------------
@@ -318,46 +325,67 @@ class MomentumFilter:
                                          lin.locked_inverse))
         return accepted
 
-    def _update(self, pose: pin.SE3, twist: Optional[np.ndarray],
-                lin: Linearisation) -> bool:
-        n, group = self.n, self.group
-        residual = group.log(self.g.inverse() * pose)
+    def _measurement(self, g: pin.SE3, x: np.ndarray, pose: pin.SE3,
+                     twist: Optional[np.ndarray], lin: Linearisation
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Return H and the innovation of the pose (and twist) at the state (g, x)."""
+        n = self.n
+        residual = self.group.log(g.inverse() * pose)
         if twist is None:
             h = np.zeros((n, 3 * n))
             h[:, :n] = np.eye(n)
-            nu = residual
-            r = np.diag(self._pose_var)
-        else:
-            h = np.zeros((2 * n, 3 * n))
-            h[:n, :n] = np.eye(n)
-            h[n:] = self.twist_jacobian(self.g, self.mu, lin)
-            nu = np.concatenate((residual, twist - self.twist(self.g, self.mu, lin)))
-            r = np.zeros((2 * n, 2 * n))
-            r[:n, :n] = np.diag(self._pose_var)
+            return h, residual
+        h = np.zeros((2 * n, 3 * n))
+        h[:n, :n] = np.eye(n)
+        h[n:] = self.twist_jacobian(g, x[:n], lin)
+        return h, np.concatenate((residual, twist - self.twist(g, x[:n], lin)))
+
+    def _update(self, pose: pin.SE3, twist: Optional[np.ndarray],
+                lin: Linearisation) -> bool:
+        n, group = self.n, self.group
+        g0, x0 = self.g, self.x
+        h, nu = self._measurement(g0, x0, pose, twist, lin)
+        r = np.zeros((len(nu), len(nu)))
+        r[:n, :n] = np.diag(self._pose_var)
+        if twist is not None:
             r[n:, n:] = np.diag(self._twist_var) + lin.joint_cov
         ph = self.p @ h.T
         s = h @ ph + r
         s = 0.5 * (s + s.T)
-        gain_t = np.linalg.solve(s, ph.T)
         nis = float(nu @ np.linalg.solve(s, nu))
         self.last_nis = nis
+        # Innovation log-likelihood (what `reduced-dynamics tune` maximises) and NIS sums.
+        sign, logdet = np.linalg.slogdet(s)
+        self.log_likelihood -= 0.5 * (nis + logdet + len(nu) * LOG_2PI)
+        self.nis_sum += nis
+        self.nis_dof += len(nu)
         if nis > self._gates[len(nu)]:
             self.gated += 1
             self._gated_run += 1
             if self._gated_run < GATE_RESET:
                 return False
-            # A momentum jump no wrench of the random walk explains, seen 3 times:
-            # believe it, with the prior spread of mu and w.
-            to_world = group.Ad(self.g.inverse()).T @ lin.locked
+            # A momentum jump no wrench of the random walk explains, seen 3 times in a
+            # row: believe it, with the prior spread of mu and w added.
+            to_world = group.Ad(g0.inverse()).T @ lin.locked
             self.p[n:2 * n, n:2 * n] += (to_world * self._speed_var) @ to_world.T
             self.p[2 * n:, 2 * n:] += (to_world * self._accel_var) @ to_world.T
-            return self._update(pose, twist, lin) if self._gated_run < 2 * GATE_RESET \
-                else False
+            ph = self.p @ h.T
+            s = h @ ph + r
         self._gated_run = 0
-        gain = gain_t.T
+        gain = np.linalg.solve(s, ph.T).T
         dx = gain @ nu
-        self.g = self.g * group.exp(dx[:n])
-        self.x = self.x + dx[n:]
+        if twist is not None:
+            # Iterated EKF (Gauss-Newton on the posterior): the twist is bilinear in
+            # (g, mu), so one linearisation leaves a second-order miss where w steps.
+            for _ in range(ITERATIONS):
+                g_i = g0 * group.exp(dx[:n])
+                h, nu_i = self._measurement(g_i, x0 + dx[n:], pose, twist, lin)
+                ph = self.p @ h.T
+                s = h @ ph + r
+                gain = np.linalg.solve(0.5 * (s + s.T), ph.T).T
+                dx = gain @ (nu_i + h @ dx)
+        self.g = g0 * group.exp(dx[:n])
+        self.x = x0 + dx[n:]
         keep = self._eye - gain @ h
         p = keep @ self.p @ keep.T + gain @ r @ gain.T
         self.p = 0.5 * (p + p.T)

@@ -16,16 +16,19 @@
 The estimator pipeline: samples in, momentum, shape state, drift and predictions out.
 
 One class serves the replay tool and the node. Per joint-state sample it pairs
-the shape with the base state at the same stamp (:mod:`.sync`), evaluates the
-metric once and computes mu (5.27), pi, qbar, qbar_dot, pbar (5.35) and the
-drift twist I^-1 pi (:mod:`.kernel`); it updates the momentum observer
-(:mod:`.observer`), predicts with the reduced model at a set rate
-(:mod:`.prediction`) and reports diagnostics. Bad input is rejected with a
-reason and counted; it never raises.
+the shape with the base pose (and twist) at the same stamp (:mod:`.sync`),
+evaluates the metric once (:mod:`.kernel`: I, A = I^-1 B, pbar = S qbar_dot,
+5.29, 5.35) and steps the error-state Kalman filter of base pose, momentum mu
+and external wrench w (:mod:`.filter`), whose process model is the reduced
+mechanics with the joint states as inputs. From the filter's state it reports
+mu (5.27), pi = Ad_g^T mu, the drift twist I^-1 pi and w with covariances,
+detects events from the filter's statistics (:mod:`.events`), predicts with
+the reduced model at a set rate (:mod:`.prediction`) and reports diagnostics.
+Bad input is rejected with a reason and counted; it never raises.
 
 Work happens in two passes. Validation and synchronisation run per sample, in
 arrival order; synchronised samples collect in a chunk, which the vectorised
-kernel and the observer then process together. ``add_joint_state`` and
+kernel evaluates together before the filter steps through them. ``add_joint_state`` and
 ``add_base_state`` close the chunk at every call (streaming, one sample);
 ``add_samples`` closes it every few hundred samples (batched). A chunk is also
 closed where a diagnostics message is due, so that its counters are those a
@@ -48,7 +51,9 @@ from reduced_dynamics.estimator.config import EstimatorConfig
 from reduced_dynamics.estimator.cyclic import (CYCLIC_OFF, CyclicColumns, CyclicView,
                                                resolve_cyclic_joints)
 from reduced_dynamics.estimator.kernel import UpdateKernel
-from reduced_dynamics.estimator.observer import MomentumEvent, MomentumObserver
+from reduced_dynamics.estimator.events import EventDetector, MomentumEvent
+from reduced_dynamics.estimator.filter import (Linearisation, MomentumFilter, NoiseModel,
+                                               smooth)
 from reduced_dynamics.estimator.plausibility import BaseBounds, JointBounds
 from reduced_dynamics.estimator.prediction import (
     FinishedPrediction, Plan, PredictionJob, PredictionMessages, Predictor, PRESCRIBED_MODES)
@@ -92,6 +97,9 @@ class EstimatorOutput:
     #: be computed off the input path (``job.run()`` returns its messages, see
     #: :class:`~reduced_dynamics.estimator.prediction.PredictionJob`)
     prediction_job: Optional[PredictionJob] = None
+    #: covariance (n x n, algebra coordinates) of mu and of the wrench w
+    momentum_covariance: Optional[np.ndarray] = None
+    wrench_covariance: Optional[np.ndarray] = None
 
 
 class OutputChunk:
@@ -105,7 +113,7 @@ class OutputChunk:
 
     __slots__ = ('stamps_ns', 'mu', 'pi', 'momentum_rate', 'drift', 'qbar', 'qbar_dot',
                  'pbar', 'energy', 'extras', 'cyclic', '_kernel', '_world', '_base',
-                 '_names')
+                 '_names', 'mu_cov', 'w_cov')
 
     def __init__(self, estimator: 'Estimator', stamps_ns: np.ndarray, mu: np.ndarray,
                  pi: np.ndarray, rate: np.ndarray, drift: np.ndarray, qbar: np.ndarray,
@@ -125,6 +133,9 @@ class OutputChunk:
         self._base = estimator.robot.base_link
         self._names = estimator.robot.shape_joint_names
         self.cyclic = cyclic
+        #: covariances (K, n, n) of mu and w (set by the estimator)
+        self.mu_cov: Optional[np.ndarray] = None
+        self.w_cov: Optional[np.ndarray] = None
 
     def __len__(self) -> int:
         """Return the number of samples."""
@@ -170,6 +181,9 @@ class OutputChunk:
                     output.prediction_phase_path, output.prediction_job = extra[3]
             if cyclic is not None:
                 output.cyclic_state = cyclic.sample(k, stamp)
+            if self.mu_cov is not None:
+                output.momentum_covariance = self.mu_cov[k]
+                output.wrench_covariance = self.w_cov[k]
             out.append(output)
         return out
 
@@ -226,6 +240,17 @@ def _all_finite(*arrays: np.ndarray) -> bool:
 
 
 Sample = Union[JointStateSample, BaseStateSample]
+
+
+def noise_model(config: EstimatorConfig) -> NoiseModel:
+    """Return the filter's noise model from the estimator settings."""
+    return NoiseModel(pose_position=config.pose_position_noise,
+                      pose_angle=config.pose_angle_noise,
+                      twist_linear=config.twist_linear_noise,
+                      twist_angular=config.twist_angular_noise,
+                      joint_velocity=config.joint_velocity_noise,
+                      jerk_linear=config.wrench_jerk_linear,
+                      jerk_angular=config.wrench_jerk_angular)
 
 
 class Estimator:
@@ -306,6 +331,8 @@ class Estimator:
         # (a failed prediction must not hide a later rejection, nor the reverse).
         self._rejected_at = 0
         self._done: list[OutputChunk] = []
+        #: keep the filter's steps for :meth:`smoothed` (see :meth:`enable_smoothing`)
+        self.record_steps = False
         # Input gates (estimator/stamps.py, estimator/plausibility.py).
         self._joint_gate = StampGate('joint state', NS, 3)
         self._base_gate = StampGate('base', NS, 3)
@@ -320,7 +347,6 @@ class Estimator:
     # --- configuration -------------------------------------------------------------
     def apply_config(self, config: EstimatorConfig) -> None:
         """Adopt new settings (validated by EstimatorConfig); the state is kept."""
-        old_observer = getattr(self, 'observer', None)
         self.config = config
         self._tolerance_ns = int(config.sync_tolerance * NS)
         # Input gates: bounds per joint-name order are rebuilt lazily.
@@ -331,11 +357,20 @@ class Estimator:
         self._base_bounds = BaseBounds(config)
         rate = config.diagnostics_rate
         self._diagnostics_period_ns = int(NS / rate) if rate > 0.0 else None
-        self.observer = MomentumObserver(config.observer_bandwidth, config.event_threshold,
-                                         config.event_hold)
-        if old_observer is not None:
-            self.observer.__dict__.update({k: v for k, v in old_observer.__dict__.items()
-                                           if k not in ('bandwidth', 'threshold', 'hold')})
+        self.noise = noise_model(config)
+        old_filter = getattr(self, 'filter', None)
+        self.filter = MomentumFilter(self.robot.group, self.noise, config.innovation_gate,
+                                     record=self.record_steps)
+        if old_filter is not None:
+            # New noise and gate; the estimate and the recorded steps stay.
+            for name in ('g', 'x', 'p', 'stamp_ns', 'steps', 'gated', 'log_likelihood',
+                         'nis_sum', 'nis_dof', '_lin', '_gated_run'):
+                setattr(self.filter, name, getattr(old_filter, name))
+        old_detector = getattr(self, 'detector', None)
+        self.detector = EventDetector(self.robot.n, config.event_significance,
+                                      config.event_hold)
+        if old_detector is not None:
+            self.detector.events = old_detector.events
         old_predictor = getattr(self, 'predictor', None)
         self.predictor = Predictor(self.robot, config.prediction_horizon,
                                    config.prediction_step, config.prediction_integrator,
@@ -598,7 +633,7 @@ class Estimator:
         Restart the estimator's clock (e.g. ROS time jumped back); return ready outputs.
 
         What waits at the old time is processed first; then every time-dependent
-        state is forgotten (base buffer, last stamps, observer filter state, open
+        state is forgotten (base buffer, last stamps, the filter's state, open
         predictions, prediction and diagnostics times). The momentum level,
         events and counters stay. Samples the stamp policy held are re-judged
         against the new clock.
@@ -623,12 +658,18 @@ class Estimator:
         self._buffer = BaseBuffer()
         self._last_joint_ns = self._last_base_ns = None
         self._last_prediction_ns = self._last_diagnostics_ns = None
-        # The filter restarts from the next sample; detected events stay reported.
-        events = self.observer.events
+        # The filter restarts from the next sample (its recorded steps stay, the
+        # smoother sees the restart); detected events stay reported.
+        old = self.filter
         config = self.config
-        self.observer = MomentumObserver(config.observer_bandwidth, config.event_threshold,
-                                         config.event_hold)
-        self.observer.events = events
+        self.filter = MomentumFilter(self.robot.group, self.noise, config.innovation_gate,
+                                     record=self.record_steps)
+        for name in ('steps', 'gated', 'log_likelihood', 'nis_sum', 'nis_dof'):
+            setattr(self.filter, name, getattr(old, name))
+        events = self.detector.events
+        self.detector = EventDetector(self.robot.n, config.event_significance,
+                                      config.event_hold)
+        self.detector.events = events
         self.clock_resets += 1
         self.last_reset = reason
 
@@ -638,7 +679,7 @@ class Estimator:
         if not pending:
             return
         buffer, tolerance_ns = self._buffer, self._tolerance_ns
-        needs_successor = not self.use_odometry
+        needs_successor = False
         while pending:
             head = pending[0]
             stamp = head[0]
@@ -682,7 +723,7 @@ class Estimator:
         # A new chunk first: if the update raises, these samples are lost, not retried.
         self._chunk = _Chunk()
         rejected_at, self._rejected_at = self._rejected_at, 0
-        m = self.robot.m
+        m, n = self.robot.m, self.robot.n
         stamp_list, qbar, qbar_dot, taus, bases = zip(*chunk.rows)
         stamps = np.array(stamp_list, dtype=np.int64)
         # The cheapest ways to stack these rows (arrays; lists of 13 floats).
@@ -690,29 +731,82 @@ class Estimator:
         qbar_dot = np.concatenate(qbar_dot).reshape(count, m)
         bases = np.fromiter(chain.from_iterable(bases), float, count * 13).reshape(count, 13)
         result = self.kernel.evaluate(qbar, qbar_dot, bases)
-        mu = result.mu
+        lins = self._linearisations(result.mass, qbar_dot)
+        # The recursion, one sample at a time (the same code whatever the chunk).
+        flt, detector, group = self.filter, self.detector, self.robot.group
+        twists = result.xi if self.use_odometry else None
+        mu = np.empty((count, n))
+        rate = np.empty((count, n))
+        pi = np.empty((count, n))
+        drift = np.empty((count, n))
+        mu_cov = np.empty((count, n, n))
+        w_cov = np.empty((count, n, n))
+        poses: list[pin.SE3] = []
+        quiet: list[bool] = []
+        for k in range(count):
+            lin = lins[k]
+            pose = pin.SE3(result.rotation[k], result.translation[k])
+            if not flt.step(stamp_list[k], lin, pose, None if twists is None else twists[k]):
+                self.rejected['innovation_gate'] += 1
+                self._period_rejected += 1
+                self.last_rejection = (f'innovation_gate: base measurement at {stamp_list[k]} '
+                                       f'improbable under the filter (chi-square '
+                                       f'{flt.last_nis:.3g})')
+            g = flt.g
+            mu[k] = flt.mu
+            rate[k] = flt.wrench
+            pi[k] = group.Ad(g).T @ mu[k]
+            drift[k] = lin.locked_inverse @ pi[k]
+            mu_cov[k] = flt.p[n:2 * n, n:2 * n]
+            w_cov[k] = flt.p[2 * n:, 2 * n:]
+            detector.update(stamp_list[k], mu[k], math.sqrt(float(rate[k] @ rate[k])),
+                            flt.wrench_significance())
+            poses.append(g)
+            quiet.append(not detector.in_event)
+        # Reduced energy (5.36) from the filtered momentum: 1/2 pi.I^-1 pi + 1/2 pbar.qbar_dot.
+        energy = 0.5 * (np.matmul(pi[:, None, :], drift[:, :, None])[:, 0, 0]
+                        + np.matmul(qbar_dot[:, None, :], result.pbar[:, :, None])[:, 0, 0])
+        if self.robot.has_potential:
+            energy += [self.robot.potential_energy(row) for row in qbar]
         extras: dict = {}
-        after = None
         cyclic = None
         if self._cyclic_view is not None:
-            cyclic = self._cyclic_view.columns(result.mass, result.xi, qbar, qbar_dot)
+            xi_hat = drift - np.array([lin.connection_qd for lin in lins])
+            cyclic = self._cyclic_view.columns(result.mass, xi_hat, qbar, qbar_dot)
             self._last_theta = cyclic.theta[-1]
         if self.predictor.active or self._prediction_enabled():
-            after = self._per_sample(stamp_list, qbar, qbar_dot, taus, result, extras,
-                                     rejected_at, cyclic)
-        rate = self.observer.update_many(stamps, mu, after)
+            self._per_sample(stamp_list, qbar, qbar_dot, taus, result, extras, rejected_at,
+                             cyclic, poses, mu, quiet)
         self.latest_state = (stamp_list[-1], result.rotation[-1], result.translation[-1],
                              qbar[-1], qbar_dot[-1])
         if self.first_stamp_ns is None:
             self.first_stamp_ns = stamp_list[0]
         self._accumulate_statistics(mu)
-        self._last_mu, self._last_energy = mu[-1], float(result.energy[-1])
+        self._last_mu, self._last_energy = mu[-1], float(energy[-1])
         if chunk.diagnose:
             stamp = stamp_list[-1]
             previous = extras.get(count - 1, (None, None, None))
             extras[count - 1] = previous[:2] + (self.diagnostics(stamp),) + previous[3:]
-        self._done.append(OutputChunk(self, stamps, mu, result.pi, rate, result.drift, qbar,
-                                      qbar_dot, result.pbar, result.energy, extras, cyclic))
+        out = OutputChunk(self, stamps, mu, pi, rate, drift, qbar, qbar_dot, result.pbar,
+                          energy, extras, cyclic)
+        out.mu_cov, out.w_cov = mu_cov, w_cov
+        self._done.append(out)
+
+    def _linearisations(self, mass: np.ndarray, qbar_dot: np.ndarray) -> list[Linearisation]:
+        """
+        Return the filter's per-sample inputs: I, I^-1, A qbar_dot and A Sigma_qdot A^T.
+
+        Stacked LAPACK calls run the same kernel per matrix: the rows do not
+        depend on the chunk length.
+        """
+        n = self.robot.n
+        locked = mass[:, :n, :n]
+        inverse = np.linalg.inv(locked)
+        connection = np.matmul(inverse, mass[:, :n, n:])
+        connection_qd = np.matmul(connection, qbar_dot[:, :, None])[:, :, 0]
+        variance = self.config.joint_velocity_noise ** 2
+        joint_cov = variance * np.matmul(connection, np.swapaxes(connection, 1, 2))
+        return [Linearisation(*row) for row in zip(locked, inverse, connection_qd, joint_cov)]
 
     def _accumulate_statistics(self, mu: np.ndarray) -> None:
         """Update the running mean and squared deviations of mu (Welford; Chan et al.)."""
@@ -733,23 +827,20 @@ class Estimator:
 
     def _per_sample(self, stamp_list: tuple, qbar: np.ndarray, qbar_dot: np.ndarray,
                     taus: tuple, result, extras: dict, rejected_at: int,
-                    cyclic: Optional[CyclicColumns] = None):
-        """Return the per-sample step (comparison, prediction) run inside the observer loop."""
+                    cyclic: Optional[CyclicColumns], poses: list, mu: np.ndarray,
+                    quiet: list) -> None:
+        """Record the measured history for the residuals and start predictions when due."""
         predictor = self.predictor
         rotation, translation = result.rotation, result.translation
-
-        def after(k: int) -> None:
-            stamp = stamp_list[k]
+        for k, stamp in enumerate(stamp_list):
             # Measured history for the residuals (closes predictions whose horizon passed).
             predictor.observe(stamp, qbar[k], translation[k], rotation[k])
-            if self._prediction_due(stamp):
-                g = pin.SE3(rotation[k], translation[k])
-                extra = self._predict(stamp, g, qbar[k], qbar_dot[k], taus[k],
-                                      k >= rejected_at,
+            if quiet[k] and self._prediction_due(stamp):
+                extra = self._predict(stamp, poses[k], qbar[k], qbar_dot[k], taus[k],
+                                      k >= rejected_at, mu[k],
                                       None if cyclic is None else cyclic.theta[k])
                 if extra is not None:
                     extras[k] = extra
-        return after
 
     def _prediction_enabled(self) -> bool:
         config = self.config
@@ -759,21 +850,23 @@ class Estimator:
     def _prediction_due(self, stamp: int) -> bool:
         if not self._prediction_enabled():
             return False
-        if self.observer.in_event or not self.observer.has_level:
-            return False
         last = self._last_prediction_ns
         return last is None or stamp - last >= int(NS / self.config.prediction_rate) - 1
 
     def _predict(self, stamp: int, g: pin.SE3, qbar: np.ndarray, qbar_dot: np.ndarray,
-                 tau: np.ndarray, report: bool, theta: Optional[np.ndarray] = None
-                 ) -> Optional[tuple]:
-        """Start a prediction; return the output extras (messages, or the deferred job)."""
+                 tau: np.ndarray, report: bool, mu: np.ndarray,
+                 theta: Optional[np.ndarray] = None) -> Optional[tuple]:
+        """
+        Start a prediction from the filter's pose and momentum (re-reduced at that mu).
+
+        Return the output extras (messages, or the deferred job).
+        """
         self._last_prediction_ns = stamp
-        self.observer.take_level_change()
+        self.detector.take_level_change()
         deferred = self.defer_predictions
         try:
-            job = self.predictor.predict(stamp, g, qbar, qbar_dot, self.observer.level, tau,
-                                         theta, deferred=deferred)
+            job = self.predictor.predict(stamp, g, qbar, qbar_dot, mu, tau, theta,
+                                         deferred=deferred)
         except (RuntimeError, ValueError, ArithmeticError, np.linalg.LinAlgError) as error:
             # A prediction that cannot start must not stop the estimates. (Failures while
             # computing are the job's: counted when its horizon has passed.)
@@ -797,17 +890,18 @@ class Estimator:
         """
         Answer "where will the base go if the arm executes this plan?" from the latest state.
 
-        The base pose, shape and momentum level of the last processed sample
+        The filtered base pose and momentum and the shape of the last processed sample
         start the prediction (:func:`~.base_motion.predict_base_motion`); the
         plan's stamp 0 means "from that sample". ValueError when there is no
         state yet, the plan does not fit the robot, or it has ended.
         """
-        if self.latest_state is None or not self.observer.has_level:
+        if self.latest_state is None or self.filter.g is None:
             raise ValueError('no estimated state yet')
-        stamp, rotation, translation, qbar, qbar_dot = self.latest_state
+        stamp, _, _, qbar, qbar_dot = self.latest_state
         config = self.config
-        return predict_base_motion(self.robot, trajectory, pin.SE3(rotation, translation),
-                                   self.observer.level, qbar, qbar_dot, stamp,
+        # The filter's pose and momentum at that sample.
+        return predict_base_motion(self.robot, trajectory, self.filter.g,
+                                   self.filter.mu.copy(), qbar, qbar_dot, stamp,
                                    config.prediction_step, config.prediction_tolerance,
                                    config.prediction_max_evaluations,
                                    config.prediction_max_wall_time, config.world_frame)
@@ -848,6 +942,62 @@ class Estimator:
                                      sample.positions, sample.velocities,
                                      sample.accelerations, self.robot.m))
 
+    def filter_statistics(self) -> dict:
+        """
+        Return the filter's innovation statistics.
+
+        ``log_likelihood``: sum over the updates of log N(nu; 0, S);
+        ``nis_per_dof``: mean normalised innovation squared per measured
+        coordinate (1 when the noise parameters fit the data); ``innovation_gated``.
+        """
+        flt = self.filter
+        return {'log_likelihood': flt.log_likelihood,
+                'nis_per_dof': flt.nis_sum / flt.nis_dof if flt.nis_dof else None,
+                'innovation_gated': flt.gated}
+
+    # --- smoothing (replay) -----------------------------------------------------------
+    def enable_smoothing(self) -> None:
+        """Record the filter's steps from now on, for :meth:`smooth_outputs` (replay)."""
+        self.record_steps = True
+        self.filter.record = True
+
+    def smooth_outputs(self, outputs: Sequence[EstimatorOutput]) -> None:
+        """
+        Replace the filtered estimates of ``outputs`` by the RTS-smoothed ones, in place.
+
+        ``outputs`` are all outputs since :meth:`enable_smoothing`, in order (one
+        recorded filter step each). Momentum, body momentum, momentum rate, drift
+        twist, mu and the covariances change; the shape state, predictions,
+        diagnostics and events stay those of the causal run.
+        """
+        steps = self.filter.steps
+        if len(steps) != len(outputs):
+            raise ValueError(f'{len(outputs)} outputs for {len(steps)} recorded filter steps')
+        if not outputs:
+            return
+        n, group, kernel = self.robot.n, self.robot.group, self.kernel
+        states = smooth(group, steps)
+        mu = np.array([state.x[:n] for state in states])
+        rate = np.array([state.x[n:] for state in states])
+        pi = np.array([group.Ad(state.g).T @ state.x[:n] for state in states])
+        drift = np.array([step.locked_inverse @ row for step, row in zip(steps, pi)])
+        momentum, body = kernel.wrenches(mu), kernel.wrenches(pi)
+        wrench, twist = kernel.wrenches(rate), kernel.twists(drift)
+        world, base = self.config.world_frame, self.robot.base_link
+        for k, output in enumerate(outputs):
+            stamp = output.stamp_ns
+            output.mu = mu[k]
+            output.momentum = trusted_sample(WrenchSample, stamp, world, momentum[k, :3],
+                                             momentum[k, 3:])
+            output.body_momentum = trusted_sample(WrenchSample, stamp, base, body[k, :3],
+                                                  body[k, 3:])
+            output.momentum_rate = trusted_sample(WrenchSample, stamp, world, wrench[k, :3],
+                                                  wrench[k, 3:])
+            output.drift_twist = trusted_sample(TwistSample, stamp, base, twist[k, :3],
+                                                twist[k, 3:])
+            output.momentum_covariance = states[k].p[n:2 * n, n:2 * n]
+            output.wrench_covariance = states[k].p[2 * n:, 2 * n:]
+
     # --- reporting -------------------------------------------------------------------
     def diagnostics(self, stamp_ns: int) -> Diagnostics:
         """Return the estimator's status (and reset the per-period rates)."""
@@ -870,8 +1020,10 @@ class Estimator:
         if self._last_mu is not None:
             mu = self._last_mu
             iso = isotropy_algebra(self.robot.group, mu)
-            wrench = float(np.linalg.norm(self.observer.rate))
-            in_event = self.observer.in_event
+            flt = self.filter
+            wrench = float(np.linalg.norm(flt.wrench))
+            in_event = self.detector.in_event
+            n = self.robot.n
             statuses.append(DiagnosticStatusSample(
                 DIAG_WARN if in_event else DIAG_OK, 'reduced_dynamics: momentum',
                 'external wrench event under way' if in_event else 'momentum conserved',
@@ -880,7 +1032,16 @@ class Estimator:
                  'momentum_class': iso.momentum_class.value,
                  'isotropy_dim': str(iso.dim),
                  'external_wrench_norm': f'{wrench:.6g}',
-                 'events': str(len(self.observer.events)),
+                 'external_wrench': ' '.join(f'{v:.6g}' for v in flt.wrench),
+                 'external_wrench_sigma': ' '.join(
+                     f'{v:.3g}' for v in np.sqrt(np.diag(flt.p)[2 * n:])),
+                 'momentum_sigma': ' '.join(
+                     f'{v:.3g}' for v in np.sqrt(np.diag(flt.p)[n:2 * n])),
+                 'wrench_significance': f'{flt.wrench_significance():.4g}',
+                 'event_threshold': f'{self.detector.start_threshold:.4g}',
+                 'innovation_gated': str(flt.gated),
+                 'events': str(len(self.detector.events)),
+
                  'kinetic_plus_potential_energy': f'{self._last_energy:.9g}',
                  **self._cyclic_diagnostics()}))
         statuses.append(self._prediction_status())
@@ -933,7 +1094,7 @@ class Estimator:
     @property
     def events(self) -> list[MomentumEvent]:
         """Return the external-wrench events detected so far."""
-        return self.observer.events
+        return self.detector.events
 
     def summary(self) -> dict:
         """Return counts, momentum statistics, events and prediction residuals."""
@@ -961,6 +1122,7 @@ class Estimator:
                         'peak_wrench': e.peak_wrench} for e in self.events],
             'predictions': self.predictor.made,
             'prediction_failures': dict(failures),
+            'filter': self.filter_statistics(),
             'prediction_shape_residual_max': max(residuals) if residuals else None,
             'prediction_shape_residual_median': float(np.median(residuals))
             if residuals else None,

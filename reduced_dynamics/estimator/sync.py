@@ -13,13 +13,11 @@
 # limitations under the License.
 
 """
-Base state at a joint-state stamp: SE(3) interpolation and differentiation.
+Base state at a joint-state stamp: SE(3) interpolation.
 
-With Odometry the pose is interpolated along the geodesic between the two
-bracketing samples and the body twist linearly. With poses only, the twist
-comes from the derivative of the quadratic through the three nearest poses in
-exponential coordinates about the middle one (second order, like a central
-difference).
+The pose is interpolated along the geodesic between the two bracketing samples
+and, with Odometry, the body twist linearly. Poses are never differentiated:
+the Kalman filter (estimator/filter.py) takes them as measurements.
 """
 
 from __future__ import annotations
@@ -150,7 +148,21 @@ class BaseBuffer:
             return rows[index]
         if len(rows[0]) > 7:
             return self._interpolate(index, stamp_ns)
-        return self._differentiate(index, stamp_ns)
+        return self._interpolate_pose(index, stamp_ns)
+
+    def _interpolate_pose(self, index: int, stamp_ns: int) -> list:
+        """Return the pose at ``stamp_ns`` (geodesic between neighbours), zero twist."""
+        rows, stamps = self._rows, self._stamps
+        count = len(rows)
+        zeros = [0.0] * 6
+        if index < count and stamps[index] == stamp_ns:
+            return list(rows[index]) + zeros
+        if index <= 0 or index >= count:
+            # Before the first or after the last pose: the nearest pose is held.
+            return list(rows[0 if index <= 0 else count - 1]) + zeros
+        a, b = self.point(index - 1), self.point(index)
+        s = (stamp_ns - a.stamp_ns) / (b.stamp_ns - a.stamp_ns)
+        return pin.SE3ToXYZQUAT(pin.SE3.Interpolate(a.pose, b.pose, s)).tolist() + zeros
 
     def _interpolate(self, index: int, stamp_ns: int) -> np.ndarray:
         count = len(self._rows)
@@ -165,47 +177,3 @@ class BaseBuffer:
         pose = pin.SE3.Interpolate(a.pose, b.pose, s)
         return pin.SE3ToXYZQUAT(pose).tolist() + [
             (1 - s) * u + s * v for u, v in zip(a.row[7:], b.row[7:])]
-
-    def _differentiate(self, index: int, stamp_ns: int) -> np.ndarray:
-        count = len(self._rows)
-        if count == 1:
-            return np.concatenate((self._rows[0][:7], np.zeros(6)))
-        # The three samples around the nearest one.
-        stamps = self._stamps
-        nearest = min((i for i in (index - 1, index) if 0 <= i < count),
-                      key=lambda i: abs(stamps[i] - stamp_ns))
-        centre = min(max(nearest, 1), count - 2)
-        if count == 2:
-            a, b = self.point(0), self.point(1)
-            delta = pin.log6(a.pose.inverse() * b.pose).vector
-            rate = delta / ((b.stamp_ns - a.stamp_ns) * 1e-9)
-            s = (stamp_ns - a.stamp_ns) * 1e-9
-            return _row(a.pose * pin.exp6(rate * s), pin.Jexp6(rate * s) @ rate)
-        mid = self.point(centre)
-        times, etas = self._neighbourhood(centre, mid)
-        tau = (stamp_ns - mid.stamp_ns) * 1e-9
-        t0, t1, t2 = times
-        # Lagrange basis values and derivatives at tau.
-        weights = np.array([(tau - t1) * (tau - t2) / ((t0 - t1) * (t0 - t2)),
-                            (tau - t0) * (tau - t2) / ((t1 - t0) * (t1 - t2)),
-                            (tau - t0) * (tau - t1) / ((t2 - t0) * (t2 - t1))])
-        slopes = np.array([(2 * tau - t1 - t2) / ((t0 - t1) * (t0 - t2)),
-                           (2 * tau - t0 - t2) / ((t1 - t0) * (t1 - t2)),
-                           (2 * tau - t0 - t1) / ((t2 - t0) * (t2 - t1))])
-        eta = weights @ etas
-        eta_dot = slopes @ etas
-        return _row(mid.pose * pin.exp6(eta), pin.Jexp6(eta) @ eta_dot)
-
-    def _neighbourhood(self, centre: int, mid: BasePoint) -> tuple[list, np.ndarray]:
-        """Return times and exponential coordinates of the three poses about ``mid``."""
-        # Points are only appended, so a point's neighbours never change: cache them.
-        cached = self._around.get(mid.stamp_ns)
-        if cached is None:
-            points = [self.point(centre - 1), mid, self.point(centre + 1)]
-            inverse = mid.pose.inverse()
-            cached = ([(point.stamp_ns - mid.stamp_ns) * 1e-9 for point in points],
-                      np.array([pin.log6(inverse * point.pose).vector for point in points]))
-            if len(self._around) >= 2 * self._keep:
-                self._around.clear()
-            self._around[mid.stamp_ns] = cached
-        return cached
