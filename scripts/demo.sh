@@ -51,9 +51,9 @@ step "simulate: paper robot, 10 s at 200 Hz, torques flip sign at t = 2 s and 6 
 rd simulate -o "$OUT/recorded" --overwrite --duration 10 --rate 200 --seed 2 \
   --torque constant --torque-hold 4 --torque-scale 0.1 --thruster 5,0.5,20,-10,5,2,-3,4
 
-step "replay: estimator over the recorded bag"
+step "replay: estimator over the recorded bag (noise settings of config/spacecraft.yaml: star tracker and IMU-grade odometry)"
 rd replay "$OUT/recorded" -o "$OUT/estimates" --overwrite --plots "$OUT/plots" \
-  --summary-json "$OUT/summary.json" --prediction-mode held_torque
+  --summary-json "$OUT/summary.json" --prediction-mode held_torque --params config/spacecraft.yaml
 
 step "predict: where does the base go if the arm executes a planned motion? (10 s plan)"
 rd predict --trajectory config/plans/example_plan.yaml --mu 1 0 0 0 0 2 \
