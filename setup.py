@@ -78,6 +78,10 @@ setup(
     ],
     extras_require={
         'test': ['pytest', 'hypothesis'],
+        # Real ROS 2 Jazzy rclpy (Fast DDS) and the message packages the node uses, as PyPI
+        # wheels, for machines without a ROS 2 install (the rosdep keys of package.xml
+        # are the same dependencies for a ROS 2 install). lifecycle_msgs comes with rclpy.
+        'ros': ['ros-jazzy-rclpy[fastrtps]', 'ros-jazzy-common-interfaces'],
     },
     tests_require=['pytest', 'hypothesis'],
     zip_safe=False,

@@ -41,7 +41,8 @@ same run (machines are noisy: ratios, not absolutes):
    full dynamics; replay with the default predictions against predictions off.
 6. ``node``: the node over real DDS (separate processes, a ROS_DOMAIN_ID of its
    own): joint states delivered per second, drops and input-to-output latency
-   p50/p99 at 1 kHz joint states with 200 Hz and 1 kHz odometry, predictions on,
+   p50/p99 at 1 kHz joint states with 200 Hz and 1 kHz odometry, predictions on, and
+   the highest joint-state rate (of a sweep) sustained without a drop,
    against a bare rclpy relay node measured in windows of the same run
    (:mod:`reduced_dynamics.node_bench`). Skipped when rclpy is not importable.
 """
@@ -94,6 +95,8 @@ class Settings:
     #: measured window and warm-up of each node/relay phase of section node [s]
     node_seconds: float = 5.0
     node_warmup: float = 1.0
+    #: window of each rate of the sustained-rate sweep of section node [s]
+    node_sweep_seconds: float = 2.0
     quick: bool = False
 
     @classmethod
@@ -104,7 +107,7 @@ class Settings:
                    dg_steps=(0.05, 0.025), replay_seconds=3.0, memory_short_seconds=5.0,
                    memory_long_seconds=20.0, scaling_samples=200, scaling_evaluations=60,
                    planned_bag_seconds=20.0, node_seconds=2.0,
-                   node_warmup=1.0, quick=True)
+                   node_warmup=1.0, node_sweep_seconds=1.0, quick=True)
 
 
 @dataclass
@@ -823,6 +826,8 @@ def bench_scaling(report: Report, settings: Settings) -> None:
 #: Input configurations of the node section: (label, joint-state rate, odometry rate).
 NODE_RATES = (('joints 1 kHz + odom 200 Hz', 1000.0, 200.0),
               ('joints 1 kHz + odom 1 kHz', 1000.0, 1000.0))
+#: Joint-state rates [Hz] of the sustained-rate sweep (odometry 200 Hz, at most the joints').
+NODE_SWEEP = (250.0, 500.0, 1000.0, 2000.0)
 
 
 def node_domain_id() -> int:
@@ -865,15 +870,16 @@ def _stop(process: subprocess.Popen, timeout: float = 10.0) -> Optional[int]:
     return process.returncode
 
 
-def run_node_phases(workdir: str, joint_rate: float, base_rate: float, settings: Settings,
+def run_node_phases(workdir: str, joint_rates: Sequence[float], base_rate: float,
+                    seconds: float, warmup: float, repeats: int,
                     env: dict) -> tuple[list, dict]:
     """
     One configuration over real DDS: the node, the relay, the probe and the publisher.
 
     Four processes: ``python -m reduced_dynamics.node`` (defaults: predictions on),
     the relay and the probe of :mod:`reduced_dynamics.node_bench`, then the publisher,
-    which feeds ``settings.repeats`` windows to the relay, then as many to the node (each
-    stream pauses 0.5 s between windows). Returns the
+    which feeds ``repeats`` windows per joint-state rate to the relay, then as many to the
+    node (each stream pauses 0.5 s between windows). Returns the
     publisher's phases and the probe's records.
     """
     python = sys.executable
@@ -899,10 +905,10 @@ def run_node_phases(workdir: str, joint_rate: float, base_rate: float, settings:
                                    f'{log.name})')
             time.sleep(0.1)
         subprocess.run([python, '-m', 'reduced_dynamics.node_bench', 'publish',
-                        '--out', publish_out, '--joint-rate', str(joint_rate),
-                        '--base-rate', str(base_rate), '--seconds', str(settings.node_seconds),
-                        '--warmup', str(settings.node_warmup),
-                        '--repeats', str(settings.repeats)],
+                        '--out', publish_out,
+                        '--joint-rates', ','.join(str(r) for r in joint_rates),
+                        '--base-rate', str(base_rate), '--seconds', str(seconds),
+                        '--warmup', str(warmup), '--repeats', str(repeats)],
                        env=env, stdout=log, stderr=log, check=True, timeout=600)
         time.sleep(0.5)  # outputs still in flight
     finally:
@@ -918,7 +924,8 @@ def run_node_phases(workdir: str, joint_rate: float, base_rate: float, settings:
 
 
 def bench_node(report: Report, settings: Settings, workdir: str,
-               rates: Sequence[tuple] = NODE_RATES) -> None:
+               rates: Sequence[tuple] = NODE_RATES,
+               sweep: Sequence[float] = NODE_SWEEP) -> None:
     """
     Section 6: the node over real DDS against a bare rclpy relay, same run.
 
@@ -937,7 +944,9 @@ def bench_node(report: Report, settings: Settings, workdir: str,
     from reduced_dynamics.node_bench import NODE_OUTPUT, RELAY_OUTPUT
     details = {'domain_id': env['ROS_DOMAIN_ID'], 'configurations': {}}
     for label, joint_rate, base_rate in rates:
-        phases, records = run_node_phases(workdir, joint_rate, base_rate, settings, env)
+        phases, records = run_node_phases(workdir, [joint_rate], base_rate,
+                                          settings.node_seconds, settings.node_warmup,
+                                          settings.repeats, env)
         rows: dict[str, list] = {'relay': [], 'node': []}
         for phase in phases:
             output = NODE_OUTPUT if phase['target'] == 'node' else RELAY_OUTPUT
@@ -966,7 +975,35 @@ def bench_node(report: Report, settings: Settings, workdir: str,
                 column(relay, key), [n / r for n, r in zip(column(node, key),
                                                            column(relay, key))],
                 note='joint state sent -> ~/momentum received (relay: -> relayed copy)'))
+    if sweep:
+        bench_node_sweep(report, settings, workdir, env, sweep, details)
     report.details['node'] = details
+
+
+def bench_node_sweep(report: Report, settings: Settings, workdir: str, env: dict,
+                     sweep: Sequence[float], details: dict) -> None:
+    """Measure the highest joint-state rate (odometry 200 Hz) that no window dropped from."""
+    from reduced_dynamics.node_bench import NODE_OUTPUT, RELAY_OUTPUT
+    repeats = min(settings.repeats, 3)
+    phases, records = run_node_phases(workdir, sweep, 200.0, settings.node_sweep_seconds,
+                                      settings.node_warmup, repeats, env)
+    drops: dict[str, dict] = {'relay': {}, 'node': {}}
+    for phase in phases:
+        output = NODE_OUTPUT if phase['target'] == 'node' else RELAY_OUTPUT
+        row = node_phase_figures(phase['joint_stamps'], [tuple(r) for r in records[output]])
+        drops[phase['target']].setdefault(phase['joint_rate'], []).append(row['drops'])
+    details['sweep_drops'] = {t: {str(r): d for r, d in rows.items()} for t, rows in drops.items()}
+
+    def sustained(target: str) -> float:
+        clean = [rate for rate, d in drops[target].items() if max(d) == 0]
+        return max(clean, default=0.0)
+    node, relay = sustained('node'), sustained('relay')
+    report.add(make_figure(
+        'node', 'sustained joint-state rate without drops (odom 200 Hz)', 'Hz', [node],
+        'bare rclpy relay', [relay], [node / relay] if relay else None,
+        '>= 1000 Hz', lambda _r: node >= 1000.0,
+        f'highest of {", ".join(f"{r:g}" for r in sweep)} Hz with 0 drops in {repeats} '
+        f'windows of {settings.node_sweep_seconds:g} s'))
 
 
 # --------------------------------------------------------------------------- output

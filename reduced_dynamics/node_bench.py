@@ -121,17 +121,19 @@ def probe(args: argparse.Namespace) -> int:
     return 0
 
 
-def _motion(names: Sequence[str], count: int, rate: float, seed: int = 0) -> tuple:
-    """Joint positions and velocities of a smooth motion (lists, one row per sample)."""
-    rng = np.random.default_rng(seed)
-    m = len(names)
-    amplitude = rng.uniform(0.1, 0.4, m)
-    frequency = rng.uniform(0.5, 2.0, m)
-    phase = rng.uniform(0.0, 2.0 * np.pi, m)
-    t = np.arange(count)[:, None] / rate
-    position = amplitude * np.sin(frequency * t + phase)
-    velocity = amplitude * frequency * np.cos(frequency * t + phase)
-    return position.tolist(), velocity.tolist()
+class _Motion:
+    """Joint positions and velocities of a smooth motion at time t (lists)."""
+
+    def __init__(self, m: int, seed: int = 0) -> None:
+        rng = np.random.default_rng(seed)
+        self.amplitude = rng.uniform(0.1, 0.4, m)
+        self.frequency = rng.uniform(0.5, 2.0, m)
+        self.phase = rng.uniform(0.0, 2.0 * np.pi, m)
+
+    def __call__(self, t: float) -> tuple[list, list]:
+        angle = self.frequency * t + self.phase
+        return ((self.amplitude * np.sin(angle)).tolist(),
+                (self.amplitude * self.frequency * np.cos(angle)).tolist())
 
 
 def publish(args: argparse.Namespace) -> int:
@@ -156,9 +158,7 @@ def publish(args: argparse.Namespace) -> int:
             return 1
         rclpy.spin_once(node, timeout_sec=0.05)
     phase_seconds = args.warmup + args.seconds
-    per_target = args.repeats * phase_seconds
-    joint_count = int(per_target * args.joint_rate) + 2
-    position, velocity = _motion(names, joint_count, args.joint_rate)
+    motion = _Motion(len(names))
     joint_msg = JointState()
     joint_msg.name = names
     joint_msg.effort = [0.0] * len(names)
@@ -167,54 +167,54 @@ def publish(args: argparse.Namespace) -> int:
     odom_msg.child_frame_id = robot.base_link
     odom_msg.twist.twist.linear.x = 0.01
     odom_msg.twist.twist.angular.z = 0.05
-    index = {name: [0, 0] for name in targets}  # joint and base sample counters per target
     phases = []
     clock = time.time_ns
+    joint_rates = [float(r) for r in args.joint_rates.split(',')]
     # All relay windows, then all node windows: a target's input stream pauses only
     # args.pause between its windows (a longer pause would be a clock jump to the node's
-    # stamp policy, stamp_outlier_tolerance 1 s).
+    # stamp policy, stamp_outlier_tolerance 1 s). Motion time runs on per target.
     for name in ('relay', 'node'):
-        for repeat in range(args.repeats):
-            joints_pub, odom_pub = publishers[name]
-            events = sorted([(k / args.joint_rate, 0) for k in
-                             range(int(phase_seconds * args.joint_rate))]
-                            + [(k / args.base_rate, 1) for k in
-                               range(int(phase_seconds * args.base_rate))])
-            sent: list[int] = []
-            base_sent = 0
-            start = time.monotonic()
-            for offset, kind in events:
-                delay = start + offset - time.monotonic()
-                if delay > 0.0:
-                    time.sleep(delay)
-                measured = offset >= args.warmup
-                stamp = clock()
-                if kind == 0:
-                    k = index[name][0]
-                    index[name][0] += 1
-                    joint_msg.header.stamp.sec, joint_msg.header.stamp.nanosec = divmod(
-                        stamp, 1_000_000_000)
-                    joint_msg.position = position[k]
-                    joint_msg.velocity = velocity[k]
-                    joints_pub.publish(joint_msg)
-                    if measured:
-                        sent.append(stamp)
-                else:
-                    k = index[name][1]
-                    index[name][1] += 1
-                    t = k / args.base_rate
-                    odom_msg.header.stamp.sec, odom_msg.header.stamp.nanosec = divmod(
-                        stamp, 1_000_000_000)
-                    odom_msg.pose.pose.position.x = 0.01 * t
-                    odom_msg.pose.pose.orientation.z = float(np.sin(0.025 * t))
-                    odom_msg.pose.pose.orientation.w = float(np.cos(0.025 * t))
-                    odom_pub.publish(odom_msg)
-                    base_sent += measured
-            lateness = time.monotonic() - start - events[-1][0]
-            phases.append({'repeat': repeat, 'target': name, 'joint_stamps': sent,
-                           'base_sent': base_sent, 'seconds': args.seconds,
-                           'late_at_end_s': lateness})
-            time.sleep(args.pause)
+        joints_pub, odom_pub = publishers[name]
+        motion_time = 0.0
+        for joint_rate in joint_rates:
+            base_rate = min(args.base_rate, joint_rate)
+            for repeat in range(args.repeats):
+                events = sorted([(k / joint_rate, 0) for k in
+                                 range(int(phase_seconds * joint_rate))]
+                                + [(k / base_rate, 1) for k in
+                                   range(int(phase_seconds * base_rate))])
+                sent: list[int] = []
+                base_sent = 0
+                start = time.monotonic()
+                for offset, kind in events:
+                    delay = start + offset - time.monotonic()
+                    if delay > 0.0:
+                        time.sleep(delay)
+                    measured = offset >= args.warmup
+                    stamp = clock()
+                    t = motion_time + offset
+                    if kind == 0:
+                        joint_msg.header.stamp.sec, joint_msg.header.stamp.nanosec = divmod(
+                            stamp, 1_000_000_000)
+                        joint_msg.position, joint_msg.velocity = motion(t)
+                        joints_pub.publish(joint_msg)
+                        if measured:
+                            sent.append(stamp)
+                    else:
+                        odom_msg.header.stamp.sec, odom_msg.header.stamp.nanosec = divmod(
+                            stamp, 1_000_000_000)
+                        odom_msg.pose.pose.position.x = 0.01 * t
+                        odom_msg.pose.pose.orientation.z = float(np.sin(0.025 * t))
+                        odom_msg.pose.pose.orientation.w = float(np.cos(0.025 * t))
+                        odom_pub.publish(odom_msg)
+                        base_sent += measured
+                lateness = time.monotonic() - start - events[-1][0]
+                motion_time += phase_seconds + args.pause
+                phases.append({'repeat': repeat, 'target': name, 'joint_rate': joint_rate,
+                               'base_rate': base_rate, 'joint_stamps': sent,
+                               'base_sent': base_sent, 'seconds': args.seconds,
+                               'late_at_end_s': lateness})
+                time.sleep(args.pause)
     with open(args.out, 'w', encoding='utf-8') as stream:
         json.dump({'phases': phases}, stream)
     node.destroy_node()
@@ -233,8 +233,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.set_defaults(func=probe)
     p = roles.add_parser('publish')
     p.add_argument('--out', required=True)
-    p.add_argument('--joint-rate', type=float, default=1000.0)
-    p.add_argument('--base-rate', type=float, default=200.0)
+    p.add_argument('--joint-rates', default='1000',
+                   help='comma-separated joint-state rates [Hz], windows at each')
+    p.add_argument('--base-rate', type=float, default=200.0,
+                   help='odometry rate [Hz] (at most the joint-state rate)')
     p.add_argument('--seconds', type=float, default=3.0)
     p.add_argument('--warmup', type=float, default=1.0)
     p.add_argument('--pause', type=float, default=0.5)

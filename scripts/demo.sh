@@ -14,7 +14,8 @@
 # limitations under the License.
 
 # The main job on the embedded default robot (the paper's spacecraft, section 6):
-#   1. installs the package (pip, editable) if it is not importable yet,
+#   1. installs the package (pip, editable) into the checkout's venv .colcon/venv if it is
+#      not importable there yet,
 #   2. simulates a 10 s bag with full dynamics: held joint torques and a thruster pulse,
 #   3. replays it through the estimator into an output bag, prints the summary,
 #   4. writes plots of momentum, drift, shape state and prediction residual.
@@ -32,11 +33,13 @@ step() { printf '\n==> %s\n' "$*"; }
 as_root() {
   if [ "$(id -u)" -eq 0 ]; then "$@"; else sudo -n "$@"; fi
 }
+# The checkout's own venv, .colcon/venv (scripts/python_env.sh): never the interpreter itself.
+RD_SKIP_INSTALL=0
 # shellcheck source=scripts/python_env.sh
 source "$REPO_ROOT/scripts/python_env.sh"
 if ! "$PYTHON" -c 'import reduced_dynamics.cli, pinocchio, rosbags, mcap, matplotlib' \
     2>/dev/null; then
-  step "pip install -e ."
+  step "pip install -e . (into $VENV)"
   "$PYTHON" -m pip install -q -e "$REPO_ROOT"
 fi
 rd() { "$PYTHON" -m reduced_dynamics.cli "$@"; }

@@ -13,24 +13,30 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-# Sourced by scripts/test.sh and scripts/demo.sh: sets PYTHON to an interpreter pip may
-# install into. Expects WS (work folder) and the as_root and step helpers.
-# A Debian/Ubuntu system interpreter refuses pip installs (PEP 668): use a venv then.
-if "$PYTHON" - <<'EOF'
-import os
-import sys
-import sysconfig
-managed = os.path.exists(os.path.join(sysconfig.get_path('stdlib'), 'EXTERNALLY-MANAGED'))
-sys.exit(0 if managed and sys.prefix == sys.base_prefix else 1)
-EOF
-then
-  VENV="$WS/venv"
-  if [ ! -x "$VENV/bin/python" ]; then
-    step "creating $VENV ($PYTHON is externally managed)"
-    if ! "$PYTHON" -m venv --system-site-packages "$VENV"; then
+# Sourced by scripts/test.sh and scripts/demo.sh: sets PYTHON to the checkout's own venv,
+# $WS/venv (.colcon/venv), created on first use from $PYTHON (default python3). The scripts
+# never pip-install into $PYTHON itself: a Debian/Ubuntu system Python refuses (PEP 668), and
+# a pyenv or conda interpreter would get a global editable install that later points at
+# whichever checkout ran last. Expects WS and the as_root and step helpers.
+#
+# --system-site-packages keeps apt's Python modules visible (the ament linters; rclpy of a
+# ROS 2 install comes through PYTHONPATH anyway); the venv's own packages come first. pip
+# keeps its download/wheel cache (~/.cache/pip), so a re-created venv installs from cache.
+# RD_SKIP_INSTALL=1 with no venv yet: use $PYTHON as it is (offline re-runs), install nothing.
+VENV="${RD_VENV:-$WS/venv}"
+if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -m pip --version >/dev/null 2>&1; then
+  PYTHON="$VENV/bin/python"
+elif [ "${RD_SKIP_INSTALL:-0}" = 1 ]; then
+  echo "no venv at $VENV and RD_SKIP_INSTALL=1: using $PYTHON as it is"
+else
+  step "creating the venv $VENV (from $PYTHON)"
+  # A half-made venv (Debian without python3-venv has no ensurepip) is re-created.
+  if ! "$PYTHON" -m venv --clear --system-site-packages "$VENV"; then
+    as_root apt-get update -q && \
       as_root apt-get install -y -q --no-install-recommends python3-venv
-      "$PYTHON" -m venv --system-site-packages "$VENV"
-    fi
+    "$PYTHON" -m venv --clear --system-site-packages "$VENV"
   fi
   PYTHON="$VENV/bin/python"
 fi
+# colcon must not crawl the venv for packages.
+[ ! -d "$VENV" ] || touch "$VENV/COLCON_IGNORE"

@@ -16,18 +16,26 @@
 # The one test command: ./scripts/test.sh [pytest args...]
 #
 #   1. installs the ament linters from apt (Debian 12 / Ubuntu) when missing,
-#   2. pip-installs the package (editable, with the [test] extra) and colcon,
+#   2. creates the checkout's own venv (.colcon/venv, scripts/python_env.sh) and pip-installs
+#      the package there (editable, [test] extra; [ros] = the real rclpy wheels when no ROS 2
+#      install provides rclpy) and colcon; checks that real rclpy imports and initialises,
 #   3. colcon build  (workspace under .colcon/, never build/ install/ log/),
-#   4. checks the ros2-run executable lib/reduced_dynamics/reduced_dynamics_node,
+#   4. checks the ros2-run executable lib/reduced_dynamics/reduced_dynamics_node and the
+#      `reduced-dynamics` command on PATH after sourcing install/setup.bash; runs README's
+#      two install blocks from clean clones (scripts/check_readme_install.sh) and
+#      scripts/demo.sh (README's other command),
 #   5. colcon test   (pytest runs once; its output and summary line are printed),
 #   6. colcon test-result --verbose.
 #
 # Extra arguments go to pytest, e.g. ./scripts/test.sh -k momentum -x
 #
 # Environment knobs:
-#   PYTHON=python3            interpreter used for pip, colcon and pytest
+#   PYTHON=python3            interpreter the venv is created from
+#   RD_VENV=.colcon/venv      the venv used for pip, colcon and pytest
 #   RD_SKIP_INSTALL=1         skip the apt/pip steps (offline re-runs)
 #   RD_SYMLINK_INSTALL=0      plain `colcon build` instead of --symlink-install
+#   RD_README_INSTALL=0       skip running README's install blocks (step 4c)
+#   RD_DEMO=0                 skip running scripts/demo.sh (step 4d)
 
 set -euo pipefail
 
@@ -37,6 +45,7 @@ WS="$REPO_ROOT/.colcon"
 PKG=reduced_dynamics
 
 PYTHON="${PYTHON:-python3}"
+ORIG_PYTHON="$PYTHON"
 RD_SKIP_INSTALL="${RD_SKIP_INSTALL:-0}"
 RD_SYMLINK_INSTALL="${RD_SYMLINK_INSTALL:-1}"
 
@@ -48,7 +57,7 @@ export COLCON_HOME="$WS/home"
 # Disable colcon's desktop notifications (no display in CI).
 export COLCON_EXTENSION_BLOCKLIST="colcon_core.event_handler.desktop_notification${COLCON_EXTENSION_BLOCKLIST:+:$COLCON_EXTENSION_BLOCKLIST}"
 
-step() { printf '\n==> %s\n' "$*"; }
+step() { printf '\n==> %s   [%d s]\n' "$*" "$SECONDS"; }
 warn() { printf 'WARNING: %s\n' "$*" >&2; }
 
 as_root() {
@@ -102,9 +111,30 @@ source "$REPO_ROOT/scripts/python_env.sh"
 echo "python: $("$PYTHON" -c 'import sys; print(sys.executable, sys.version.split()[0])')"
 
 if [ "$RD_SKIP_INSTALL" != 1 ]; then
-  step "pip install -e '.[test]' colcon-common-extensions"
-  "$PYTHON" -m pip install -q -e "$REPO_ROOT[test]" colcon-common-extensions
+  # Real ROS 2 Jazzy rclpy: a sourced ROS 2 install provides it; otherwise the PyPI wheels
+  # of the [ros] extra (rclpy with Fast DDS and the message packages).
+  extras=test
+  if ! "$PYTHON" -c 'import rclpy' 2>/dev/null; then
+    extras=test,ros
+  fi
+  step "pip install -e '.[$extras]' colcon-common-extensions"
+  "$PYTHON" -m pip install -q -e "$REPO_ROOT[$extras]" colcon-common-extensions
 fi
+
+# The node tests run on real rclpy: refuse to go on without it (no test double).
+step "real rclpy"
+"$PYTHON" - <<'EOF'
+import rclpy
+from rclpy.utilities import get_rmw_implementation_identifier
+import rclpy.lifecycle  # noqa: F401
+import diagnostic_msgs.msg, geometry_msgs.msg, lifecycle_msgs.msg  # noqa: E401,F401
+import nav_msgs.msg, sensor_msgs.msg, std_msgs.msg, trajectory_msgs.msg  # noqa: E401,F401
+rclpy.init()
+try:
+    print(f'rclpy from {rclpy.__file__}, rmw {get_rmw_implementation_identifier()}')
+finally:
+    rclpy.shutdown()
+EOF
 
 # Run colcon with exactly this interpreter (colcon test runs `sys.executable -m pytest`).
 colcon() {
@@ -128,6 +158,31 @@ if [ ! -x "$NODE_EXE" ]; then
   exit 1
 fi
 echo "ros2 run executable: ${NODE_EXE#"$REPO_ROOT"/}"
+
+# ------------------------------------------- 4b. colcon install: the plain command
+# After `source install/setup.bash` the CLI is on PATH (bin/ wrapper, colcon's PATH hook).
+step "reduced-dynamics on PATH after sourcing the colcon install"
+(set +u; source "$WS/install/setup.bash"; test "$(command -v reduced-dynamics)" = \
+  "$WS/install/$PKG/bin/reduced-dynamics" && reduced-dynamics --help >/dev/null) || {
+  echo "ERROR: reduced-dynamics is not install/$PKG/bin/reduced-dynamics after sourcing" >&2
+  exit 1
+}
+echo "$(set +u; source "$WS/install/setup.bash"; command -v reduced-dynamics)"
+
+# ------------------------------------------ 4c. README's install paths (clean clones)
+# README's "The ROS 2 path" blocks, run as written (scripts/check_readme_install.sh);
+# needs the network or a warm pip cache, so RD_SKIP_INSTALL=1 skips it.
+if [ "$RD_SKIP_INSTALL" != 1 ] && [ "${RD_README_INSTALL:-1}" = 1 ]; then
+  step "README install paths"
+  PYTHON="$ORIG_PYTHON" "$REPO_ROOT/scripts/check_readme_install.sh"
+fi
+
+# ---------------------------------------------- 4d. README's other command: demo.sh
+# Same venv (scripts/python_env.sh), outputs under .colcon/demo; about 20 s.
+if [ "${RD_DEMO:-1}" = 1 ]; then
+  step "scripts/demo.sh"
+  PYTHON="$ORIG_PYTHON" "$REPO_ROOT/scripts/demo.sh" "$WS/demo"
+fi
 
 # ------------------------------------------------------------- 5. colcon test
 # Every pytest argument is prefixed by a space so colcon's argparse never mistakes

@@ -51,13 +51,18 @@ def test_domain_id_is_its_own(monkeypatch):
 def test_node_section_over_real_dds(tmp_path):
     # One configuration, one short window each for the relay and the node: the structure
     # and that messages flowed through both (no figure is asserted: machines are noisy).
-    settings = bench.Settings(repeats=1, node_seconds=0.5, node_warmup=1.0, quick=True)
+    settings = bench.Settings(repeats=1, node_seconds=0.5, node_warmup=1.0,
+                              node_sweep_seconds=0.5, quick=True)
     report = bench.Report(bench.machine_info(), {})
     bench.bench_node(report, settings, str(tmp_path),
-                     rates=(('joints 200 Hz + odom 100 Hz', 200.0, 100.0),))
+                     rates=(('joints 200 Hz + odom 100 Hz', 200.0, 100.0),), sweep=(50.0,))
     names = [f.name for f in report.figures]
     assert names == ['joints 200 Hz + odom 100 Hz: ' + n for n in
-                     ('joint states delivered/s', 'drops', 'latency p50', 'latency p99')]
+                     ('joint states delivered/s', 'drops', 'latency p50', 'latency p99')] + \
+        ['sustained joint-state rate without drops (odom 200 Hz)']
+    sweep = report.details['node']['sweep_drops']
+    assert set(sweep) == {'relay', 'node'} and all(list(d) == ['50.0'] for d in sweep.values())
+    assert report.figures[-1].median in (0.0, 50.0)
     rows = report.details['node']['configurations']['joints 200 Hz + odom 100 Hz']
     for target in ('relay', 'node'):
         (row,) = rows[target]

@@ -121,6 +121,20 @@ def test_duplicates_and_reordering_are_backwards_not_outliers():
                                               (stamps[3], 'backwards')]
 
 
+def test_bursty_stream_without_receive_time_loses_nothing():
+    # Motion capture at 100 Hz whose packets sometimes come in bursts stamped tens of
+    # microseconds apart (as in the freeflyer2 recordings): the cadence must not shrink.
+    stamps, t = [], 0
+    for k in range(400):
+        burst = 40 <= k % 100 < 60
+        t += 20_000 if burst else 10 * MS
+        stamps.append(t)
+    accepted, dropped, jumps = _run_gate(StampGate('j', S, 3), stamps)
+    # After a long burst the first regular step is held until two more confirm it
+    # (a forward re-synchronisation): late, not lost.
+    assert accepted == stamps and not dropped and all(not j.backwards for j in jumps)
+
+
 def test_slow_stream_without_receive_time_loses_nothing():
     stamps = [k * 2 * S for k in range(20)]  # 0.5 Hz, slower than the 1 s tolerance
     accepted, dropped, _ = _run_gate(StampGate('j', S, 3), stamps)

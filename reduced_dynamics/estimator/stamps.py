@@ -16,14 +16,14 @@
 Stamp policy of one input stream: accept, drop an outlier, or follow a clock jump.
 
 A header stamp is trusted when it is consistent with the stream's clock so far:
-it advances by at most the stream's cadence (4 local periods: 4 x the upper
-quartile of its last 16 accepted steps; ``stamp_outlier_tolerance`` until they
-are known), or, with a receive time (the bag's record time, rclpy's
-``received_timestamp``) on both this sample and the reference, it advances
-further while the receive time moved at least half as far (the stream paused).
-With receive times the offset ``stamp - receive`` must also stay within the
-tolerance of the reference's offset (transport latency varies by
-milliseconds, a wrong clock by much more). The tolerance is
+it advances by at most the stream's cadence (4 local periods: 4 x the larger of
+the upper quartile and the mean of its last 16 accepted steps, so that bursts do
+not shrink it; ``stamp_outlier_tolerance`` until they are known), or, with a
+receive time (the bag's record time, rclpy's ``received_timestamp``) on both
+this sample and the reference, it advances further while the receive time
+moved at least half as far (the stream paused). With receive times the offset
+``stamp - receive`` must also stay within the tolerance of the reference's
+offset (transport latency varies by milliseconds, a wrong clock by much more). The tolerance is
 ``max(stamp_outlier_tolerance, cadence)``. A stamp running ahead of the
 cadence alone is suspect even when small: accepted, it would turn the valid
 samples after it into ``backwards`` ones.
@@ -134,8 +134,10 @@ class StampGate:
             self._cadence = self.tolerance_ns
             return
         ordered = sorted(steps)
-        # The upper quartile: bursts of near-equal stamps must not shrink the cadence.
-        self._cadence = PERIOD_FACTOR * ordered[(3 * len(ordered)) // 4]
+        # The upper quartile or the mean step (1 / rate), whichever is larger: bursts of
+        # near-equal stamps (motion-capture packets) must not shrink the cadence.
+        self._cadence = PERIOD_FACTOR * max(ordered[(3 * len(ordered)) // 4],
+                                            sum(ordered) // len(ordered))
 
     def _step(self, step: int) -> None:
         self._steps.append(step)
@@ -162,16 +164,16 @@ class StampGate:
         of the stream's cadence (PERIOD_FACTOR local periods) is 'forward' only
         when the receive time moved at least half as far (a pause of the
         stream); a stamp that runs ahead alone would make the samples after it
-        look backwards. 'chain' mode (candidates of a stream whose period is
-        not known yet) and 'window' mode (either direction; re-anchoring on
-        another stream's clock) allow steps up to the tolerance.
+        look backwards. 'chain' mode (held candidates among themselves) and
+        'window' mode (either direction; re-anchoring on another stream's clock)
+        allow steps up to the tolerance.
         """
         step = stamp - ref_ns
         if receive is not None and ref_rx is not None:
             deviation = abs(step - (receive - ref_rx))
             if deviation > tolerance:
                 return 'far'
-            if mode == 'window':
+            if mode in ('window', 'chain') and step > 0 or mode == 'window':
                 return 'forward'
             if step > 0:
                 if mode == 'chain' or step <= self._cadence or 2 * deviation <= step:
@@ -253,15 +255,16 @@ class StampGate:
         held = self._held
         if held:
             ref_ns, ref_rx, _ = held[-1]
-            # Candidates follow each other at the stream's cadence, as its samples do.
-            tolerance, mode = self.tolerance(), 'stream'
+            # Candidates only need to be in order and within the tolerance of each other:
+            # held after a gap in a bursty stream, they must not be dropped one by one.
+            tolerance, mode = self.tolerance(), 'chain'
             if not self._steps:
                 # No local period yet: the candidates' own spacing (or the gap before
                 # the first) scales the tolerance, so that a stream slower than the
                 # tolerance can start.
                 spacing = ref_ns - held[-2][0] if len(held) > 1 else \
                     ref_ns - (self.last_ns if self.last_ns is not None else ref_ns)
-                tolerance, mode = max(tolerance, PERIOD_FACTOR * spacing), 'chain'
+                tolerance = max(tolerance, PERIOD_FACTOR * spacing)
             relation = self._relation(ref_ns, ref_rx, stamp, receive, tolerance, mode)
             if relation != 'forward':
                 if len(held) == 1:
