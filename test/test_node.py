@@ -770,14 +770,14 @@ def test_parameter_changes_at_rate_while_messages_flow(ros, node_factory):
     for i, (topic, msg) in enumerate(messages):
         ros.deliver(node, topic, msg)
         if i % 4 == 0:  # a change every other sample (50 Hz of sample time)
-            value = 20.0 + (i % 40)
-            assert node.set_parameters([Parameter('observer_bandwidth', value=value),
+            value = 0.02 + 0.001 * (i % 40)
+            assert node.set_parameters([Parameter('wrench_jerk_linear', value=value),
                                         Parameter('prediction_rate', value=1 + i % 5)]
                                        )[0].successful
             bandwidths.append(value)
     node.wait_for_predictions()
-    assert node.estimator.config.observer_bandwidth == bandwidths[-1]
-    assert node.estimator.observer.bandwidth == bandwidths[-1]
+    assert node.estimator.config.wrench_jerk_linear == bandwidths[-1]
+    assert node.estimator.filter.noise.jerk_linear == bandwidths[-1]
     momentum = ros.published('~/momentum', node)
     assert node.estimator.processed == len(momentum) > 0.9 * SAMPLES
     assert dict(node.estimator.rejected) == {}
