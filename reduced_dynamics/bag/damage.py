@@ -25,8 +25,13 @@ MCAP
     start; each chunk is parsed and, when it carries a CRC, validated with the
     ``mcap`` library (``Chunk.read``, ``breakup_chunk``); the message index
     records after a chunk give its per-channel counts. A record that does not
-    parse is skipped by resynchronising on the next consistent chunk header
-    (opcode 0x06 whose length, compression and data size agree).
+    parse (a damaged chunk length, compression or opcode) is skipped by
+    resynchronising on the next plausible chunk: a consistent header (length,
+    compression and data size agree, the record fits in the file) and contents
+    that validate (the CRC when there is one, else every record parses). The
+    time fields are not framing: a chunk whose records validate takes its times
+    from them. Schemas and channels are kept from a lost chunk when they parse
+    (writers define them in the first chunk only).
   - **A chunk that fails** (CRC mismatch, bad framing, cut by the end of the
     file): its messages are salvaged one by one, at the offsets of its message
     index when there is one (each must be a message record of that channel and
