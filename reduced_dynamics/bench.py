@@ -1115,7 +1115,8 @@ def register_command(commands: Any) -> None:
         description='Measure each figure as a median over repeats (with its interquartile '
                     'range) and as a ratio to a baseline measured in the same run.')
     parser.add_argument('--quick', action='store_true',
-                        help='small sizes (short bags, fewer tolerances): about a minute')
+                        help='small sizes (short bags, fewer tolerances); the node section '
+                             'over DDS alone takes ~2 min')
     parser.add_argument('--repeats', type=int, default=None,
                         help='repeats per figure (default 7, or 3 with --quick)')
     parser.add_argument('--json', metavar='FILE', help='write the report as JSON')
