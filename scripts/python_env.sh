@@ -40,3 +40,22 @@ else
 fi
 # colcon must not crawl the venv for packages.
 [ ! -d "$VENV" ] || touch "$VENV/COLCON_IGNORE"
+# rclpy's PyPI wheels installed in the base interpreter (seen through --system-site-packages)
+# load their C libraries through LD_LIBRARY_PATH, which the wheels' bootstrap sets for the
+# venv's own prefix only: add the base interpreter's (its lib/ and site-packages/ros_*.libs).
+rd_base_ld="$("$PYTHON" - <<'PYEOF'
+import glob
+import os
+import sys
+import sysconfig
+if sys.prefix != sys.base_prefix:
+    lib = os.path.join(sys.base_prefix, 'lib')
+    site = sysconfig.get_path('purelib', vars={'base': sys.base_prefix,
+                                               'platbase': sys.base_prefix})
+    if os.path.exists(os.path.join(lib, 'librcl.so')):
+        print(os.pathsep.join([lib] + sorted(glob.glob(os.path.join(site, 'ros_*.libs')))))
+PYEOF
+)"
+if [ -n "$rd_base_ld" ]; then
+  export LD_LIBRARY_PATH="$rd_base_ld${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+fi

@@ -172,9 +172,15 @@ echo "$(set +u; source "$WS/install/setup.bash"; command -v reduced-dynamics)"
 # ------------------------------------------ 4c. README's install paths (clean clones)
 # README's "The ROS 2 path" blocks, run as written (scripts/check_readme_install.sh);
 # needs the network or a warm pip cache, so RD_SKIP_INSTALL=1 skips it.
+# It runs in the background during colcon test (mostly pip installing: another core);
+# its log is printed, and its failure fails the run, at the end.
+readme_pid=
+trap '[ -z "$readme_pid" ] || kill "$readme_pid" 2>/dev/null || true' EXIT
 if [ "$RD_SKIP_INSTALL" != 1 ] && [ "${RD_README_INSTALL:-1}" = 1 ]; then
-  step "README install paths"
-  PYTHON="$ORIG_PYTHON" "$REPO_ROOT/scripts/check_readme_install.sh"
+  step "README install paths (background, log .colcon/readme_install.log)"
+  PYTHON="$ORIG_PYTHON" "$REPO_ROOT/scripts/check_readme_install.sh" \
+    > "$WS/readme_install.log" 2>&1 &
+  readme_pid=$!
 fi
 
 # ---------------------------------------------- 4d. README's other command: demo.sh
@@ -204,5 +210,19 @@ colcon --log-base "$WS/log" test "${WS_ARGS[@]}" --test-result-base "$WS/test_re
 step "colcon test-result"
 colcon --log-base "$WS/log" test-result --test-result-base "$WS/test_results" --verbose \
   || { [ "$rc" -ne 0 ] || rc=1; }
+
+if [ -n "$readme_pid" ]; then
+  step "README install paths (waiting for the background run)"
+  readme_rc=0
+  wait "$readme_pid" || readme_rc=$?
+  readme_pid=
+  if [ "$readme_rc" -eq 0 ]; then
+    grep -E '^(==> README way|README way|no /opt/ros)' "$WS/readme_install.log" || true
+  else
+    cat "$WS/readme_install.log"
+    echo "ERROR: README's install paths failed (log above)" >&2
+    rc=1
+  fi
+fi
 
 exit "$rc"

@@ -262,18 +262,19 @@ def twist_from_ros(msg: Any) -> TwistSample:
 # ---------------------------------------------------------------- shape prediction
 
 
-def shape_prediction_to_ros(sample: ShapePrediction, types: MessageTypes) -> Any:
-    """Build trajectory_msgs/msg/JointTrajectory (header stamp = start of prediction)."""
+def _trajectory_to_ros(sample: Any, accelerations: Optional[np.ndarray],
+                       types: MessageTypes) -> Any:
+    """Build trajectory_msgs/msg/JointTrajectory from a sample's time, position, velocity rows."""
     empty = types.float_seq(np.zeros(0))
     points = []
     for i, t_ns in enumerate(sample.times_from_start_ns):
-        velocities = (
-            empty if sample.velocities is None else types.float_seq(sample.velocities[i]))
         points.append(types.create(
             'trajectory_msgs/msg/JointTrajectoryPoint',
             positions=types.float_seq(sample.positions[i]),
-            velocities=velocities,
-            accelerations=types.float_seq(np.zeros(0)),
+            velocities=empty if sample.velocities is None
+            else types.float_seq(sample.velocities[i]),
+            accelerations=empty if accelerations is None
+            else types.float_seq(accelerations[i]),
             effort=types.float_seq(np.zeros(0)),
             time_from_start=duration_to_ros(int(t_ns), types),
         ))
@@ -283,6 +284,11 @@ def shape_prediction_to_ros(sample: ShapePrediction, types: MessageTypes) -> Any
         joint_names=list(sample.joint_names),
         points=points,
     )
+
+
+def shape_prediction_to_ros(sample: ShapePrediction, types: MessageTypes) -> Any:
+    """Build trajectory_msgs/msg/JointTrajectory (header stamp = start of prediction)."""
+    return _trajectory_to_ros(sample, None, types)
 
 
 def shape_prediction_from_ros(msg: Any) -> ShapePrediction:
@@ -339,25 +345,7 @@ def joint_trajectory_from_ros(msg: Any) -> JointTrajectorySample:
 
 def joint_trajectory_to_ros(sample: JointTrajectorySample, types: MessageTypes) -> Any:
     """Build trajectory_msgs/msg/JointTrajectory from a planned trajectory."""
-    empty = types.float_seq(np.zeros(0))
-    points = []
-    for i, t_ns in enumerate(sample.times_from_start_ns):
-        points.append(types.create(
-            'trajectory_msgs/msg/JointTrajectoryPoint',
-            positions=types.float_seq(sample.positions[i]),
-            velocities=empty if sample.velocities is None
-            else types.float_seq(sample.velocities[i]),
-            accelerations=empty if sample.accelerations is None
-            else types.float_seq(sample.accelerations[i]),
-            effort=types.float_seq(np.zeros(0)),
-            time_from_start=duration_to_ros(int(t_ns), types),
-        ))
-    return types.create(
-        'trajectory_msgs/msg/JointTrajectory',
-        header=header_to_ros(sample.stamp_ns, sample.frame_id, types),
-        joint_names=list(sample.joint_names),
-        points=points,
-    )
+    return _trajectory_to_ros(sample, sample.accelerations, types)
 
 
 # ---------------------------------------------------------------- path

@@ -82,6 +82,17 @@ def with_receive_time(sample: object, receive_ns: Optional[int]) -> object:
     return sample
 
 
+def _times_from_start(value: object) -> np.ndarray:
+    """Return trajectory point times [ns] as int64, checked >= 0 and strictly increasing."""
+    times = np.asarray(value)
+    if times.ndim != 1 or (times.size and not np.issubdtype(times.dtype, np.integer)):
+        raise ValueError('times_from_start_ns must be a 1-D integer array (nanoseconds)')
+    times = np.ascontiguousarray(times, dtype=np.int64)
+    if times.size and (times[0] < 0 or np.any(np.diff(times) <= 0)):
+        raise ValueError('times_from_start_ns must be >= 0 and strictly increasing')
+    return times
+
+
 @dataclass(frozen=True, eq=False)
 class JointStateSample:
     """
@@ -209,12 +220,7 @@ class ShapePrediction:
         object.__setattr__(self, 'stamp_ns', _stamp(self.stamp_ns))
         names = tuple(str(n) for n in self.joint_names)
         object.__setattr__(self, 'joint_names', names)
-        times = np.asarray(self.times_from_start_ns)
-        if times.ndim != 1 or (times.size and not np.issubdtype(times.dtype, np.integer)):
-            raise ValueError('times_from_start_ns must be a 1-D integer array (nanoseconds)')
-        times = np.ascontiguousarray(times, dtype=np.int64)
-        if times.size and (times[0] < 0 or np.any(np.diff(times) <= 0)):
-            raise ValueError('times_from_start_ns must be >= 0 and strictly increasing')
+        times = _times_from_start(self.times_from_start_ns)
         object.__setattr__(self, 'times_from_start_ns', times)
         shape = (times.size, len(names))
         object.__setattr__(self, 'positions', _array(self.positions, shape, 'positions'))
@@ -249,12 +255,7 @@ class JointTrajectorySample:
             object.__setattr__(self, 'receive_ns', _stamp(self.receive_ns, 'receive_ns'))
         names = tuple(str(n) for n in self.joint_names)
         object.__setattr__(self, 'joint_names', names)
-        times = np.asarray(self.times_from_start_ns)
-        if times.ndim != 1 or (times.size and not np.issubdtype(times.dtype, np.integer)):
-            raise ValueError('times_from_start_ns must be a 1-D integer array (nanoseconds)')
-        times = np.ascontiguousarray(times, dtype=np.int64)
-        if times.size and (times[0] < 0 or np.any(np.diff(times) <= 0)):
-            raise ValueError('times_from_start_ns must be >= 0 and strictly increasing')
+        times = _times_from_start(self.times_from_start_ns)
         object.__setattr__(self, 'times_from_start_ns', times)
         shape = (times.size, len(names))
         object.__setattr__(self, 'positions', _array(self.positions, shape, 'positions'))
