@@ -827,33 +827,47 @@ class ReducedDynamicsLifecycleNode(_Shell, LifecycleNode):
         LifecycleNode.destroy_node(self)
 
 
-def spin_until_signal(node: Any, executor: Optional[Any] = None) -> None:
+class _StopOnSignal:
     """
-    Spin ``node`` until SIGINT or SIGTERM (or an external shutdown).
+    SIGINT and SIGTERM set a flag (and wake the executor) instead of raising.
 
     rclpy's own signal handler shuts the context down at once, under the
     callbacks' feet: a message being taken then fails inside rclpy.spin
     ("Unable to convert call argument"), and the shutdown log lines cannot
-    reach /rosout. Here the signal only sets a flag and wakes the executor; the
-    node is destroyed while the context is still valid, then rclpy shuts down.
+    reach /rosout. A Python KeyboardInterrupt can land anywhere, including
+    inside rclpy's conversions. Here the signal only asks the spin loop to end;
+    the node is destroyed while the context is still valid, then rclpy shuts down.
     """
-    stop = threading.Event()
-    executor = executor or SingleThreadedExecutor()
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.stop = threading.Event()
+        self.executor: Optional[Any] = None
+        self._previous = {sig: signal.signal(sig, self._on_signal) for sig in self.SIGNALS}
+
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        self.stop.set()
+        if self.executor is not None:
+            self.executor.wake()
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+def spin_until_signal(node: Any, stopper: '_StopOnSignal') -> None:
+    """Spin ``node`` until SIGINT or SIGTERM (or an external shutdown)."""
+    executor = SingleThreadedExecutor()
     executor.add_node(node)
-
-    def on_signal(signum: int, frame: Any) -> None:
-        stop.set()
-        executor.wake()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    stopper.executor = executor
     try:
-        while not stop.is_set():
+        while not stopper.stop.is_set():
             executor.spin_once(timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except ExternalShutdownException:
         pass
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        stopper.executor = None
         executor.remove_node(node)
         executor.shutdown(timeout_sec=1.0)
 
@@ -863,23 +877,27 @@ def main(args: Optional[Sequence[str]] = None, lifecycle: bool = False) -> int:
     if rclpy is None:
         print(ROS_NOT_SOURCED, file=sys.stderr)
         return 1
-    argv = list(sys.argv if args is None else args)
-    if '--lifecycle' in argv:
-        argv.remove('--lifecycle')
-        lifecycle = True
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    node_class = ReducedDynamicsLifecycleNode if lifecycle else ReducedDynamicsNode
+    stopper = _StopOnSignal()  # first: a signal during start-up also ends cleanly
     try:
-        node = node_class()
-    except ParameterException as error:  # bad params file / -p value: one line, no traceback
-        print(f'reduced_dynamics_node: invalid parameters: {error}', file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    try:
-        spin_until_signal(node)
+        argv = list(sys.argv if args is None else args)
+        if '--lifecycle' in argv:
+            argv.remove('--lifecycle')
+            lifecycle = True
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+        node_class = ReducedDynamicsLifecycleNode if lifecycle else ReducedDynamicsNode
+        try:
+            node = node_class()
+        except ParameterException as error:  # bad params file / -p value: one line
+            print(f'reduced_dynamics_node: invalid parameters: {error}', file=sys.stderr)
+            rclpy.try_shutdown()
+            return 2
+        try:
+            spin_until_signal(node, stopper)
+        finally:
+            node.destroy_node()
+            rclpy.try_shutdown()
     finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+        stopper.restore()
     return 0
 
 

@@ -200,6 +200,91 @@ def test_corrupted_chunk_length_without_summary_resyncs(chunked: Path, clean: li
     assert damage[0].kind == 'unparsable' and damage[0].offset == offset
 
 
+@pytest.fixture(scope='module')
+def chunked_no_crc(tmp_path_factory: pytest.TempPathFactory, clean: list) -> Path:
+    """Return paper_thruster rewritten by rosbags (no chunk CRCs) in 64 KiB chunks."""
+    from reduced_dynamics.bag import writer as bag_writer
+    path = tmp_path_factory.mktemp('nocrc') / 'bag'
+    chunk = bag_writer._CHUNK_BYTES
+    bag_writer._CHUNK_BYTES = 65536
+    try:
+        with open_bag(BAG) as bag:
+            topics = bag.topics()
+            with BagWriter(path, topics) as writer:
+                for message in bag.raw_messages(list(topics)):
+                    writer.write_raw(message.topic, message.timestamp_ns, message.data)
+    finally:
+        bag_writer._CHUNK_BYTES = chunk
+    storage = next(path.glob('*.mcap'))
+    assert read_all(storage) == clean and len(chunk_table(storage)) >= 10
+    return storage
+
+
+def chunk_messages(path: Path, offset: int) -> list[tuple[str, int, bytes]]:
+    """Return (topic, log time, data) of the message records of the chunk at ``offset``."""
+    data = path.read_bytes()
+    with open(path, 'rb') as stream:
+        topics = {c.id: c.topic for c in make_reader(stream).get_summary().channels.values()}
+    end = offset + 9 + struct.unpack_from('<Q', data, offset + 1)[0]
+    q = offset + 9 + 40 + struct.unpack_from('<I', data, offset + 9 + 36)[0]
+    out = []
+    while q < end:
+        opcode, length = struct.unpack_from('<BQ', data, q)
+        if opcode == 0x05:
+            channel, log = struct.unpack_from('<HxxxxQ', data, q + 9)
+            out.append((topics[channel], log, data[q + 31:q + 9 + length]))
+        q += 9 + length
+    return out
+
+
+@pytest.mark.parametrize('writer', ['mcap', 'rosbags'])
+def test_damaged_first_chunk_times_without_summary(writer: str, chunked: Path,
+                                                   chunked_no_crc: Path, clean: list,
+                                                   tmp_path: Path) -> None:
+    # The reproducer of the fuzz suite's bag_files family: byte 62 (in chunk 0's time
+    # fields) and the end magic overwritten. Chunk 0 holds the only schema and channel
+    # records, so losing it lost every message; its records still validate (CRC, or
+    # every record parses) and give its times again.
+    source = chunked if writer == 'mcap' else chunked_no_crc
+    table = chunk_table(source)
+    data = bytearray(source.read_bytes())
+    offset = table[0][0]
+    assert offset + 9 <= 62 < offset + 9 + 16  # a time field of chunk 0's header
+    data[62] = 0xff
+    data[-8:] = b'\0' * 8
+    path = tmp_path / 'damaged.mcap'
+    path.write_bytes(bytes(data))
+    assert read_all(path) == clean
+    damage = damage_of(path)
+    assert [(d.kind, d.chunk, d.offset, d.messages_lost) for d in damage] == [
+        ('corrupt_chunk', 0, offset, 0)]
+
+
+@pytest.mark.parametrize('writer', ['mcap', 'rosbags'])
+@pytest.mark.parametrize('field', [1, 9 + 36, 0])  # record length, compression length, opcode
+def test_damaged_chunk_header_in_the_middle_without_summary(
+        writer: str, field: int, chunked: Path, chunked_no_crc: Path, clean: list,
+        tmp_path: Path) -> None:
+    # A damaged length used to send the scan into the next chunk, losing it too; a
+    # damaged opcode or compression length made the chunk unparsable. Now the scan
+    # resyncs on the next chunk that validates: only the damaged chunk is lost.
+    source = chunked if writer == 'mcap' else chunked_no_crc
+    table = chunk_table(source)
+    middle = len(table) // 2
+    offset = table[middle][0]
+    data = bytearray(source.read_bytes())
+    data[offset + field] ^= 0x24
+    path = tmp_path / 'damaged.mcap'
+    path.write_bytes(bytes(data[:table[-1][0] + table[-1][1]]))  # the summary is gone
+    lost = set(chunk_messages(source, offset))
+    assert len(lost) == table[middle][2]
+    assert read_all(path) == [m for m in clean if m not in lost]
+    damage = damage_of(path)
+    assert [(d.kind, d.offset) for d in damage] == [('unparsable', offset)]
+    assert damage[0].length == table[middle][1] + (table[middle + 1][0] - offset
+                                                   - table[middle][1])
+
+
 @pytest.mark.parametrize('which', [[5], [100, 101], [7, 1500, 3000]])
 def test_corrupted_headers_in_a_crc_less_chunk(which: list, clean: list,
                                                tmp_path: Path) -> None:

@@ -701,3 +701,83 @@ def test_planned_trajectory_and_base_motion_requests(ros, node_factory):
     assert len(results) == 2 and results[1].status[0].level == bytes([2])
     assert 'not shape joints' in results[1].status[0].message
     assert len(ros.published(node.resolve_topic_name('~/predict_base_motion/path'))) == 1
+
+
+# ------------------------------------------------------------------ QoS and faults
+def test_qos_overrides_reconfigure_inputs_and_outputs(node_factory):
+    from rclpy.qos import HistoryPolicy, ReliabilityPolicy
+    node = node_factory(**{
+        'qos_overrides./joint_states.subscription.reliability': 'reliable',
+        'qos_overrides./joint_states.subscription.depth': 1000,
+        'qos_overrides./reduced_dynamics/momentum.publisher.history': 'keep_all'})
+    subscriptions = {sub.topic_name: sub for sub in node.subscriptions}
+    joint = subscriptions['/joint_states'].qos_profile
+    assert joint.reliability == ReliabilityPolicy.RELIABLE and joint.depth == 1000
+    odom = subscriptions['/odom'].qos_profile  # not overridden: the sensor-data default
+    assert odom.reliability == ReliabilityPolicy.BEST_EFFORT and odom.depth == 100
+    publishers = {pub.topic_name: pub for pub in node.publishers}
+    assert publishers['/reduced_dynamics/momentum'].qos_profile.history == \
+        HistoryPolicy.KEEP_ALL
+    assert publishers['/reduced_dynamics/shape_state'].qos_profile.history == \
+        HistoryPolicy.KEEP_LAST
+    # Read at start-up like every QoS override (rclpy declares them read-only).
+    assert node.describe_parameter(
+        'qos_overrides./joint_states.subscription.reliability').read_only
+
+
+def test_ros_time_jumping_back_resets_the_estimator_once(ros, node_factory):
+    node = node_factory(use_sim_time=True, urdf_path=str(paper_robot_urdf()))
+    ros.set_sim_time(node, 100.0)
+    messages = input_messages(ros, count=SAMPLES)
+    feed(ros, node, messages[:200])
+    processed = node.estimator.processed
+    assert processed > 90
+    ros.set_sim_time(node, 101.0)  # forward: nothing happens
+    assert node.time_resets == 0
+    ros.set_sim_time(node, 50.0)   # a bag loop / simulator restart
+    assert node.time_resets == 1 and node.estimator.clock_resets == 1
+    resets = [m for s, m in node.logs if 'ROS time jumped back 51 s' in m]
+    assert len(resets) == 1 and 'estimator reset' in resets[0]
+    # The replayed stream starts again from its beginning: taken, not rejected as old.
+    feed(ros, node, messages[:200])
+    assert node.estimator.processed > processed + 90
+    ros.fire_timers(node)
+    values = {kv.key: kv.value for kv in ros.published('/diagnostics')[-1].status[0].values}
+    assert values['time_resets'] == '1'
+
+
+def test_input_stopping_and_resuming_is_counted_and_recovered(ros, node_factory):
+    node = node_factory(urdf_path=str(paper_robot_urdf()))
+    messages = input_messages(ros, count=SAMPLES)
+    feed(ros, node, messages[:200])   # 100 samples
+    before = node.estimator.processed
+    feed(ros, node, messages[400:])   # 100 samples missing from both streams
+    assert node.estimator.processed > before + 80  # estimation resumed after the gap
+    assert node.input_stats['joint_states'].missing == 100
+    assert node.input_stats['base'].missing == 100
+    ros.fire_timers(node)
+    status = ros.published('/diagnostics')[-1].status[0]
+    values = {kv.key: kv.value for kv in status.values}
+    assert status.level == b'\x01' and 'missing' in status.message  # WARN
+    assert values['missing_joint_states'] == '100'
+
+
+def test_parameter_changes_at_rate_while_messages_flow(ros, node_factory):
+    from rclpy.parameter import Parameter
+    node = node_factory(urdf_path=str(paper_robot_urdf()), prediction_rate=5.0)
+    messages = input_messages(ros, count=SAMPLES)
+    bandwidths = []
+    for i, (topic, msg) in enumerate(messages):
+        ros.deliver(node, topic, msg)
+        if i % 4 == 0:  # a change every other sample (50 Hz of sample time)
+            value = 0.02 + 0.001 * (i % 40)
+            assert node.set_parameters([Parameter('wrench_jerk_linear', value=value),
+                                        Parameter('prediction_rate', value=1 + i % 5)]
+                                       )[0].successful
+            bandwidths.append(value)
+    node.wait_for_predictions()
+    assert node.estimator.config.wrench_jerk_linear == bandwidths[-1]
+    assert node.estimator.filter.noise.jerk_linear == bandwidths[-1]
+    momentum = ros.published('~/momentum', node)
+    assert node.estimator.processed == len(momentum) > 0.9 * SAMPLES
+    assert dict(node.estimator.rejected) == {}

@@ -25,8 +25,13 @@ MCAP
     start; each chunk is parsed and, when it carries a CRC, validated with the
     ``mcap`` library (``Chunk.read``, ``breakup_chunk``); the message index
     records after a chunk give its per-channel counts. A record that does not
-    parse is skipped by resynchronising on the next consistent chunk header
-    (opcode 0x06 whose length, compression and data size agree).
+    parse (a damaged chunk length, compression or opcode) is skipped by
+    resynchronising on the next plausible chunk: a consistent header (length,
+    compression and data size agree, the record fits in the file) and contents
+    that validate (the CRC when there is one, else every record parses). The
+    time fields are not framing: a chunk whose records validate takes its times
+    from them. Schemas and channels are kept from a lost chunk when they parse
+    (writers define them in the first chunk only).
   - **A chunk that fails** (CRC mismatch, bad framing, cut by the end of the
     file): its messages are salvaged one by one, at the offsets of its message
     index when there is one (each must be a message record of that channel and
@@ -215,11 +220,30 @@ class TolerantMcapReader(McapReader):
                 return
             opcode, length = _RECORD.unpack_from(data, pos)
             end = pos + 9 + length
-            if opcode == 0x06 and self._chunk_header(data, pos) is not None and end > size:
+            header = self._chunk_header(data, pos) if opcode == 0x06 else None
+            if header is not None and end > size:
                 self._cut_chunk(data, pos, number, reason)
                 return
-            if not 0x01 <= opcode <= _OPCODE_MAX or end > size:
+            # A record whose framing is broken says nothing true about where the next
+            # record starts (a damaged chunk length, a footer that is not one): resync.
+            framed = 0x01 <= opcode <= _OPCODE_MAX and end <= size \
+                and (opcode != 0x06 or header is not None) \
+                and (opcode != 0x02 or length == 20) and (opcode != 0x0F or length == 4)
+            content = bytes(data[pos + 9:end]) if framed else b''
+            if framed and opcode in (0x03, 0x04):
+                try:
+                    record: Any = (McapSchema if opcode == 0x03 else McapChannel).read(
+                        ReadDataStream(io.BytesIO(content)))
+                except Exception:
+                    framed = False
+            if not framed:
                 resume = self._resync(data, pos + 1)
+                if opcode == 0x06 or self._chunk_header(data, pos) is not None:
+                    # A chunk (perhaps with a damaged opcode): the schemas and channels may
+                    # be defined only in it (the mcap and rosbags writers put them in the
+                    # first chunk); keep those that parse, or every later chunk is unreadable.
+                    self._definitions(pos + 9 + 40, resume if resume is not None else size)
+                    number += 1
                 if resume is None:
                     self._lost_tail(pos, size, f'unparsable record (opcode {opcode:#x}, '
                                     f'length {length}) and no chunk after it; {reason}')
@@ -228,16 +252,12 @@ class TolerantMcapReader(McapReader):
                                     f'unparsable record (opcode {opcode:#x}, length {length})'))
                 pos = resume
                 continue
-            if opcode in (0x02, 0x0F, 0x0E, 0x0A, 0x0B, 0x08, 0x0C, 0x0D):
-                if opcode in (0x02, 0x0F):
-                    return  # footer or data end: the data section is over
-                pos = end
-                continue
-            content = bytes(data[pos + 9:end])
+            if opcode in (0x02, 0x0F):
+                return  # footer or data end: the data section is over
             if opcode == 0x03:
-                self._schema(McapSchema.read(ReadDataStream(io.BytesIO(content))))
+                self._schema(record)
             elif opcode == 0x04:
-                self._channel(McapChannel.read(ReadDataStream(io.BytesIO(content))))
+                self._channel(record)
             elif opcode == 0x06:
                 last_chunk = self._chunk(data, pos, length, number, content)
                 number += 1
@@ -250,13 +270,18 @@ class TolerantMcapReader(McapReader):
         return getattr(self.path, 'name', str(self.path))
 
     def _chunk_header(self, data: Any, pos: int) -> Optional[tuple[int, int, int, int, str, int]]:
-        """Return (start, end, uncompressed size, crc, compression, data size) if consistent."""
+        """
+        Return (start, end, uncompressed size, crc, compression, data size) if consistent.
+
+        Only the framing is checked (length, compression, sizes): the time fields are
+        not needed to read the chunk, and its records give them again (see _chunk).
+        """
         size = len(data)
         if pos + 9 + 40 > size:
             return None
         length = _U64.unpack_from(data, pos + 1)[0]
         start, end, usize, crc, clen = _CHUNK_HEAD.unpack_from(data, pos + 9)
-        if clen > 4 or pos + 9 + 32 + clen + 8 > size or start > end:
+        if clen > 4 or pos + 9 + 32 + clen + 8 > size:
             return None
         compression = bytes(data[pos + 41:pos + 41 + clen]).decode('ascii', 'replace')
         csize = _U64.unpack_from(data, pos + 41 + clen)[0]
@@ -267,20 +292,28 @@ class TolerantMcapReader(McapReader):
         return start, end, usize, crc, compression, csize
 
     def _resync(self, data: Any, pos: int) -> Optional[int]:
-        """Return the offset of the next consistent chunk header at or after ``pos``."""
+        """
+        Return the offset of the next plausible chunk record at or after ``pos``.
+
+        Plausible: opcode 0x06, a consistent header (see _chunk_header), and contents
+        that validate (the CRC matches when there is one, else every record parses);
+        or a consistent header cut by the end of the file (the caller salvages it).
+        """
         size = len(data)
         while True:
             pos = data.find(b'\x06', pos)
             if pos < 0 or pos + 9 > size:
                 return None
-            header = self._chunk_header(data, pos)
-            if header is not None:
+            if self._chunk_header(data, pos) is not None:
                 end = pos + 9 + _U64.unpack_from(data, pos + 1)[0]
-                # The record after it must look like a record too (or the file ends there).
-                if end <= size and (end == size or 0x01 <= data[end] <= _OPCODE_MAX):
-                    return pos
                 if end > size:
-                    return pos  # a cut chunk: the caller salvages it
+                    return pos
+                try:
+                    breakup_chunk(Chunk.read(ReadDataStream(io.BytesIO(
+                        bytes(data[pos + 9:end])))), validate_crc=True)
+                    return pos
+                except Exception:  # not a chunk, or a damaged one: look further
+                    pass
             pos += 1
 
     def _schema(self, schema: McapSchema) -> None:
@@ -319,12 +352,16 @@ class TolerantMcapReader(McapReader):
                                           _describe(exc), chunk=number)
                 self._record(self._found[pos])
                 return pos
+            if header is not None and header[4] == '':
+                # Its messages are lost, but not the definitions later chunks rely on.
+                self._definitions(pos + 9 + 40, pos + 9 + length)
             kind = 'crc_mismatch' if 'CRC' in type(exc).__name__ else 'corrupt_chunk'
             self._pending_loss = Damage(self._name, kind, pos, 9 + length, _describe(exc),
                                         chunk=number)
             self._record(self._pending_loss)
             return pos if header is not None else None
         counts: dict[int, int] = {}
+        times: list[int] = []
         for record in records:
             if isinstance(record, McapSchema):
                 self._schema(record)
@@ -332,7 +369,15 @@ class TolerantMcapReader(McapReader):
                 self._channel(record)
             else:
                 counts[record.channel_id] = counts.get(record.channel_id, 0) + 1
+                times.append(record.log_time)
         start, end, usize, _, compression, csize = header
+        if times and (min(times), max(times)) != (start, end):
+            # The header's time fields are damaged; the records (validated above) are not.
+            self._record(Damage(self._name, 'corrupt_chunk', pos, 0,
+                                f'chunk header times {start}..{end} disagree with its records '
+                                f'({min(times)}..{max(times)}); the records\' times are used',
+                                chunk=number, messages_lost=0))
+            start, end = min(times), max(times)
         self.chunks.append(ChunkInfo(start, end, pos, 9 + length, {}, 0, compression, csize,
                                      usize, counts))
         return pos
@@ -367,6 +412,8 @@ class TolerantMcapReader(McapReader):
     def _placeholder(self, header: tuple, pos: int, length: int) -> None:
         """Register a chunk to salvage on reading; every channel may have messages in it."""
         start, end, usize, _, compression, csize = header
+        if start > end:  # damaged time fields: every time is possible
+            start, end = 0, 2**64 - 1
         if compression == '':
             self._definitions(pos + 9 + 40, min(pos + 9 + length, self._size))
         self.chunks.append(ChunkInfo(start, end, pos, 9 + length, {}, 0, compression, csize,
