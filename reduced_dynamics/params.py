@@ -43,7 +43,8 @@ NODE_PARAMETERS: dict[str, ParameterSpec] = {
                              '(along z)'),
     'base_input': ParameterSpec('odom', None, None, ('odom', 'pose'),
                                 'base state source: nav_msgs/Odometry (odom) or '
-                                'geometry_msgs/PoseStamped (pose, twist differentiated)'),
+                                'geometry_msgs/PoseStamped (pose only: the filter '
+                                'estimates the twist)'),
     'joint_states_topic': ParameterSpec('joint_states', None, None, (),
                                         'sensor_msgs/JointState input'),
     'odom_topic': ParameterSpec('odom', None, None, (), 'nav_msgs/Odometry input'),
