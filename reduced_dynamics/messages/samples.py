@@ -75,6 +75,12 @@ def trusted_sample(cls: type, *values: object) -> object:
     return sample
 
 
+def _validate_stamps(sample: object) -> None:
+    """Normalise an input sample's header stamp and optional receive time (in place)."""
+    object.__setattr__(sample, 'stamp_ns', _stamp(sample.stamp_ns))
+    with_receive_time(sample, sample.receive_ns)
+
+
 def with_receive_time(sample: object, receive_ns: Optional[int]) -> object:
     """Set the receive time of a freshly decoded (caller-owned) input sample; return it."""
     object.__setattr__(sample, 'receive_ns', None if receive_ns is None
@@ -112,9 +118,7 @@ class JointStateSample:
 
     def __post_init__(self) -> None:
         """Validate and normalize fields."""
-        object.__setattr__(self, 'stamp_ns', _stamp(self.stamp_ns))
-        if self.receive_ns is not None:
-            object.__setattr__(self, 'receive_ns', _stamp(self.receive_ns, 'receive_ns'))
+        _validate_stamps(self)
         names = tuple(str(n) for n in self.names)
         object.__setattr__(self, 'names', names)
         n = len(names)
@@ -148,9 +152,7 @@ class BaseStateSample:
 
     def __post_init__(self) -> None:
         """Validate and normalize fields."""
-        object.__setattr__(self, 'stamp_ns', _stamp(self.stamp_ns))
-        if self.receive_ns is not None:
-            object.__setattr__(self, 'receive_ns', _stamp(self.receive_ns, 'receive_ns'))
+        _validate_stamps(self)
         object.__setattr__(self, 'position', _array(self.position, (3,), 'position'))
         object.__setattr__(
             self, 'orientation_xyzw', _array(self.orientation_xyzw, (4,), 'orientation_xyzw'))
@@ -250,9 +252,7 @@ class JointTrajectorySample:
 
     def __post_init__(self) -> None:
         """Validate and normalize fields."""
-        object.__setattr__(self, 'stamp_ns', _stamp(self.stamp_ns))
-        if self.receive_ns is not None:
-            object.__setattr__(self, 'receive_ns', _stamp(self.receive_ns, 'receive_ns'))
+        _validate_stamps(self)
         names = tuple(str(n) for n in self.joint_names)
         object.__setattr__(self, 'joint_names', names)
         times = _times_from_start(self.times_from_start_ns)
