@@ -51,6 +51,11 @@ PARAMETERS: dict[str, ParameterSpec] = {
         2e-3, 1e-12, 3.2, (),
         'standard deviation [rad] of a measured base orientation, per axis (motion '
         'capture: ~0.1 deg)'),
+    'pose_stamp_noise': ParameterSpec(
+        3e-3, 0.0, 1.0, (),
+        'standard deviation [s] of a base pose header stamp about the instant the pose was '
+        'measured (a mocap client stamping on receipt in a 100 Hz polling loop: 10 ms / '
+        'sqrt(12)); the pose noise grows by the body twist times it'),
     'twist_linear_noise': ParameterSpec(
         1e-2, 1e-12, 1e3, (),
         'standard deviation [m/s] of an Odometry base linear velocity'),
@@ -159,6 +164,7 @@ class EstimatorConfig:
     sync_tolerance: float = PARAMETERS['sync_tolerance'].default
     pose_position_noise: float = PARAMETERS['pose_position_noise'].default
     pose_angle_noise: float = PARAMETERS['pose_angle_noise'].default
+    pose_stamp_noise: float = PARAMETERS['pose_stamp_noise'].default
     twist_linear_noise: float = PARAMETERS['twist_linear_noise'].default
     twist_angular_noise: float = PARAMETERS['twist_angular_noise'].default
     joint_velocity_noise: float = PARAMETERS['joint_velocity_noise'].default

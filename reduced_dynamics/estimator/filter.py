@@ -60,6 +60,7 @@ import numpy as np
 import pinocchio as pin
 from scipy.stats import chi2
 
+from reduced_dynamics.estimator.events import StepDetection, WrenchStepTest
 from reduced_dynamics.geometry.lie_group import BaseGroup
 
 #: Consecutive gated measurements after which a momentum jump is accepted.
@@ -93,6 +94,7 @@ class NoiseModel:
     initial_speed: float = 1.0
     initial_rate: float = 1.0
     initial_acceleration: float = 1.0
+    pose_stamp: float = 0.0
 
 
 class Linearisation(NamedTuple):
@@ -142,8 +144,13 @@ class MomentumFilter:
     """
 
     def __init__(self, group: BaseGroup, noise: NoiseModel, gate_probability: float,
-                 record: bool = False) -> None:
-        """Set up for ``group``; ``gate_probability``: innovation gate (0: off)."""
+                 record: bool = False, step_significance: float = 0.0) -> None:
+        """
+        Set up for ``group``; ``gate_probability``: innovation gate (0: off).
+
+        ``step_significance``: false-alarm probability of the GLR test of a wrench
+        step (:class:`~reduced_dynamics.estimator.events.WrenchStepTest`; 0: off).
+        """
         self.group = group
         self.n = n = group.dim
         self.noise = noise
@@ -174,6 +181,10 @@ class MomentumFilter:
         self.nis_sum = 0.0
         self.nis_dof = 0
         self._lin: Optional[Linearisation] = None
+        self.step_test = WrenchStepTest(n, step_significance)
+        #: the wrench step taken at the last step (None: none detected)
+        self.step_detected: Optional[StepDetection] = None
+        self.steps_taken = 0
 
     # --- pieces of the model ----------------------------------------------------------
     @property
@@ -315,6 +326,8 @@ class MomentumFilter:
             self.stamp_ns = stamp_ns
         else:
             transition = self._eye
+        self.step_test.propagate(stamp_ns, transition)
+        self.step_detected = None
         g_pred, x_pred, p_pred = self.g, self.x.copy(), self.p.copy()
         accepted = True
         if pose is not None:
@@ -347,6 +360,9 @@ class MomentumFilter:
         h, nu = self._measurement(g0, x0, pose, twist, lin)
         r = np.zeros((len(nu), len(nu)))
         r[:n, :n] = np.diag(self._pose_var)
+        if self.noise.pose_stamp > 0.0:
+            xi = self.twist(g0, x0[:n], lin) * self.noise.pose_stamp
+            r[:n, :n] += np.outer(xi, xi)
         if twist is not None:
             r[n:, n:] = np.diag(self._twist_var) + lin.joint_cov
         ph = self.p @ h.T
@@ -389,6 +405,17 @@ class MomentumFilter:
         keep = self._eye - gain @ h
         p = keep @ self.p @ keep.T + gain @ r @ gain.T
         self.p = 0.5 * (p + p.T)
+        detection = self.step_test.update(h, s, gain, nu)
+        if detection is not None:
+            # A wrench step (thruster on/off: a jump, not a random walk): take its
+            # maximum-likelihood size and its uncertainty (Willsky-Jones compensation).
+            self.g = self.g * group.exp(detection.correction[:n])
+            self.x = self.x + detection.correction[n:]
+            p = self.p + detection.covariance
+            self.p = 0.5 * (p + p.T)
+            self.step_test.reset()
+            self.step_detected = detection
+            self.steps_taken += 1
         return True
 
     def state(self) -> FilterState:

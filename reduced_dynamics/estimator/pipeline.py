@@ -250,7 +250,8 @@ def noise_model(config: EstimatorConfig) -> NoiseModel:
                       twist_angular=config.twist_angular_noise,
                       joint_velocity=config.joint_velocity_noise,
                       jerk_linear=config.wrench_jerk_linear,
-                      jerk_angular=config.wrench_jerk_angular)
+                      jerk_angular=config.wrench_jerk_angular,
+                      pose_stamp=config.pose_stamp_noise)
 
 
 class Estimator:
@@ -360,7 +361,8 @@ class Estimator:
         self.noise = noise_model(config)
         old_filter = getattr(self, 'filter', None)
         self.filter = MomentumFilter(self.robot.group, self.noise, config.innovation_gate,
-                                     record=self.record_steps)
+                                     record=self.record_steps,
+                                     step_significance=config.event_significance)
         if old_filter is not None:
             # New noise and gate; the estimate and the recorded steps stay.
             for name in ('g', 'x', 'p', 'stamp_ns', 'steps', 'gated', 'log_likelihood',
@@ -663,7 +665,8 @@ class Estimator:
         old = self.filter
         config = self.config
         self.filter = MomentumFilter(self.robot.group, self.noise, config.innovation_gate,
-                                     record=self.record_steps)
+                                     record=self.record_steps,
+                                     step_significance=config.event_significance)
         for name in ('steps', 'gated', 'log_likelihood', 'nis_sum', 'nis_dof'):
             setattr(self.filter, name, getattr(old, name))
         events = self.detector.events
@@ -760,7 +763,7 @@ class Estimator:
             mu_cov[k] = flt.p[n:2 * n, n:2 * n]
             w_cov[k] = flt.p[2 * n:, 2 * n:]
             detector.update(stamp_list[k], mu[k], math.sqrt(float(rate[k] @ rate[k])),
-                            flt.wrench_significance())
+                            flt.wrench_significance(), flt.step_detected is not None)
             poses.append(g)
             quiet.append(not detector.in_event)
         # Reduced energy (5.36) from the filtered momentum: 1/2 pi.I^-1 pi + 1/2 pbar.qbar_dot.
