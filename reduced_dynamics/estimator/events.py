@@ -233,6 +233,13 @@ class EventDetector:
                 # The filter's mu still converges after the wrench has gone: the
                 # impulse keeps following it for SETTLE seconds (or to the next event).
                 last.mu_after = mu.copy()
+        if event is None and step and self.events and \
+                (stamp_ns - self.events[-1].end_ns) * 1e-9 <= SETTLE:
+            # A step while the filter settles after an event (the compensation of its
+            # own overshoot) belongs to that event: re-open it, its mu_before stays.
+            event = self.events[-1]
+            event.end_ns = None
+            self._changed = False
         if event is None:
             if significance > self.start_threshold or step:
                 before = self._quiet_mu if self._quiet_mu is not None else mu
