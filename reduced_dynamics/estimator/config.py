@@ -82,9 +82,10 @@ PARAMETERS: dict[str, ParameterSpec] = {
         'row are accepted as a momentum jump (0: gate off)'),
     'event_significance': ParameterSpec(
         1e-6, 0.0, 0.5, (),
-        'false-alarm probability per sample of the event test w^T P_ww^-1 w > '
-        'chi2_n quantile: a thruster/contact event starts above it (dimensionless, '
-        'the same at any mass; 0: no events)'),
+        'false-alarm probability per sample of the event tests: w^T P_ww^-1 w > chi2_n '
+        'quantile, or the GLR statistic of a wrench step on the innovations above it (the '
+        'step is then taken at once); a thruster/contact event starts on either '
+        '(dimensionless, the same at any mass; 0: no events)'),
     'event_hold': ParameterSpec(0.1, 0.0, 10.0, (),
                                 'quiet time [s] with w consistent with zero (chi-square '
                                 'below its 99 % quantile) before an event ends and the model '
