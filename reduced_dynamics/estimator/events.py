@@ -144,8 +144,8 @@ class WrenchStepTest:
         nis = float(nu @ np.linalg.solve(s, nu)) / len(nu)
         # A running mean over the first NIS_TIME seconds, then an exponential average.
         self._elapsed += self._dt
-        weight = 1.0 if self._elapsed <= 0.0 else min(1.0, self._dt / min(self._elapsed,
-                                                                         NIS_TIME))
+        horizon = min(self._elapsed, NIS_TIME)
+        weight = 1.0 if horizon <= 0.0 else min(1.0, self._dt / horizon)
         self.nis_scale += weight * (nis - self.nis_scale)
         scale = max(1.0, self.nis_scale)
         best: Optional[StepDetection] = None
@@ -221,7 +221,7 @@ class EventDetector:
     def update(self, stamp_ns: int, mu: np.ndarray, wrench_norm: float,
                significance: float, step: bool = False) -> None:
         """
-        Feed one filtered sample: mu, |w|, s = w^T P_ww^-1 w, and whether the GLR test found a step.
+        Feed one filtered sample: mu, |w|, s = w^T P_ww^-1 w, and a GLR step (True: found).
 
         A step starts an event as s above its threshold does (the step test reacts
         to a thruster switching on before the random-walk w has grown).
