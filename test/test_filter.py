@@ -167,7 +167,7 @@ def test_nees_within_chi_square_bounds(name: str, twist: bool) -> None:
 
 def _step_run(mass: float, force: float, seconds: float, seed: int,
               onset: float = 1.0) -> tuple[MomentumFilter, list[float]]:
-    """A planar body of ``mass`` (inertia scaled alike), pose-only at 120 Hz, 1 mm / 2 mrad."""
+    """Run a planar body of ``mass`` (inertia scaled alike), pose-only at 120 Hz, 1 mm / 2 mrad."""
     import pinocchio as pin
     group = SUBGROUPS['SE(2)']
     locked = np.diag([mass, mass, mass * 0.18 / 16.0])
