@@ -65,6 +65,8 @@ from reduced_dynamics.geometry.lie_group import BaseGroup
 
 #: Consecutive gated measurements after which a momentum jump is accepted.
 GATE_RESET = 3
+#: Time constant [s] of the twist average that scales the pose stamp noise.
+STAMP_TWIST_TIME = 0.5
 #: Re-linearisations of an update with a twist (iterated EKF).
 ITERATIONS = 2
 LOG_2PI = math.log(2.0 * math.pi)
@@ -182,6 +184,8 @@ class MomentumFilter:
         self.nis_dof = 0
         self._lin: Optional[Linearisation] = None
         self.step_test = WrenchStepTest(n, step_significance)
+        self._stamp_twist = np.zeros(n)
+        self._stamp_dt = 0.0
         #: the wrench step taken at the last step (None: none detected)
         self.step_detected: Optional[StepDetection] = None
         self.steps_taken = 0
@@ -295,6 +299,7 @@ class MomentumFilter:
         p[2 * n:, 2 * n:] = (to_world * self._accel_var) @ to_world.T
         self.x = np.concatenate((mu, np.zeros(n)))
         self.p = p
+        self._stamp_twist = np.zeros(n) if twist is None else np.array(twist, dtype=float)
         if self.record:
             self.steps.append(FilterStep(stamp_ns, None, g, self.x.copy(), p.copy(), g,
                                          self.x.copy(), p.copy(), lin.locked_inverse))
@@ -312,6 +317,7 @@ class MomentumFilter:
             self.initialise(stamp_ns, pose, lin, twist)
             return True
         dt = (stamp_ns - self.stamp_ns) * 1e-9
+        self._stamp_dt = dt
         previous, self._lin = self._lin, lin
         if dt > 0.0:
             # The inputs at the middle of the step (trapezoid in I^-1 and A qbar_dot):
@@ -361,7 +367,10 @@ class MomentumFilter:
         r = np.zeros((len(nu), len(nu)))
         r[:n, :n] = np.diag(self._pose_var)
         if self.noise.pose_stamp > 0.0:
-            xi = self.twist(g0, x0[:n], lin) * self.noise.pose_stamp
+            # Stamp error dt: the measured pose is g exp(xi dt), so R += xi xi^T sigma_t^2,
+            # with xi the body twist averaged over STAMP_TWIST_TIME: the estimate's own
+            # transients (after a gate reset) must not weaken the poses that correct them.
+            xi = self._stamp_twist * self.noise.pose_stamp
             r[:n, :n] += np.outer(xi, xi)
         if twist is not None:
             r[n:, n:] = np.diag(self._twist_var) + lin.joint_cov
@@ -385,6 +394,8 @@ class MomentumFilter:
             to_world = group.Ad(g0.inverse()).T @ lin.locked
             self.p[n:2 * n, n:2 * n] += (to_world * self._speed_var) @ to_world.T
             self.p[2 * n:, 2 * n:] += (to_world * self._accel_var) @ to_world.T
+            # The step hypotheses described the filter before the jump: start afresh.
+            self.step_test.reset()
             ph = self.p @ h.T
             s = h @ ph + r
         self._gated_run = 0
@@ -405,6 +416,10 @@ class MomentumFilter:
         keep = self._eye - gain @ h
         p = keep @ self.p @ keep.T + gain @ r @ gain.T
         self.p = 0.5 * (p + p.T)
+        if self.noise.pose_stamp > 0.0:
+            weight = min(1.0, max(self._stamp_dt, 0.0) / STAMP_TWIST_TIME)
+            self._stamp_twist += weight * (self.twist(self.g, self.x[:n], lin)
+                                           - self._stamp_twist)
         detection = self.step_test.update(h, s, gain, nu)
         if detection is not None:
             # A wrench step (thruster on/off: a jump, not a random walk): take its

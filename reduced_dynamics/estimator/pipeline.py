@@ -366,7 +366,7 @@ class Estimator:
         if old_filter is not None:
             # New noise and gate; the estimate and the recorded steps stay.
             for name in ('g', 'x', 'p', 'stamp_ns', 'steps', 'gated', 'log_likelihood',
-                         'nis_sum', 'nis_dof', '_lin', '_gated_run'):
+                         'nis_sum', 'nis_dof', '_lin', '_gated_run', '_stamp_twist'):
                 setattr(self.filter, name, getattr(old_filter, name))
         old_detector = getattr(self, 'detector', None)
         self.detector = EventDetector(self.robot.n, config.event_significance,
