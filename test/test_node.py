@@ -657,6 +657,40 @@ def test_node_and_replay_publish_the_same_bytes_for_the_same_bag(ros, node_facto
                 assert mine == theirs, f'{topic.name}[{i}]'
 
 
+def test_node_with_a_commanded_wrench_publishes_what_replay_writes(ros, node_factory,
+                                                                   tmp_path):
+    """commanded_wrench_topic: the same bytes as replay --commanded-wrench-topic."""
+    from reduced_dynamics.bag.reader import open_bag
+    from reduced_dynamics.replay import replay, ReplayOptions
+    from reduced_dynamics.topics import active_topics, resolved_name
+    path = REPO_ROOT / 'test' / 'data' / 'freeflyer_realistic'
+    urdf = str(config_path('robots/freeflyer.urdf'))
+    summary = replay(str(path), str(tmp_path / 'out'), load_robot(urdf),
+                     ReplayOptions(base_pose_topic='/base_pose', smooth=False,
+                                   commanded_wrench_topic='/commanded_wrench'))
+    node = node_factory(urdf_path=urdf, base_input='pose',
+                        commanded_wrench_topic='/commanded_wrench')
+    assert node.describe_parameter('commanded_wrench_topic').read_only
+    with open_bag(path) as reader:
+        for message in reader.raw_messages(['/base_pose', '/commanded_wrench']):
+            ros.deliver(node, message.topic, bytes(message.data), message.timestamp_ns)
+    node.wait_for_predictions()
+    assert node.received['command'] == 122
+    assert node.estimator.command_estimate() == {
+        k: v for k, v in summary['commanded_wrench'].items() if k != 'topic'}
+    with open_bag(tmp_path / 'out') as reader:
+        for topic in active_topics(False, True):
+            replayed = [bytes(m.data) for m in reader.raw_messages([resolved_name(topic)])]
+            published = ros.published_raw(_resolved(node, topic))
+            least = 0 if topic.name == 'prediction/shape' else 1
+            assert len(published) == len(replayed) >= least, topic.name
+            for i, (mine, theirs) in enumerate(zip(published, replayed)):
+                assert mine == theirs, f'{topic.name}[{i}]'
+    status = node.node_status().values_dict()
+    assert status['received_command'] == '122'
+    assert 'missing_command' not in status
+
+
 # ------------------------------------------------------------------ planned motions
 def _plan_message(stamp_ns, frame_id=''):
     from reduced_dynamics.messages import joint_trajectory_to_ros, JointTrajectorySample
