@@ -46,7 +46,8 @@ from reduced_dynamics.estimator.pipeline import Estimator, EstimatorOutput
 from reduced_dynamics.bag.reader import BagReader
 from reduced_dynamics.messages import cdr
 from reduced_dynamics.messages.convert import (
-    command_from_ros, joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros, pose_stamped_from_ros)
+    command_from_ros, joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros,
+    pose_stamped_from_ros)
 from reduced_dynamics.messages.samples import JointTrajectorySample, with_receive_time
 from reduced_dynamics.messages.types import RosbagsTypes
 from reduced_dynamics.params import defaults, load_params_file

@@ -34,8 +34,7 @@ import pytest
 from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.estimator import Estimator
 from reduced_dynamics.estimator.config import EstimatorConfig
-from reduced_dynamics.estimator.filter import (Command, Linearisation, MomentumFilter,
-                                               NoiseModel)
+from reduced_dynamics.estimator.filter import Linearisation, MomentumFilter, NoiseModel
 from reduced_dynamics.geometry.lie_group import SUBGROUPS
 from reduced_dynamics.messages import cdr
 from reduced_dynamics.messages.samples import CommandSample, with_receive_time

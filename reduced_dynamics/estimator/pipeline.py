@@ -62,8 +62,9 @@ from reduced_dynamics.estimator.stamps import ACCEPTED, ClockJump, StampGate, St
 from reduced_dynamics.estimator.sync import BaseBuffer
 from reduced_dynamics.geometry.isotropy import isotropy_algebra
 from reduced_dynamics.messages.samples import (
-    BaseStateSample, CommandSample, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample, JointStateSample,
-    JointTrajectorySample, PosePath, ShapePrediction, trusted_sample, TwistSample, WrenchSample)
+    BaseStateSample, CommandSample, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample,
+    JointStateSample, JointTrajectorySample, PosePath, ShapePrediction, trusted_sample,
+    TwistSample, WrenchSample)
 from reduced_dynamics.robot.model import RobotModel
 
 NS = 1_000_000_000
