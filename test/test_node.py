@@ -385,6 +385,9 @@ def test_outputs_equal_an_estimator_fed_directly(ros, node_factory, base_input):
     absent = node.resolve_topic_name('~/prediction/geometric_phase_path' if mode == 'held_torque'
                                      else '~/prediction/shape')
     assert expected.pop(absent) == [] and ros.published(absent) == []
+    # No commanded wrench: no disturbance (test_node_with_a_commanded_wrench_... has it).
+    disturbance = node.resolve_topic_name('~/drift/disturbance')
+    assert expected.pop(disturbance) == [] and ros.published(disturbance) == []
     for topic, wanted in expected.items():
         assert wanted, f'the run produced nothing on {topic}'  # every topic is exercised
         got = ros.published(topic)
@@ -408,6 +411,8 @@ def test_second_stage_outputs_equal_an_estimator_fed_directly(ros, node_factory)
                                 cyclic_joints='auto')
     phase = node.resolve_topic_name('~/prediction/geometric_phase_path')
     assert expected.pop(phase) == [] and ros.published(phase) == []  # a torque mode
+    disturbance = node.resolve_topic_name('~/drift/disturbance')  # no commanded wrench
+    assert expected.pop(disturbance) == [] and ros.published(disturbance) == []
     for topic, wanted in expected.items():
         assert wanted, f'the run produced nothing on {topic}'
         got = ros.published(topic)
