@@ -79,17 +79,23 @@ class WrenchStepTest:
     GLR test of a step in the external wrench from a Kalman filter's innovations.
 
     A bank of onset hypotheses (see the module docstring); per hypothesis the
-    signature D (3n x n), the information J (n x n) and the score b (n) are
+    signature D (dim x n), the information J (n x n) and the score b (n) are
     kept stacked, so one step costs a few matrix products whatever their number.
     """
 
-    def __init__(self, n: int, significance: float) -> None:
-        """Set up for wrenches of dimension ``n``; ``significance`` 0 turns it off."""
+    def __init__(self, n: int, significance: float, dim: Optional[int] = None) -> None:
+        """
+        Set up for wrenches of dimension ``n``; ``significance`` 0 turns it off.
+
+        ``dim``: the filter's error-state dimension (3n; more with further states
+        after w, e.g. the commanded wrench's gain and bias); w is at [2n, 3n).
+        """
         self.n = n
+        self.dim = 3 * n if dim is None else dim
         self.threshold = math.inf if significance <= 0.0 \
             else float(chi2.isf(significance, n))
         self._onsets: list[int] = []
-        self._d = np.zeros((3 * n, 0))
+        self._d = np.zeros((self.dim, 0))
         self._j: list[np.ndarray] = []
         self._b: list[np.ndarray] = []
         self.last_statistic = 0.0
@@ -102,7 +108,7 @@ class WrenchStepTest:
     def reset(self) -> None:
         """Forget every hypothesis (after a detection or a filter restart)."""
         self._onsets = []
-        self._d = np.zeros((3 * self.n, 0))
+        self._d = np.zeros((self.dim, 0))
         self._j, self._b = [], []
         # nis_scale stays: it describes the sensors, not the hypotheses.
 
@@ -123,8 +129,8 @@ class WrenchStepTest:
             self._b.pop(0)
             self._d = self._d[:, n:]
         if not self._onsets or stamp_ns - self._onsets[-1] >= int(GLR_SPACING * 1e9):
-            fresh = np.zeros((3 * n, n))
-            fresh[2 * n:] = np.eye(n)
+            fresh = np.zeros((self.dim, n))
+            fresh[2 * n:3 * n] = np.eye(n)
             self._onsets.append(stamp_ns)
             self._j.append(np.zeros((n, n)))
             self._b.append(np.zeros(n))
