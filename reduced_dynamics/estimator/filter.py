@@ -245,6 +245,8 @@ class MomentumFilter:
         self.nis_dof = 0
         self._lin: Optional[Linearisation] = None
         self.step_test = WrenchStepTest(n, step_significance, dim)
+        #: re-initialisations after the covariance lost positive definiteness
+        self.diverged = 0
         self._stamp_twist = np.zeros(n)
         self._stamp_dt = 0.0
         #: the wrench step taken at the last step (None: none detected)
@@ -462,6 +464,7 @@ class MomentumFilter:
             self.x = np.concatenate((self.x, np.ones(n), np.zeros(n)))
         self.p = p
         self._stamp_twist = np.zeros(n) if twist is None else np.array(twist, dtype=float)
+        self.step_test.reset()
         if self.record:
             self.steps.append(FilterStep(stamp_ns, None, g, self.x.copy(), p.copy(), g,
                                          self.x.copy(), p.copy(), lin.locked_inverse,
@@ -506,7 +509,18 @@ class MomentumFilter:
         g_pred, x_pred, p_pred = self.g, self.x.copy(), self.p.copy()
         accepted = True
         if pose is not None:
-            accepted = self._update(pose, twist, lin)
+            try:
+                accepted = self._update(pose, twist, lin)
+                broken = not (np.isfinite(self.p).all() and (np.diag(self.p) >= 0.0).all())
+            except np.linalg.LinAlgError:
+                broken = True
+            if broken:
+                # The covariance lost positive definiteness (noise settings far below
+                # what the data do, e.g. tuned on stamps that are off by milliseconds):
+                # start again from this measurement instead of failing.
+                self.diverged += 1
+                self.initialise(stamp_ns, pose, lin, twist)
+                return False
         if self.record:
             self.steps.append(FilterStep(stamp_ns, transition, g_pred, x_pred, p_pred,
                                          self.g, self.x.copy(), self.p.copy(),

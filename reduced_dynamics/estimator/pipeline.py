@@ -405,7 +405,8 @@ class Estimator:
         if old_filter is not None:
             # New noise and gate; the estimate and the recorded steps stay.
             for name in ('g', 'x', 'p', 'stamp_ns', 'steps', 'gated', 'log_likelihood',
-                         'nis_sum', 'nis_dof', '_lin', '_gated_run', '_stamp_twist'):
+                         'nis_sum', 'nis_dof', '_lin', '_gated_run', '_stamp_twist',
+                         'diverged'):
                 setattr(self.filter, name, getattr(old_filter, name))
             if self.commanded_wrench:
                 self.filter._command = old_filter._command
@@ -836,7 +837,7 @@ class Estimator:
             self._command_stamps, self._command_values = [], []
             self._command_from_ns = None
             self._command_gate.restart()
-        for name in ('steps', 'gated', 'log_likelihood', 'nis_sum', 'nis_dof'):
+        for name in ('steps', 'gated', 'log_likelihood', 'nis_sum', 'nis_dof', 'diverged'):
             setattr(self.filter, name, getattr(old, name))
         events = self.detector.events
         self.detector = EventDetector(self.robot.n, config.event_significance,
@@ -1146,12 +1147,13 @@ class Estimator:
 
         ``log_likelihood``: sum over the updates of log N(nu; 0, S);
         ``nis_per_dof``: mean normalised innovation squared per measured
-        coordinate (1 when the noise parameters fit the data); ``innovation_gated``.
+        coordinate (1 when the noise parameters fit the data); ``innovation_gated``;
+        ``filter_restarts``: re-initialisations after the covariance broke down.
         """
         flt = self.filter
         return {'log_likelihood': flt.log_likelihood,
                 'nis_per_dof': flt.nis_sum / flt.nis_dof if flt.nis_dof else None,
-                'innovation_gated': flt.gated}
+                'innovation_gated': flt.gated, 'filter_restarts': flt.diverged}
 
     # --- smoothing (replay) -----------------------------------------------------------
     def enable_smoothing(self) -> None:
