@@ -42,7 +42,9 @@ per-sample false-alarm probability is at most ``GLR_HYPOTHESES`` times
 when the noise parameters fit; when the sensors are noisier than assumed, the
 innovations' mean NIS per coordinate (``nis_scale``, an exponential average
 over ``NIS_TIME`` s, a running mean before, floored at 1) exceeds 1 and T is divided by it, so an
-underestimated noise does not read as steps.
+underestimated noise does not read as steps. A single innovation beyond the
+chi2_m 1e-3 quantile (a pose stamped tens of milliseconds off) is left out of
+the evidence: a step shows as a drift of the innovations, growing with time.
 """
 
 from __future__ import annotations
@@ -61,6 +63,8 @@ GLR_SPACING = 0.125
 GLR_WINDOW = 1.0
 #: Onset hypotheses alive at once (GLR_WINDOW / GLR_SPACING).
 GLR_HYPOTHESES = 8
+#: Probability below which one innovation is an outlier to the GLR test (not evidence).
+OUTLIER = 1e-3
 #: Time constant [s] of the average NIS per coordinate that scales the GLR statistic.
 NIS_TIME = 10.0
 
@@ -104,6 +108,8 @@ class WrenchStepTest:
         self._stamp: Optional[int] = None
         self._dt = 0.0
         self._elapsed = 0.0
+        #: NIS above which a single innovation is left out of the evidence (chi2_m 1e-3)
+        self._outlier = {m: float(chi2.isf(OUTLIER, m)) for m in (n, 2 * n)}
 
     def reset(self) -> None:
         """Forget every hypothesis (after a detection or a filter restart)."""
@@ -143,11 +149,16 @@ class WrenchStepTest:
             return None
         n = self.n
         g = h @ self._d                        # signatures in the innovation, m x (n M)
+        self._d = self._d - gain @ g
+        nis_total = float(nu @ np.linalg.solve(s, nu))
+        nis = nis_total / len(nu)
+        if nis_total > self._outlier.get(len(nu), math.inf):
+            # One improbable innovation is an outlier (a pose stamped tens of ms off),
+            # not the growing drift a step makes: it carries no evidence here.
+            return None
         s_inv_g = np.linalg.solve(s, g)
         info = g.T @ s_inv_g                   # (n M) x (n M); the diagonal blocks are J
         score = s_inv_g.T @ nu
-        self._d = self._d - gain @ g
-        nis = float(nu @ np.linalg.solve(s, nu)) / len(nu)
         # A running mean over the first NIS_TIME seconds, then an exponential average.
         self._elapsed += self._dt
         horizon = min(self._elapsed, NIS_TIME)
