@@ -222,6 +222,9 @@ class MomentumFilter:
         self._basis, self._pinv = group.algebra_basis, group.algebra_pinv
         # Phi has the identity on its diagonal and dt I from w to mu (set per step).
         self._chain = (np.arange(n, 2 * n), np.arange(2 * n, 3 * n))
+        # Coefficients of the series terms of Phi's top block row (see _transition).
+        self._series1 = np.r_[np.full(2 * n, 0.5), np.full(n, 1.0 / 3.0)]
+        self._series2 = np.r_[np.full(2 * n, 1.0 / 6.0), np.zeros(n)]
         self._r_pose = np.diag(self._pose_var)
         self._r_twist = np.diag(self._twist_var)
 
@@ -322,36 +325,32 @@ class MomentumFilter:
         Q_gg = A Sigma_qdot A^T dt^2 (encoder velocity noise held over the step).
         """
         n = self.n
-        ad_g = self._adjoint(g)
-        ad_t = ad_g.T
+        ad_t = self._adjoint(g).T
         pi = ad_t @ (x[:n] + x[n:] * (0.5 * dt))
         inverse = lin.locked_inverse
         xi = inverse @ pi - lin.connection_qd
         a = ((xi @ self._ad_rows).reshape(n, n) + inverse @ self._form(pi)) * -dt
         b = (inverse @ ad_t) * dt
-        a2 = a @ a
-        ab = a @ b
+        # The top block row of Phi - 1 from t = [a, b, b dt/2]: t + (a t) c1 + (a a t) c2
+        # with c1 = 1/2 (1/3 in the last block) and c2 = 1/6 (0): the series above.
+        t = np.concatenate((a, b, b * (0.5 * dt)), axis=1)
+        at = a @ t
         phi = self._eye.copy()
-        phi[:n, :n] += a + 0.5 * a2 + (a2 @ a) / 6.0
-        phi[:n, n:2 * n] = b + 0.5 * ab + (a @ ab) / 6.0
-        phi[:n, 2 * n:] = (0.5 * b + ab / 6.0) * dt
+        phi[:n] += t + at * self._series1 + (a @ at) * self._series2
         phi[self._chain] = dt
         # Q_w = Ad_{g^-1}^T I diag(s^2) I Ad_{g^-1}; Ad_{g^-1} = Ad_g^-1 on the subgroup.
         scaled = self._adjoint_inverse(g).T @ lin.locked
         qa = ((scaled * self._jerk_var) @ scaled.T) * dt
         q = np.empty((3 * n, 3 * n))
         q[:n, :n] = lin.joint_cov * (dt * dt)
-        gmu = (b @ qa) * (dt * dt / 8.0)
-        gw = ((b / 6.0 + ab / 24.0) @ qa) * dt
-        muw = qa * (0.5 * dt)
-        q[:n, n:2 * n] = gmu
-        q[n:2 * n, :n] = gmu.T
-        q[:n, 2 * n:] = gw
-        q[2 * n:, :n] = gw.T
-        q[n:2 * n, n:2 * n] = qa * (dt * dt / 3.0)
-        q[n:2 * n, 2 * n:] = muw
-        q[2 * n:, n:2 * n] = muw.T
-        q[2 * n:, 2 * n:] = qa
+        # [Q_gmu, Q_gw] = [b dt^2/8, (b/6 + ab/24) dt] (1 x 2 blocks) times q.
+        q[:n, n:] = (np.concatenate((b * (dt * dt / 8.0),
+                                     (b / 6.0 + at[:, n:2 * n] / 24.0) * dt)) @ qa
+                     ).reshape(2, n, n).transpose(1, 0, 2).reshape(n, 2 * n)
+        q[n:, :n] = q[:n, n:].T
+        # [[Q_mumu, Q_muw], [Q_wmu, Q_ww]] = [[dt^2/3, dt/2], [dt/2, 1]] (x) q.
+        q[n:, n:] = (np.array([[dt * dt / 3.0, 0.5 * dt], [0.5 * dt, 1.0]])[:, None, :, None]
+                     * qa[None, :, None, :]).reshape(2 * n, 2 * n)
         return phi, q
 
     # --- the recursion ----------------------------------------------------------------
