@@ -38,6 +38,14 @@ with W(pi)[a, b] = <pi, [e_a, e_b]> (``BaseGroup.coadjoint_form``), because
 ``Ad_{g exp d}^T mu = pi + ad_d^T pi = pi - W(pi) d``. Encoder velocity noise
 enters through A: ``A Sigma_qdot A^T`` on delta_g for the step it is held.
 
+The joint states are the filter's inputs and its output rows; the base samples are
+its measurements, each used once, at its own stamp (:meth:`MomentumFilter.row`):
+between two joint-state rows the filter propagates to a measurement's stamp with
+the joint inputs interpolated between the rows, updates, and propagates on to the
+next row, as robot_localization orders measurements. Interpolating the base to
+every joint-state stamp instead would use one measurement several times as if
+independent (over-confident) and pay an update per row.
+
 Measurements: a pose (PoseStamped), residual ``log(g_hat^-1 g_meas)``, H = [1 0 0];
 a body twist (Odometry), ``h = I^-1 Ad_g^T mu - A qbar_dot``,
 H = [-I^-1 W(pi), I^-1 Ad_g^T, 0], with the joint-velocity noise through A in R.

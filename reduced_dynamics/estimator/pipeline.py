@@ -15,24 +15,28 @@
 """
 The estimator pipeline: samples in, momentum, shape state, drift and predictions out.
 
-One class serves the replay tool and the node. Per joint-state sample it pairs
-the shape with the base pose (and twist) at the same stamp (:mod:`.sync`),
-evaluates the metric once (:mod:`.kernel`: I, A = I^-1 B, pbar = S qbar_dot,
-5.29, 5.35) and steps the error-state Kalman filter of base pose, momentum mu
-and external wrench w (:mod:`.filter`), whose process model is the reduced
-mechanics with the joint states as inputs. From the filter's state it reports
-mu (5.27), pi = Ad_g^T mu, the drift twist I^-1 pi and w with covariances,
-detects events from the filter's statistics (:mod:`.events`), predicts with
-the reduced model at a set rate (:mod:`.prediction`) and reports diagnostics.
-Bad input is rejected with a reason and counted; it never raises.
+One class serves the replay tool and the node. A joint-state sample becomes a
+row once a base sample at or after its stamp has come (:mod:`.sync`; base stamps
+only increase, so every base sample up to the row is then known, whatever the
+order in which the two inputs arrived). The row carries the base samples
+stamped since the previous row, which the error-state Kalman filter of base
+pose, momentum mu and external wrench w (:mod:`.filter`) updates with at their
+own stamps, and the metric evaluated once (:mod:`.kernel`: I, A = I^-1 B,
+pbar = S qbar_dot, 5.29, 5.35) as the inputs of its process model, the reduced
+mechanics. From the filter's state at the row it reports mu (5.27),
+pi = Ad_g^T mu, the drift twist I^-1 pi and w with covariances, detects events
+from the filter's statistics (:mod:`.events`), predicts with the reduced model
+at a set rate (:mod:`.prediction`) and reports diagnostics. Bad input is
+rejected with a reason and counted; it never raises.
 
 Work happens in two passes. Validation and synchronisation run per sample, in
 arrival order; synchronised samples collect in a chunk, which the vectorised
 kernel evaluates together before the filter steps through them. ``add_joint_state`` and
-``add_base_state`` close the chunk at every call (streaming, one sample);
-``add_samples`` closes it every few hundred samples (batched). A chunk is also
-closed where a diagnostics message is due, so that its counters are those a
-sample-by-sample run would report; the two paths give bit-identical outputs.
+``add_base_state`` close the chunk at the end of every call (streaming: the rows
+one message released); ``add_samples`` closes it every few hundred samples
+(batched). A chunk is also closed where a diagnostics message is due, so that its
+counters are those a sample-by-sample run would report; the two paths give
+bit-identical outputs.
 """
 
 from __future__ import annotations

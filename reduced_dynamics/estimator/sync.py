@@ -13,15 +13,16 @@
 # limitations under the License.
 
 """
-Base samples held for the joint-state rows: the measurements between two rows,
-and the base state at a row's stamp by SE(3) interpolation.
+Base samples held for the joint-state rows.
 
-The Kalman filter (estimator/filter.py) updates with each base sample once, at
-its own stamp (:meth:`BaseBuffer.between` hands them to the row after them).
-The interpolated state at a row's stamp (the pose along the geodesic between the
-two bracketing samples and, with Odometry, the body twist linearly) is the
-measured history the prediction residuals compare against, and the filter's
-start. Poses are never differentiated.
+A row gets the base samples stamped since the previous row (its measurements)
+and the base state at its own stamp by SE(3) interpolation. The Kalman filter
+(estimator/filter.py) updates with each base sample once, at its own stamp
+(:meth:`BaseBuffer.between` hands them to the row after them). The interpolated
+state at a row's stamp (the pose along the geodesic between the two bracketing
+samples and, with Odometry, the body twist linearly) is the measured history the
+prediction residuals compare against, and the filter's start. Poses are never
+differentiated.
 """
 
 from __future__ import annotations
