@@ -63,7 +63,7 @@ from reduced_dynamics.estimator.base_motion import answer_messages
 from reduced_dynamics.estimator.config import PARAMETERS as ESTIMATOR_PARAMETERS
 from reduced_dynamics.estimator.config import ParameterSpec
 from reduced_dynamics.messages import (
-    cdr, DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample,
+    cdr, command_from_ros, DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample,
     joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros,
     pose_stamped_from_ros, RclpyTypes, string_from_ros)
 from reduced_dynamics.messages.samples import with_receive_time
@@ -430,7 +430,8 @@ class _Shell:
             estimator = Estimator(robot, self._config,
                                   use_odometry=self._value('base_input') == 'odom',
                                   cyclic_joints=self._value('cyclic_joints'),
-                                  defer_predictions=True)
+                                  defer_predictions=True,
+                                  commanded_wrench=bool(self._value('commanded_wrench_topic')))
         except (ModelError, OSError, ValueError) as error:
             problem = f'cannot use the robot model from {source}: {error}'
             if self._estimator is not None:
@@ -519,6 +520,10 @@ class _Shell:
         else:
             subscribe('geometry_msgs/msg/PoseStamped', self._value('base_pose_topic'),
                       self._on_pose, input_qos(), raw=True)
+        if self._value('commanded_wrench_topic'):
+            # A sensor-like stream (the thrusters' command), the same policies.
+            subscribe('geometry_msgs/msg/WrenchStamped', self._value('commanded_wrench_topic'),
+                      self._on_command, input_qos(), raw=True)
         # Planned arm motions (prediction_mode planned) and the base-motion requests:
         # reliable, a plan must not be dropped.
         subscribe('trajectory_msgs/msg/JointTrajectory', self._value('trajectory_topic'),
@@ -580,6 +585,11 @@ class _Shell:
                    odometry_from_ros, 'add_base_state', received_ns(info))
         self._drain_inputs()
 
+    def _on_command(self, data: bytes, info: Any) -> None:
+        self._take('command', data, cdr.decode_wrench_stamped,
+                   'geometry_msgs/msg/WrenchStamped', command_from_ros, 'add_command',
+                   received_ns(info))
+
     def _on_pose(self, data: bytes, info: Any) -> None:
         base_link = self._estimator.robot.base_link if self._estimator else ''
         self._take('base', data, lambda d: cdr.decode_pose_stamped(d, base_link),
@@ -638,7 +648,10 @@ class _Shell:
         except Exception as error:  # noqa: B902 - rclpy raises several types on bad bytes
             self._reject('malformed', f'{kind} message: {error}')
             return
-        self.input_stats[kind].take(sample.stamp_ns)
+        stats = self.input_stats.get(kind)
+        if stats is not None:
+            # Not for commands: sent at switches, their gaps are not losses.
+            stats.take(sample.stamp_ns)
         estimator = self._estimator
         if estimator is None:
             self._reject('no_robot_model', self._model_error or 'no robot model')
@@ -763,6 +776,8 @@ class _Shell:
         if elapsed > 0.0:
             values['processed_rate'] = f'{(processed - self._processed_at_status) / elapsed:.1f}'
         self._processed_at_status = processed
+        if self._value('commanded_wrench_topic'):
+            values['received_command'] = str(self.received['command'])
         values.update({f'rejected_{k}': str(v) for k, v in sorted(rejected.items())})
         if self._model_error:
             level, message = DIAG_ERROR, self._model_error

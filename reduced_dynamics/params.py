@@ -54,6 +54,12 @@ NODE_PARAMETERS: dict[str, ParameterSpec] = {
                                       'trajectory_msgs/JointTrajectory input: the planned '
                                       'arm motion (e.g. a joint_trajectory_controller\'s '
                                       'command topic) that prediction_mode planned follows'),
+    'commanded_wrench_topic': ParameterSpec(
+        '', None, None, (),
+        'geometry_msgs/WrenchStamped input of the commanded body wrench (thrusters, '
+        'actuators; base frame, held until the next message); empty: off. With it the '
+        'filter estimates the per-axis gain and bias of the delivered wrench and the '
+        'disturbance beyond the command (~/drift/disturbance)'),
     'cyclic_joints': ParameterSpec('', None, None, (),
                                    'second-stage reduction (Theorem 57): empty for off, '
                                    '"auto" for every cyclic joint found (reaction wheels, '

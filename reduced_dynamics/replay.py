@@ -46,7 +46,8 @@ from reduced_dynamics.estimator.pipeline import Estimator, EstimatorOutput
 from reduced_dynamics.bag.reader import BagReader
 from reduced_dynamics.messages import cdr
 from reduced_dynamics.messages.convert import (
-    joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros, pose_stamped_from_ros)
+    command_from_ros, joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros,
+    pose_stamped_from_ros)
 from reduced_dynamics.messages.samples import JointTrajectorySample, with_receive_time
 from reduced_dynamics.messages.types import RosbagsTypes
 from reduced_dynamics.params import defaults, load_params_file
@@ -60,6 +61,7 @@ REPLAY_BATCH = 512
 ODOMETRY_TYPE = 'nav_msgs/msg/Odometry'
 POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
 TRAJECTORY_TYPE = 'trajectory_msgs/msg/JointTrajectory'
+WRENCH_TYPE = 'geometry_msgs/msg/WrenchStamped'
 #: Exit status of a replay that completed but lost messages to a damaged bag.
 EXIT_DAMAGED = 3
 
@@ -74,6 +76,9 @@ class ReplayOptions:
     base_pose_topic: Optional[str] = None
     #: planned trajectories (prediction_mode planned); default: the trajectory_topic param
     trajectory_topic: Optional[str] = None
+    #: commanded body wrench (WrenchStamped); default: the commanded_wrench_topic param
+    #: ('' = off; never guessed: it changes what drift/momentum_rate's events mean)
+    commanded_wrench_topic: Optional[str] = None
     start: Optional[float] = None
     end: Optional[float] = None
     plots_dir: Optional[str] = None
@@ -159,6 +164,8 @@ def input_decoder(reader: BagReader, topic: str, msgtype: str, child_frame_id: s
         fast = functools.partial(cdr.decode_pose_stamped, child_frame_id=child_frame_id)
     elif msgtype == TRAJECTORY_TYPE:
         convert, fast = joint_trajectory_from_ros, None  # rare messages: the generic path
+    elif msgtype == WRENCH_TYPE:
+        convert, fast = command_from_ros, cdr.decode_wrench_stamped
     else:
         raise BagError(f'topic {topic}: cannot use {msgtype} as an input')
     if fast is not None and not cdr.fast_path_applies(reader.typestore_for(topic, msgtype),
@@ -206,8 +213,16 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
         topics = reader.topics()
         joint_topic, base_topic, is_odom = choose_inputs(topics, options)
         base_driven = joint_topic is None or robot.m == 0
+        command_topic = options.commanded_wrench_topic \
+            or options.params.get('commanded_wrench_topic', '')
+        if command_topic:
+            command_topic = _topic(command_topic)
+            if topics.get(command_topic) != WRENCH_TYPE:
+                raise BagError(f'bag has no {WRENCH_TYPE} topic {command_topic} (commanded '
+                               f'wrench); it has {sorted(topics)}')
         estimator = Estimator(robot, config, use_odometry=is_odom, base_driven=base_driven,
-                              cyclic_joints=options.params.get('cyclic_joints', ''))
+                              cyclic_joints=options.params.get('cyclic_joints', ''),
+                              commanded_wrench=bool(command_topic))
         if options.smooth:
             estimator.enable_smoothing()
         start_ns = None if options.start is None else reader.start_ns + int(options.start * 1e9)
@@ -218,9 +233,9 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
             raise BagError(f'bag has no {TRAJECTORY_TYPE} topic {trajectory_topic}')
         if topics.get(trajectory_topic) != TRAJECTORY_TYPE:
             trajectory_topic = None
-        wanted = [t for t in (joint_topic, base_topic, trajectory_topic) if t]
+        wanted = [t for t in (joint_topic, base_topic, trajectory_topic, command_topic) if t]
         total_ns = max(reader.duration_ns, 1)
-        outputs = active_topics(bool(estimator.cyclic_joints))
+        outputs = active_topics(bool(estimator.cyclic_joints), bool(command_topic))
         out_topics = {resolved_name(t): t.msgtype for t in outputs}
         # Per output: sample field, bag topic, sample -> CDR bytes (no message objects).
         encoders = [(t.field, resolved_name(t), cdr_encoder(t, types)) for t in outputs]
@@ -234,6 +249,10 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                                                        robot.base_link)
             elif (topic, msgtype) == (trajectory_topic, TRAJECTORY_TYPE):
                 inputs[topic, msgtype] = input_decoder(reader, topic, msgtype, '')
+            elif (topic, msgtype) == (command_topic, WRENCH_TYPE):
+                inputs[topic, msgtype] = input_decoder(reader, topic, msgtype, '')
+            elif topic == command_topic:
+                inputs[topic, msgtype] = _wrong_type(topic, msgtype, WRENCH_TYPE)
             else:
                 expected = JOINT_STATE_TYPE if topic == joint_topic else base_type
                 inputs[topic, msgtype] = _wrong_type(topic, msgtype, expected)
@@ -320,6 +339,9 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                     'robot': robot.model.name, 'joint_states_topic': joint_topic,
                     'base_topic': base_topic, 'trajectory_topic': trajectory_topic,
                     'base_driven': base_driven,
+                    **({'commanded_wrench': {'topic': command_topic,
+                                             **summary['commanded_wrench']}}
+                       if command_topic else {}),
                     'messages_in': dict(read), 'messages_out': dict(written),
                     'undecodable_skipped': skipped, 'damage': damage, 'seconds': elapsed,
                     'samples_per_second': estimator.processed / elapsed if elapsed else None})
@@ -480,6 +502,13 @@ def format_summary(summary: dict[str, Any]) -> str:
             ' '.join(f'{v:+.4g}' for v in event['impulse'])
         lines.append(f'  t={event["start_s"]:.3f} s after start: peak |w| '
                      f'{event["peak_wrench"]:.3g}, impulse [{impulse}]')
+    command = summary.get('commanded_wrench')
+    if command and command.get('gain') is not None:
+        lines.append(f'commanded wrench {command["topic"]} ({command["samples"]} commands): '
+                     + ', '.join(f'{axis} gain {g:.4f} +- {gs:.2g} bias {b:+.3g} +- {bs:.2g}'
+                                 for axis, g, gs, b, bs in zip(
+                                     command['axes'], command['gain'], command['gain_sigma'],
+                                     command['bias'], command['bias_sigma'])))
     residual = summary['prediction_shape_residual_max']
     if summary.get('cyclic_joints'):
         lines.append('second stage (Theorem 57) by the cyclic joints '
@@ -527,6 +556,7 @@ def _run(args: argparse.Namespace) -> int:
     options = ReplayOptions(params=params, joint_states_topic=args.joint_states_topic,
                             odom_topic=args.odom_topic, base_pose_topic=args.base_pose_topic,
                             trajectory_topic=args.trajectory_topic,
+                            commanded_wrench_topic=args.commanded_wrench_topic,
                             start=args.start, end=args.end, plots_dir=args.plots,
                             overwrite=args.overwrite, strict=args.strict,
                             smooth=not args.no_smooth,
@@ -558,6 +588,11 @@ def register_command(commands: Any) -> None:
     parser.add_argument('--trajectory-topic',
                         help='trajectory_msgs/JointTrajectory topic of planned arm motions '
                              '(default: the trajectory_topic parameter, used when present)')
+    parser.add_argument('--commanded-wrench-topic', metavar='T',
+                        help='geometry_msgs/WrenchStamped topic of the commanded body wrench '
+                             '(thrusters): estimate its per-axis gain and bias and the '
+                             'disturbance beyond it (default: the commanded_wrench_topic '
+                             'parameter, empty = off; never auto-detected)')
     group = parser.add_mutually_exclusive_group()
     group.add_argument('--odom-topic')
     group.add_argument('--base-pose-topic')

@@ -59,7 +59,12 @@ OUTPUT_TOPICS: tuple[OutputTopic, ...] = (
                 'M v (effort) [N m s]; shape_state then holds the other joints, with p^ = '
                 'K^ q^_dot'),
     OutputTopic('drift/momentum_rate', 'geometry_msgs/msg/WrenchStamped', 'momentum_rate',
-                wrench_to_ros, 'estimated d mu/dt = external wrench [N, N m], world frame'),
+                wrench_to_ros, 'estimated d mu/dt = external wrench [N, N m], world frame '
+                '(with a commanded wrench: the total, delivered command plus disturbance)'),
+    OutputTopic('drift/disturbance', 'geometry_msgs/msg/WrenchStamped', 'disturbance',
+                wrench_to_ros, 'commanded wrench only (commanded_wrench_topic): the '
+                'disturbance beyond the command, i.e. drift/momentum_rate minus the '
+                'delivered command (estimated gain and bias) [N, N m], world frame'),
     OutputTopic('drift/base_twist', 'geometry_msgs/msg/TwistStamped', 'drift_twist',
                 twist_to_ros, 'I^-1 pi: base twist due to momentum alone, base frame'),
     OutputTopic('prediction/shape', 'trajectory_msgs/msg/JointTrajectory', 'prediction',
@@ -79,11 +84,21 @@ OUTPUT_TOPICS: tuple[OutputTopic, ...] = (
 
 #: The output that exists only with the second-stage reduction on.
 CYCLIC_TOPIC = 'cyclic_momenta'
+#: The output that exists only with a commanded wrench.
+DISTURBANCE_TOPIC = 'drift/disturbance'
 
 
-def active_topics(second_stage: bool) -> tuple[OutputTopic, ...]:
-    """Return the outputs a run produces (``cyclic_momenta`` only in the second stage)."""
-    return tuple(t for t in OUTPUT_TOPICS if second_stage or t.name != CYCLIC_TOPIC)
+def active_topics(second_stage: bool, commanded_wrench: bool = False
+                  ) -> tuple[OutputTopic, ...]:
+    """
+    Return the outputs a run produces.
+
+    ``cyclic_momenta`` only in the second stage, ``drift/disturbance`` only with a
+    commanded wrench.
+    """
+    return tuple(t for t in OUTPUT_TOPICS
+                 if (second_stage or t.name != CYCLIC_TOPIC)
+                 and (commanded_wrench or t.name != DISTURBANCE_TOPIC))
 
 
 def resolved_name(topic: OutputTopic, namespace: str = '/' + NODE_NAME) -> str:

@@ -385,6 +385,9 @@ def test_outputs_equal_an_estimator_fed_directly(ros, node_factory, base_input):
     absent = node.resolve_topic_name('~/prediction/geometric_phase_path' if mode == 'held_torque'
                                      else '~/prediction/shape')
     assert expected.pop(absent) == [] and ros.published(absent) == []
+    # No commanded wrench: no disturbance (test_node_with_a_commanded_wrench_... has it).
+    disturbance = node.resolve_topic_name('~/drift/disturbance')
+    assert expected.pop(disturbance) == [] and ros.published(disturbance) == []
     for topic, wanted in expected.items():
         assert wanted, f'the run produced nothing on {topic}'  # every topic is exercised
         got = ros.published(topic)
@@ -408,6 +411,8 @@ def test_second_stage_outputs_equal_an_estimator_fed_directly(ros, node_factory)
                                 cyclic_joints='auto')
     phase = node.resolve_topic_name('~/prediction/geometric_phase_path')
     assert expected.pop(phase) == [] and ros.published(phase) == []  # a torque mode
+    disturbance = node.resolve_topic_name('~/drift/disturbance')  # no commanded wrench
+    assert expected.pop(disturbance) == [] and ros.published(disturbance) == []
     for topic, wanted in expected.items():
         assert wanted, f'the run produced nothing on {topic}'
         got = ros.published(topic)
@@ -655,6 +660,40 @@ def test_node_and_replay_publish_the_same_bytes_for_the_same_bag(ros, node_facto
             assert len(published) == len(replayed) >= least, topic.name
             for i, (mine, theirs) in enumerate(zip(published, replayed)):
                 assert mine == theirs, f'{topic.name}[{i}]'
+
+
+def test_node_with_a_commanded_wrench_publishes_what_replay_writes(ros, node_factory,
+                                                                   tmp_path):
+    """commanded_wrench_topic: the same bytes as replay --commanded-wrench-topic."""
+    from reduced_dynamics.bag.reader import open_bag
+    from reduced_dynamics.replay import replay, ReplayOptions
+    from reduced_dynamics.topics import active_topics, resolved_name
+    path = REPO_ROOT / 'test' / 'data' / 'freeflyer_realistic'
+    urdf = str(config_path('robots/freeflyer.urdf'))
+    summary = replay(str(path), str(tmp_path / 'out'), load_robot(urdf),
+                     ReplayOptions(base_pose_topic='/base_pose', smooth=False,
+                                   commanded_wrench_topic='/commanded_wrench'))
+    node = node_factory(urdf_path=urdf, base_input='pose',
+                        commanded_wrench_topic='/commanded_wrench')
+    assert node.describe_parameter('commanded_wrench_topic').read_only
+    with open_bag(path) as reader:
+        for message in reader.raw_messages(['/base_pose', '/commanded_wrench']):
+            ros.deliver(node, message.topic, bytes(message.data), message.timestamp_ns)
+    node.wait_for_predictions()
+    assert node.received['command'] == 122
+    assert node.estimator.command_estimate() == {
+        k: v for k, v in summary['commanded_wrench'].items() if k != 'topic'}
+    with open_bag(tmp_path / 'out') as reader:
+        for topic in active_topics(False, True):
+            replayed = [bytes(m.data) for m in reader.raw_messages([resolved_name(topic)])]
+            published = ros.published_raw(_resolved(node, topic))
+            least = 0 if topic.name == 'prediction/shape' else 1
+            assert len(published) == len(replayed) >= least, topic.name
+            for i, (mine, theirs) in enumerate(zip(published, replayed)):
+                assert mine == theirs, f'{topic.name}[{i}]'
+    status = node.node_status().values_dict()
+    assert status['received_command'] == '122'
+    assert 'missing_command' not in status
 
 
 # ------------------------------------------------------------------ planned motions

@@ -70,6 +70,38 @@ PARAMETERS: dict[str, ParameterSpec] = {
         0.25, 1e-9, 1e6, (),
         'random-walk density [rad/s^3/sqrt(Hz)] of the external torque per unit inertia '
         '(the linear density over a 0.2 m lever arm)'),
+    # Commanded wrench (estimator/filter.py, README "Commanded wrench"): used only with
+    # a commanded_wrench_topic.
+    'command_gain_sigma': ParameterSpec(
+        0.5, 1e-6, 10.0, (),
+        'prior standard deviation of the per-axis gain (delivered / commanded wrench, '
+        'prior mean 1) of the commanded wrench'),
+    'command_gain_drift': ParameterSpec(
+        2e-3, 0.0, 10.0, (),
+        'random-walk density [1/sqrt(s)] of the gain of the commanded wrench (thruster '
+        'wear: 0.1 in ~40 min); the bias drifts at this rate relative to its prior'),
+    'command_bias_linear': ParameterSpec(
+        5e-3, 1e-9, 1e3, (),
+        'prior standard deviation [m/s^2] of the bias of the delivered body force per '
+        'unit mass (leak, tilted table: 0.5 mrad of tilt; scaled by the locked inertia)'),
+    'command_bias_angular': ParameterSpec(
+        2.5e-2, 1e-9, 1e4, (),
+        'prior standard deviation [rad/s^2] of the bias of the delivered body torque per '
+        'unit inertia (the linear value over a 0.2 m lever arm)'),
+    'disturbance_jerk_linear': ParameterSpec(
+        1e-3, 1e-9, 1e6, (),
+        'with a commanded wrench, the random-walk density [m/s^3/sqrt(Hz)] of the '
+        'disturbance beyond the command per unit mass, in place of wrench_jerk_linear: '
+        'the command carries the thruster switching, what is left changes slowly (table '
+        'tilt, drag, cable: 0.01 m/s^2 in 100 s)'),
+    'disturbance_jerk_angular': ParameterSpec(
+        5e-3, 1e-9, 1e6, (),
+        'with a commanded wrench, the random-walk density [rad/s^3/sqrt(Hz)] of the '
+        'disturbance torque per unit inertia (the linear value over a 0.2 m lever arm)'),
+    'command_acceleration_bound': ParameterSpec(
+        1e3, 1e-3, 1e9, (),
+        'a commanded wrench whose body acceleration I^-1 u (locked inertia at zero shape) '
+        'exceeds this [m/s^2 or rad/s^2] on some axis is rejected (command_bound)'),
     'innovation_gate': ParameterSpec(
         1e-6, 0.0, 0.5, (),
         'false-alarm probability of the innovation chi-square gate: a base measurement '
@@ -164,6 +196,13 @@ class EstimatorConfig:
     joint_velocity_noise: float = PARAMETERS['joint_velocity_noise'].default
     wrench_jerk_linear: float = PARAMETERS['wrench_jerk_linear'].default
     wrench_jerk_angular: float = PARAMETERS['wrench_jerk_angular'].default
+    command_gain_sigma: float = PARAMETERS['command_gain_sigma'].default
+    command_gain_drift: float = PARAMETERS['command_gain_drift'].default
+    command_bias_linear: float = PARAMETERS['command_bias_linear'].default
+    command_bias_angular: float = PARAMETERS['command_bias_angular'].default
+    disturbance_jerk_linear: float = PARAMETERS['disturbance_jerk_linear'].default
+    disturbance_jerk_angular: float = PARAMETERS['disturbance_jerk_angular'].default
+    command_acceleration_bound: float = PARAMETERS['command_acceleration_bound'].default
     innovation_gate: float = PARAMETERS['innovation_gate'].default
     event_significance: float = PARAMETERS['event_significance'].default
     event_hold: float = PARAMETERS['event_hold'].default

@@ -56,6 +56,28 @@ impulse, e.g. a docking contact) and accepts.
 
 Each step may record what the fixed-interval (Rauch-Tung-Striebel) smoother
 needs (:class:`FilterStep`); :func:`smooth` runs it on the group.
+
+**Commanded wrench** (``command=True``; README "Commanded wrench"). With a
+body-frame command u (what the thrusters were told to deliver, dual coordinates,
+held from its last message: a zero-order hold) the momentum balance of
+REDUCED_MODEL.md 3 (``mu_dot`` = the external wrench, world frame about the
+origin) becomes::
+
+    mu_dot = Ad_{g^-1}^T (k o u + b) + w
+
+a body wrench mapped to the world like pi to mu (5.27), with per-axis gain k and
+bias b of the delivered wrench (``o``: per axis; random walks of small density,
+priors k = 1 +- ``command_gain_sigma``, b = 0 +- the bias acceleration scaled
+by I) and w now the disturbance beyond the command. The state grows to
+(g, mu, w, k, b), error dimension 5n; the new blocks of F are::
+
+    d delta_mu/dt += Ad_{g^-1}^T W(c) delta_g + Ad_{g^-1}^T diag(u) delta_k
+                     + Ad_{g^-1}^T delta_b,       c = k o u + b
+
+because ``Ad_{(g exp d)^-1}^T c = Ad_{g^-1}^T (c + W(c) d)``. Over a step the
+command enters by its mean over the step (its hold integrated exactly; g at the
+middle of the step, like the midpoint rule of the pose). Without a command the
+filter is the 3n one above, operation for operation.
 """
 
 from __future__ import annotations
@@ -89,6 +111,14 @@ class NoiseModel:
     of the body acceleration random walk that drives w (scaled by I);
     ``initial_speed`` [m/s], ``initial_rate`` [rad/s], ``initial_acceleration``
     [m/s^2 and rad/s^2]: prior spread of the motion before the first update.
+    Commanded wrench only: ``command_gain`` prior spread of the gain (about 1),
+    ``command_gain_drift`` [1/sqrt(s)] its random-walk density;
+    ``command_bias_linear`` [m/s^2], ``command_bias_angular`` [rad/s^2] prior
+    spread of the bias as a body acceleration (scaled by I), which drifts at
+    ``command_gain_drift`` times that per sqrt(s); ``disturbance_linear``
+    [m/s^3/sqrt(Hz)], ``disturbance_angular`` [rad/s^3/sqrt(Hz)]: the density
+    of w's random walk in place of ``jerk_*`` (w is then the disturbance beyond
+    the command, which no longer carries the thruster switching).
     """
 
     pose_position: float = 1e-3
@@ -101,6 +131,12 @@ class NoiseModel:
     initial_speed: float = 1.0
     initial_rate: float = 1.0
     initial_acceleration: float = 1.0
+    command_gain: float = 0.5
+    command_gain_drift: float = 2e-3
+    command_bias_linear: float = 5e-3
+    command_bias_angular: float = 2.5e-2
+    disturbance_linear: float = 1e-3
+    disturbance_angular: float = 5e-3
 
 
 class Linearisation(NamedTuple):
@@ -158,10 +194,24 @@ class FilterStep:
     p: np.ndarray
     locked_inverse: np.ndarray
     output: bool = True
+    #: commanded wrench only: the command held at this step's end
+    command: Optional[np.ndarray] = None
+
+
+class Command(NamedTuple):
+    """
+    The commanded body wrench over a step (dual coordinates, body frame).
+
+    ``mean``: its mean over the step (what the propagation integrates);
+    ``now``: the value held at the step's end (what the total wrench reports).
+    """
+
+    mean: np.ndarray
+    now: np.ndarray
 
 
 class FilterState(NamedTuple):
-    """A state estimate: pose, [mu; w], covariance (3n x 3n)."""
+    """A state estimate: pose, [mu; w] (and [k; b]), covariance (3n or 5n square)."""
 
     g: pin.SE3
     x: np.ndarray
@@ -188,10 +238,17 @@ class MomentumFilter:
     """
 
     def __init__(self, group: BaseGroup, noise: NoiseModel, gate_probability: float,
-                 record: bool = False) -> None:
-        """Set up for ``group``; ``gate_probability``: innovation gate (0: off)."""
+                 record: bool = False, command: bool = False) -> None:
+        """
+        Set up for ``group``; ``gate_probability``: innovation gate (0: off).
+
+        ``command``: the commanded-wrench model (gain and bias states, 5n).
+        """
         self.group = group
         self.n = n = group.dim
+        self.command = command
+        #: error-state dimension: 3n, or 5n with the commanded wrench
+        self.dim = dim = 5 * n if command else 3 * n
         self.noise = noise
         angular = _axis_kinds(group)
         self._angular = angular
@@ -202,20 +259,27 @@ class MomentumFilter:
         self._accel_var = np.full(n, noise.initial_acceleration ** 2)
         self._gates = {}
         self.gate_probability = gate_probability
-        for dim in (n, 2 * n):
-            self._gates[dim] = math.inf if gate_probability <= 0.0 \
-                else float(chi2.isf(gate_probability, dim))
+        for size in (n, 2 * n):
+            self._gates[size] = math.inf if gate_probability <= 0.0 \
+                else float(chi2.isf(gate_probability, size))
         self.g: Optional[pin.SE3] = None
-        self.x = np.zeros(2 * n)
-        self.p = np.zeros((3 * n, 3 * n))
+        self.x = np.zeros(dim - n)
+        self.p = np.zeros((dim, dim))
         self.stamp_ns: Optional[int] = None
         self.record = record
         self.steps: list[FilterStep] = []
         self.gated = 0
         self._gated_run = 0
         self.last_nis: float = 0.0
-        self._eye = np.eye(3 * n)
+        self._eye = np.eye(dim)
         self._eye_n = np.eye(n)
+        if command:
+            self._bias_var = np.where(angular, noise.command_bias_angular ** 2,
+                                      noise.command_bias_linear ** 2)
+            self._jerk_var = np.where(angular, noise.disturbance_angular ** 2,
+                                      noise.disturbance_linear ** 2)
+            self._command = np.zeros(n)
+            self._command_zero = np.zeros(n)
         #: sum of the innovations' log-likelihoods, of their NIS and of their dimensions
         self.log_likelihood = 0.0
         self.nis_sum = 0.0
@@ -244,14 +308,58 @@ class MomentumFilter:
 
     @property
     def wrench(self) -> np.ndarray:
-        """Return the external-wrench estimate w (world frame, about the origin)."""
-        return self.x[self.n:]
+        """
+        Return the wrench estimate w (world frame, about the origin).
+
+        The external wrench; with the commanded wrench, the disturbance beyond it.
+        """
+        return self.x[self.n:2 * self.n]
 
     @property
     def wrench_cov(self) -> np.ndarray:
         """Return the covariance of w."""
         n = self.n
-        return self.p[2 * n:, 2 * n:]
+        return self.p[2 * n:3 * n, 2 * n:3 * n]
+
+    # --- commanded wrench -------------------------------------------------------------
+    @property
+    def gain(self) -> np.ndarray:
+        """Return the per-axis gain k of the delivered wrench (commanded wrench only)."""
+        return self.x[2 * self.n:3 * self.n]
+
+    @property
+    def bias(self) -> np.ndarray:
+        """Return the per-axis bias b of the delivered body wrench (commanded wrench only)."""
+        return self.x[3 * self.n:]
+
+    def delivered(self, g: pin.SE3, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Return the delivered wrench Ad_{g^-1}^T (k o u + b) in the world frame."""
+        n = self.n
+        return self.group.Ad(g.inverse()).T @ (x[2 * n:3 * n] * u + x[3 * n:])
+
+    def total_wrench(self) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Return the total external wrench w + delivered and its covariance (n, n x n).
+
+        The command is the one held at the last step's end. Without the
+        commanded wrench: w and its covariance.
+        """
+        if not self.command:
+            return self.wrench, self.wrench_cov
+        return self._total(self.g, self.x, self.p, self._command)
+
+    def _total(self, g: pin.SE3, x: np.ndarray, p: np.ndarray,
+               u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = self.n
+        to_world = self.group.Ad(g.inverse()).T
+        c = x[2 * n:3 * n] * u + x[3 * n:]
+        jac = np.zeros((n, 5 * n))
+        jac[:, :n] = to_world @ self.group.coadjoint_form(c)
+        jac[:, 2 * n:3 * n] = np.eye(n)
+        jac[:, 3 * n:4 * n] = to_world * u
+        jac[:, 4 * n:] = to_world
+        cov = jac @ p @ jac.T
+        return x[n:2 * n] + to_world @ c, 0.5 * (cov + cov.T)
 
     def wrench_significance(self) -> float:
         """Return w^T P_ww^-1 w (chi-square with n degrees of freedom when w = 0)."""
@@ -285,18 +393,29 @@ class MomentumFilter:
         ad_t = group.Ad(g).T
         pi = ad_t @ mu
         xi = lin.locked_inverse @ pi - lin.connection_qd
-        f = np.zeros((3 * n, 3 * n))
+        f = np.zeros((self.dim, self.dim))
         f[:n, :n] = -group.ad(xi) - lin.locked_inverse @ group.coadjoint_form(pi)
         f[:n, n:2 * n] = lin.locked_inverse @ ad_t
-        f[n:2 * n, 2 * n:] = np.eye(n)
+        f[n:2 * n, 2 * n:3 * n] = np.eye(n)
         return f
+
+    def command_jacobian(self, f: np.ndarray, g: pin.SE3, x: np.ndarray,
+                         u: np.ndarray) -> None:
+        """Add the commanded wrench's blocks (module docstring) to F, in place."""
+        n = self.n
+        to_world = self.group.Ad(g.inverse()).T
+        c = x[2 * n:3 * n] * u + x[3 * n:]
+        f[n:2 * n, :n] = to_world @ self.group.coadjoint_form(c)
+        f[n:2 * n, 3 * n:4 * n] = to_world * u
+        f[n:2 * n, 4 * n:] = to_world
+
 
     def twist_jacobian(self, g: pin.SE3, mu: np.ndarray, lin: Linearisation) -> np.ndarray:
         """Return H of the twist measurement (n x 3n)."""
         n = self.n
         ad_t = self._adjoint(g).T
         pi = ad_t @ mu
-        h = np.zeros((n, 3 * n))
+        h = np.zeros((n, self.dim))
         h[:, :n] = -lin.locked_inverse @ self._form(pi)
         h[:, n:2 * n] = lin.locked_inverse @ ad_t
         return h
@@ -307,8 +426,16 @@ class MomentumFilter:
         return (scaled * self._jerk_var) @ scaled.T
 
     def propagate_mean(self, g: pin.SE3, x: np.ndarray, lin: Linearisation,
-                       dt: float) -> tuple[pin.SE3, np.ndarray]:
-        """Return (g, [mu; w]) after dt: midpoint rule on the group, mu exact for constant w."""
+                       dt: float, u: Optional[np.ndarray] = None
+                       ) -> tuple[pin.SE3, np.ndarray]:
+        """
+        Return (g, x) after dt: midpoint rule on the group, mu exact for constant w.
+
+        ``u`` (commanded wrench): the command's mean over the step; the
+        delivered wrench is taken at the pose of the step's middle.
+        """
+        if u is not None:
+            return self._propagate_commanded(g, x, lin, dt, u)
         n, exp = self.n, self.group.exp
         mu, w = x[:n], x[n:]
         half = exp(self.twist(g, mu, lin) * (0.5 * dt))
@@ -317,8 +444,20 @@ class MomentumFilter:
         out[:n] = mu + w * dt
         return g * exp(xi * dt), out
 
+    def _propagate_commanded(self, g: pin.SE3, x: np.ndarray, lin: Linearisation,
+                             dt: float, u: np.ndarray) -> tuple[pin.SE3, np.ndarray]:
+        n, group = self.n, self.group
+        mu = x[:n]
+        middle = g * group.exp(self.twist(g, mu, lin) * (0.5 * dt))
+        rate = x[n:2 * n] + self.delivered(middle, x, u)
+        xi = self.twist(middle, mu + rate * (0.5 * dt), lin)
+        out = x.copy()
+        out[:n] = mu + rate * dt
+        return g * group.exp(xi * dt), out
+
     def _transition(self, g: pin.SE3, x: np.ndarray, lin: Linearisation,
-                    dt: float) -> tuple[np.ndarray, np.ndarray]:
+                    dt: float, u: Optional[np.ndarray] = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
         """
         Return Phi = exp(F dt) (third order) and the discrete process noise Q.
 
@@ -331,7 +470,11 @@ class MomentumFilter:
         (exact for the mu-w chain), with q = Q_w dt: Q_ww = q, Q_muw = q dt/2,
         Q_mumu = q dt^2/3, Q_gw = (b/6 + ab/24) q dt, Q_gmu = b q dt^2/8, and
         Q_gg = A Sigma_qdot A^T dt^2 (encoder velocity noise held over the step).
+        With the commanded wrench (``u``: its mean over the step) F has more blocks
+        (module docstring): the series is then evaluated on the dense 5n matrices.
         """
+        if u is not None:
+            return self._transition_commanded(g, x, lin, dt, u)
         n = self.n
         ad_t = self._adjoint(g).T
         pi = ad_t @ (x[:n] + x[n:] * (0.5 * dt))
@@ -361,6 +504,49 @@ class MomentumFilter:
                      * qa[None, :, None, :]).reshape(2 * n, 2 * n)
         return phi, q
 
+    def _transition_commanded(self, g: pin.SE3, x: np.ndarray, lin: Linearisation,
+                              dt: float, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return Phi and Q of the commanded-wrench filter (dense series, see _transition)."""
+        n = self.n
+        mu_mid = x[:n] + (x[n:2 * n] + self.delivered(g, x, u)) * (0.5 * dt)
+        f = self.jacobian(g, mu_mid, lin)
+        self.command_jacobian(f, g, x, u)
+        fdt = f * dt
+        f2 = fdt @ fdt
+        phi = self._eye + fdt + 0.5 * f2 + (f2 @ fdt) / 6.0
+        qc = np.zeros((self.dim, self.dim))
+        qc[2 * n:3 * n, 2 * n:3 * n] = self.wrench_density(g, lin.locked)
+        qc[3 * n:, 3 * n:] = self._command_density(lin.locked)
+        # Van Loan's integral int_0^dt Phi(s) Qc Phi(s)^T ds as its Taylor series:
+        # exact for the mu-w chain (nilpotent), fourth order in dt otherwise.
+        a = qc * dt
+        fa = fdt @ a
+        f2a = fdt @ fa
+        f3a = fdt @ f2a
+        f2af = f2a @ fdt.T
+        q = a + 0.5 * (fa + fa.T) + (f2a + f2a.T + 2.0 * fa @ fdt.T) / 6.0 \
+            + (f3a + f3a.T + 3.0 * (f2af + f2af.T)) / 24.0
+        # Encoder velocity noise held over the step: A Sigma A^T dt^2 on delta_g.
+        q[:n, :n] += lin.joint_cov * (dt * dt)
+        return phi, 0.5 * (q + q.T)
+
+    def _command_density(self, locked: np.ndarray) -> np.ndarray:
+        """Return the random-walk density of (k, b): gain drift, bias drift (body, by I)."""
+        n = self.n
+        drift = self.noise.command_gain_drift ** 2
+        out = np.zeros((2 * n, 2 * n))
+        out[:n, :n] = np.eye(n) * drift
+        out[n:, n:] = (locked * (self._bias_var * drift)) @ locked.T
+        return out
+
+    def _command_prior(self, locked: np.ndarray) -> np.ndarray:
+        """Return the prior covariance of (k, b): k = 1 +- gain, b = 0 +- I bias."""
+        n = self.n
+        out = np.zeros((2 * n, 2 * n))
+        out[:n, :n] = np.eye(n) * self.noise.command_gain ** 2
+        out[n:, n:] = (locked * self._bias_var) @ locked.T
+        return out
+
     # --- the recursion ----------------------------------------------------------------
     def initialise(self, stamp_ns: int, g: pin.SE3, lin: Linearisation,
                    twist: Optional[np.ndarray]) -> None:
@@ -370,7 +556,7 @@ class MomentumFilter:
         self.stamp_ns = stamp_ns
         self._lin = lin
         to_world = self._adjoint_inverse(g).T @ lin.locked  # body velocity -> mu
-        p = np.zeros((3 * n, 3 * n))
+        p = np.zeros((self.dim, self.dim))
         p[:n, :n] = np.diag(self._pose_var)
         if twist is None:
             mu = np.zeros(n)
@@ -379,27 +565,46 @@ class MomentumFilter:
             mu = to_world @ (twist + lin.connection_qd)
             p[n:2 * n, n:2 * n] = (to_world * self._twist_var) @ to_world.T \
                 + to_world @ lin.joint_cov @ to_world.T
-        p[2 * n:, 2 * n:] = (to_world * self._accel_var) @ to_world.T
+        p[2 * n:3 * n, 2 * n:3 * n] = (to_world * self._accel_var) @ to_world.T
         self.x = np.concatenate((mu, np.zeros(n)))
+        if self.command:
+            p[3 * n:, 3 * n:] = self._command_prior(lin.locked)
+            self.x = np.concatenate((self.x, np.ones(n), np.zeros(n)))
         self.p = p
         if self.record:
             self.steps.append(FilterStep(stamp_ns, None, g, self.x, p, g, self.x, p,
-                                         lin.locked_inverse))
+                                         lin.locked_inverse, True, self._held_command()))
 
-    def _propagate(self, stamp_ns: int, lin: Linearisation) -> np.ndarray:
-        """Propagate mean and covariance to ``stamp_ns`` with inputs ``lin``; return Phi."""
+    def _held_command(self) -> Optional[np.ndarray]:
+        """Return a copy of the command held now (commanded wrench only, else None)."""
+        return self._command.copy() if self.command else None
+
+    def _propagate(self, stamp_ns: int, lin: Linearisation,
+                   command: Optional[Command]) -> np.ndarray:
+        """
+        Propagate mean and covariance to ``stamp_ns`` with inputs ``lin``; return Phi.
+
+        ``command``: the commanded wrench over the step (commanded-wrench filters;
+        None there: zero).
+        """
+        u = None
+        if self.command:
+            u = self._command_zero if command is None else command.mean
+            self._command = self._command_zero if command is None else command.now
         dt = (stamp_ns - self.stamp_ns) * 1e-9
         if dt <= 0.0:
             return self._eye
-        transition, q = self._transition(self.g, self.x, lin, dt)
-        self.g, self.x = self.propagate_mean(self.g, self.x, lin, dt)
+        transition, q = self._transition(self.g, self.x, lin, dt, u)
+        self.g, self.x = self.propagate_mean(self.g, self.x, lin, dt, u)
         p = transition @ self.p @ transition.T + q
         self.p = 0.5 * (p + p.T)
         self.stamp_ns = stamp_ns
         return transition
 
     def row(self, stamp_ns: int, lin: Linearisation, prior: Optional[Measurement],
-            measurements: Sequence[Measurement] = ()) -> list[tuple[int, float]]:
+            measurements: Sequence[Measurement] = (),
+            commands: Optional[Sequence[Optional[Command]]] = None
+            ) -> list[tuple[int, float]]:
         """
         Process one joint-state row at ``stamp_ns`` with its inputs ``lin``.
 
@@ -410,11 +615,15 @@ class MomentumFilter:
         propagates. A measurement at the row's stamp updates at the row.
         Measurements not after the filter's time (late) are skipped. Before the
         first row the filter starts from ``prior`` (the base state at the row's
-        stamp) and skips the measurements it came from. Return the gated
-        measurements as (stamp, NIS).
+        stamp) and skips the measurements it came from. ``commands``
+        (commanded-wrench filters): the command over each step, one per
+        measurement before the row's stamp, then the one of the step that ends at
+        the row. Return the gated measurements as (stamp, NIS).
         """
         if self.g is None:
             if prior is not None:
+                if self.command and commands:
+                    self._command = commands[-1].now
                 self.initialise(stamp_ns, prior.pose, lin, prior.twist)
             return []
         before = self._lin if self._lin is not None else lin
@@ -424,7 +633,7 @@ class MomentumFilter:
         gated: list[tuple[int, float]] = []
         last: Optional[Measurement] = None
         done = 0.0  # fraction of the row's interval already propagated
-        for measurement in measurements:
+        for index, measurement in enumerate(measurements):
             stamp = measurement.stamp_ns
             if stamp >= stamp_ns:
                 if stamp == stamp_ns:
@@ -433,11 +642,13 @@ class MomentumFilter:
             if stamp <= self.stamp_ns:
                 continue
             fraction = (stamp - start) / span
-            transition = self._propagate(stamp, between(before, lin, 0.5 * (done + fraction)))
+            transition = self._propagate(stamp, between(before, lin, 0.5 * (done + fraction)),
+                                         None if commands is None else commands[index])
             done = fraction
             self._measure(stamp, transition, measurement, between(before, lin, fraction),
                           False, gated)
-        transition = self._propagate(stamp_ns, between(before, lin, 0.5 * (done + 1.0)))
+        transition = self._propagate(stamp_ns, between(before, lin, 0.5 * (done + 1.0)),
+                                     None if commands is None else commands[-1])
         self._measure(stamp_ns, transition, last, lin, True, gated)
         return gated
 
@@ -451,20 +662,25 @@ class MomentumFilter:
             gated.append((measurement.stamp_ns, self.last_nis))
         if self.record:
             self.steps.append(FilterStep(stamp_ns, transition, g_pred, x_pred, p_pred,
-                                         self.g, self.x, self.p, lin.locked_inverse, output))
+                                         self.g, self.x, self.p, lin.locked_inverse, output,
+                                         self._held_command()))
 
     def step(self, stamp_ns: int, lin: Linearisation, pose: Optional[pin.SE3],
-             twist: Optional[np.ndarray]) -> bool:
+             twist: Optional[np.ndarray], command: Optional[Command] = None) -> bool:
         """
         Propagate to ``stamp_ns`` and update with the pose (and twist) when given.
 
+        ``command``: the commanded wrench over the step (filters built with
+        ``command=True``; None there means no command: zero).
         Return False when the measurement was gated out (counted in ``gated``).
         """
         measurement = None if pose is None else Measurement(stamp_ns, pose, twist)
+        commands = None if command is None else (command,)
         if self.g is None:
-            self.row(stamp_ns, lin, measurement)
+            self.row(stamp_ns, lin, measurement, (), commands)
             return True
-        return not self.row(stamp_ns, lin, None, () if measurement is None else (measurement,))
+        return not self.row(stamp_ns, lin, None, () if measurement is None else (measurement,),
+                            commands)
 
     def _update(self, pose: pin.SE3, twist: Optional[np.ndarray],
                 lin: Linearisation) -> bool:
@@ -506,7 +722,7 @@ class MomentumFilter:
             to_world = self._adjoint_inverse(g0).T @ lin.locked
             p0 = p0.copy()
             p0[n:2 * n, n:2 * n] += (to_world * self._speed_var) @ to_world.T
-            p0[2 * n:, 2 * n:] += (to_world * self._accel_var) @ to_world.T
+            p0[2 * n:3 * n, 2 * n:3 * n] += (to_world * self._accel_var) @ to_world.T
             self.p = p0
             if h is None:
                 ph = p0[:, :n]
@@ -516,7 +732,7 @@ class MomentumFilter:
                 s = h @ ph + r
             solved = np.linalg.solve(s, ph.T)
         self._gated_run = 0
-        gain = solved[:, :3 * n].T
+        gain = solved[:, :self.dim].T
         dx = gain @ nu
         if h is not None:
             # Iterated EKF (Gauss-Newton on the posterior): the twist is bilinear in
@@ -549,7 +765,7 @@ class MomentumFilter:
         ad_t = self._adjoint(g).T
         pi = ad_t @ x[:n]
         inverse = lin.locked_inverse
-        h = np.zeros((2 * n, 3 * n))
+        h = np.zeros((2 * n, self.dim))
         h[:n, :n] = self._eye_n
         h[n:, :n] = -inverse @ self._form(pi)
         h[n:, n:2 * n] = inverse @ ad_t

@@ -41,6 +41,7 @@ bit-identical outputs.
 
 from __future__ import annotations
 
+from bisect import bisect_right
 from collections import Counter, deque
 from dataclasses import dataclass
 from itertools import chain
@@ -56,8 +57,8 @@ from reduced_dynamics.estimator.cyclic import (CYCLIC_OFF, CyclicColumns, Cyclic
                                                resolve_cyclic_joints)
 from reduced_dynamics.estimator.kernel import UpdateKernel
 from reduced_dynamics.estimator.events import EventDetector, MomentumEvent
-from reduced_dynamics.estimator.filter import (Linearisation, Measurement, MomentumFilter,
-                                               NoiseModel, smooth)
+from reduced_dynamics.estimator.filter import (Command, Linearisation, Measurement,
+                                               MomentumFilter, NoiseModel, smooth)
 from reduced_dynamics.estimator.plausibility import BaseBounds, JointBounds
 from reduced_dynamics.estimator.prediction import (
     FinishedPrediction, Plan, PredictionJob, PredictionMessages, Predictor, PRESCRIBED_MODES)
@@ -65,8 +66,9 @@ from reduced_dynamics.estimator.stamps import ACCEPTED, ClockJump, StampGate, St
 from reduced_dynamics.estimator.sync import BaseBuffer
 from reduced_dynamics.geometry.isotropy import isotropy_algebra
 from reduced_dynamics.messages.samples import (
-    BaseStateSample, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample, JointStateSample,
-    JointTrajectorySample, PosePath, ShapePrediction, trusted_sample, TwistSample, WrenchSample)
+    BaseStateSample, CommandSample, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample,
+    JointStateSample, JointTrajectorySample, PosePath, ShapePrediction, trusted_sample,
+    TwistSample, WrenchSample)
 from reduced_dynamics.robot.model import RobotModel
 
 NS = 1_000_000_000
@@ -76,6 +78,9 @@ CHUNK_BYTES = 512 * 1024
 #: Consecutive samples at a new, self-consistent time that prove a clock jump
 #: (estimator/stamps.py): fewer would follow two equal outliers, more delays outputs.
 STAMP_JUMP_SAMPLES = 3
+#: A gain off 1 by more than this (and by more than 3 sigma) makes the commanded-wrench
+#: status WARN: thrusters delivering 10 % less or more than commanded.
+COMMAND_GAIN_WARN = 0.1
 
 
 @dataclass
@@ -104,6 +109,9 @@ class EstimatorOutput:
     #: covariance (n x n, algebra coordinates) of mu and of the wrench w
     momentum_covariance: Optional[np.ndarray] = None
     wrench_covariance: Optional[np.ndarray] = None
+    #: commanded wrench on: the disturbance beyond the command (world frame); then
+    #: ``momentum_rate`` is the total external wrench (disturbance + delivered command)
+    disturbance: Optional[WrenchSample] = None
 
 
 class OutputChunk:
@@ -117,7 +125,7 @@ class OutputChunk:
 
     __slots__ = ('stamps_ns', 'mu', 'pi', 'momentum_rate', 'drift', 'qbar', 'qbar_dot',
                  'pbar', 'energy', 'extras', 'cyclic', '_kernel', '_world', '_base',
-                 '_names', 'mu_cov', 'w_cov')
+                 '_names', 'mu_cov', 'w_cov', 'disturbance')
 
     def __init__(self, estimator: 'Estimator', stamps_ns: np.ndarray, mu: np.ndarray,
                  pi: np.ndarray, rate: np.ndarray, drift: np.ndarray, qbar: np.ndarray,
@@ -140,6 +148,8 @@ class OutputChunk:
         #: covariances (K, n, n) of mu and w (set by the estimator)
         self.mu_cov: Optional[np.ndarray] = None
         self.w_cov: Optional[np.ndarray] = None
+        #: commanded wrench on: the disturbance w beyond the command (K, n)
+        self.disturbance: Optional[np.ndarray] = None
 
     def __len__(self) -> int:
         """Return the number of samples."""
@@ -158,6 +168,7 @@ class OutputChunk:
         wrench, twist, joint = WrenchSample, TwistSample, JointStateSample
         extras = self.extras
         out = []
+        disturbance = None if self.disturbance is None else kernel.wrenches(self.disturbance)
         cyclic = self.cyclic
         shape_columns = (self.qbar, self.qbar_dot, self.pbar) if cyclic is None \
             else (cyclic.qhat, cyclic.qhat_dot, cyclic.phat)
@@ -188,6 +199,9 @@ class OutputChunk:
             if self.mu_cov is not None:
                 output.momentum_covariance = self.mu_cov[k]
                 output.wrench_covariance = self.w_cov[k]
+            if disturbance is not None:
+                output.disturbance = trusted_sample(wrench, stamp, world, disturbance[k, :3],
+                                                    disturbance[k, 3:])
             out.append(output)
         return out
 
@@ -228,11 +242,13 @@ class _Chunk:
     filter updates with at their own stamps.
     """
 
-    __slots__ = ('rows', 'diagnose')
+    __slots__ = ('rows', 'diagnose', 'commands')
 
     def __init__(self) -> None:
         self.rows: list[tuple] = []
         self.diagnose = False
+        #: commanded wrench on: per row, one :class:`~.filter.Command` per filter step
+        self.commands: list[list[Command]] = []
 
 
 class _Identity:
@@ -247,7 +263,7 @@ def _all_finite(*arrays: np.ndarray) -> bool:
     return all(bool(np.isfinite(array).all()) for array in arrays)
 
 
-Sample = Union[JointStateSample, BaseStateSample]
+Sample = Union[JointStateSample, BaseStateSample, CommandSample]
 
 
 def noise_model(config: EstimatorConfig) -> NoiseModel:
@@ -258,7 +274,13 @@ def noise_model(config: EstimatorConfig) -> NoiseModel:
                       twist_angular=config.twist_angular_noise,
                       joint_velocity=config.joint_velocity_noise,
                       jerk_linear=config.wrench_jerk_linear,
-                      jerk_angular=config.wrench_jerk_angular)
+                      jerk_angular=config.wrench_jerk_angular,
+                      command_gain=config.command_gain_sigma,
+                      command_gain_drift=config.command_gain_drift,
+                      command_bias_linear=config.command_bias_linear,
+                      command_bias_angular=config.command_bias_angular,
+                      disturbance_linear=config.disturbance_jerk_linear,
+                      disturbance_angular=config.disturbance_jerk_angular)
 
 
 class Estimator:
@@ -273,6 +295,11 @@ class Estimator:
     section 5.1), or joint names: the second stage (Theorem 57) then shapes the
     outputs, see :mod:`.cyclic`.
 
+    ``commanded_wrench``: commanded-wrench samples (:meth:`add_command`, body
+    frame) enter the filter's process model (:mod:`.filter`: gain and bias of the
+    delivered wrench, w the disturbance beyond it); ``momentum_rate`` is then
+    the total external wrench and ``disturbance`` the part beyond the command.
+
     ``defer_predictions`` (the node): an output where a prediction starts
     carries ``prediction_job`` (:class:`~.prediction.PredictionJob`) instead of
     the prediction messages; ``job.run()`` computes them (thread-safe, its own
@@ -286,9 +313,10 @@ class Estimator:
     def __init__(self, robot: RobotModel, config: Optional[EstimatorConfig] = None,
                  use_odometry: bool = True, base_driven: Optional[bool] = None,
                  cyclic_joints: Union[str, Sequence[str]] = CYCLIC_OFF,
-                 defer_predictions: bool = False) -> None:
+                 defer_predictions: bool = False, commanded_wrench: bool = False) -> None:
         """Set up the pipeline for ``robot`` (ModelError for unusable cyclic joints)."""
         self.robot = robot
+        self.commanded_wrench = commanded_wrench
         self.defer_predictions = defer_predictions
         #: the latest processed state (stamp, rotation, translation, qbar, qbar_dot)
         self.latest_state: Optional[tuple] = None
@@ -348,6 +376,16 @@ class Estimator:
         self._base_gate = StampGate('base', NS, 3)
         # One clock: a stream's first stamp is judged by the other stream's last.
         self._joint_gate.peer, self._base_gate.peer = self._base_gate, self._joint_gate
+        # Commanded wrench: its own stream on the same clock, the held commands (stamps
+        # ascending, values in dual coordinates) and where the next step starts.
+        self._command_gate = StampGate('command', NS, 3)
+        self._command_gate.peer = self._base_gate
+        self._received_commands = self._accepted_commands = 0
+        self._command_stamps: list[int] = []
+        self._command_values: list[np.ndarray] = []
+        self._command_from_ns: Optional[int] = None
+        self._command_zero = np.zeros(robot.n)
+        self._command_scale: Optional[np.ndarray] = None
         self._joint_bounds: dict[tuple[str, ...], JointBounds] = {}
         #: Clock restarts so far (a backwards jump, :meth:`reset`), and the last reason.
         self.clock_resets = 0
@@ -363,6 +401,7 @@ class Estimator:
         outlier_ns = int(config.stamp_outlier_tolerance * NS)
         self._joint_gate.configure(outlier_ns, STAMP_JUMP_SAMPLES)
         self._base_gate.configure(outlier_ns, STAMP_JUMP_SAMPLES)
+        self._command_gate.configure(outlier_ns, STAMP_JUMP_SAMPLES)
         self._joint_bounds = {}
         self._base_bounds = BaseBounds(config)
         rate = config.diagnostics_rate
@@ -370,12 +409,14 @@ class Estimator:
         self.noise = noise_model(config)
         old_filter = getattr(self, 'filter', None)
         self.filter = MomentumFilter(self.robot.group, self.noise, config.innovation_gate,
-                                     record=self.record_steps)
+                                     record=self.record_steps, command=self.commanded_wrench)
         if old_filter is not None:
             # New noise and gate; the estimate and the recorded steps stay.
             for name in ('g', 'x', 'p', 'stamp_ns', 'steps', 'gated', 'log_likelihood',
                          'nis_sum', 'nis_dof', '_lin', '_gated_run'):
                 setattr(self.filter, name, getattr(old_filter, name))
+            if self.commanded_wrench:
+                self.filter._command = old_filter._command
         old_detector = getattr(self, 'detector', None)
         self.detector = EventDetector(self.robot.n, config.event_significance,
                                       config.event_hold)
@@ -399,6 +440,8 @@ class Estimator:
             counts['joint_states'] = self._received_joints
         if self._received_bases:
             counts['base'] = self._received_bases
+        if self._received_commands:
+            counts['command'] = self._received_commands
         return counts
 
     # --- input -----------------------------------------------------------------------
@@ -433,13 +476,25 @@ class Estimator:
             self._chunk_limit = 1
         return self._close_streaming()
 
+    def add_command(self, sample: CommandSample) -> list[EstimatorOutput]:
+        """
+        Take a commanded wrench (body frame), held until the next (zero-order hold).
+
+        Only an estimator built with ``commanded_wrench=True`` uses it; others
+        count it as rejected (``command_unused``). It applies from its stamp on;
+        one arriving after samples it should have applied to applies from the
+        next processed sample on (what the node and replay both see).
+        """
+        self._take_command(sample)
+        return self._close_streaming()
+
     def add_samples(self, samples: Iterable[Sample]) -> EstimatorBatch:
         """
-        Take joint-state and base samples in arrival order (the batched path).
+        Take joint-state, base (and command) samples in arrival order (the batched path).
 
-        Equivalent to calling :meth:`add_joint_state` / :meth:`add_base_state`
-        on each in turn, with the same outputs, rejections and events, but the
-        update is vectorised over chunks of samples.
+        Equivalent to calling :meth:`add_joint_state` / :meth:`add_base_state` /
+        :meth:`add_command` on each in turn, with the same outputs, rejections and
+        events, but the update is vectorised over chunks of samples.
         """
         take_joint, take_base = self._take_joint, self._take_base
         self._chunk_limit = self._batch_limit
@@ -447,6 +502,8 @@ class Estimator:
             for sample in samples:
                 if sample.__class__ is JointStateSample or isinstance(sample, JointStateSample):
                     take_joint(sample)
+                elif sample.__class__ is CommandSample:
+                    self._take_command(sample)
                 else:
                     take_base(sample)
             self._process_chunk()
@@ -461,7 +518,8 @@ class Estimator:
     def flush_batch(self) -> EstimatorBatch:
         """Like :meth:`flush`, returning the outputs column-wise."""
         # Candidates the stamp policy still holds were never confirmed: outliers.
-        for gate, prefix in ((self._joint_gate, 'stamp_'), (self._base_gate, 'base_stamp_')):
+        for gate, prefix in ((self._joint_gate, 'stamp_'), (self._base_gate, 'base_stamp_'),
+                             (self._command_gate, 'command_stamp_')):
             for _, reason, detail in gate.finish():
                 self._reject(prefix + reason, detail)
         self._drain(final=True)
@@ -621,14 +679,115 @@ class Estimator:
             return
         self._drain(final=False)
 
+    # --- commanded wrench ----------------------------------------------------------------
+    def _take_command(self, sample: CommandSample) -> None:
+        """Validate a commanded wrench (finite, plausible, stamp policy) and hold it."""
+        self._received_commands += 1
+        stamp = sample.stamp_ns
+        if not self.commanded_wrench:
+            self._reject('command_unused', 'commanded wrench given to an estimator '
+                                           'without commanded_wrench')
+            return
+        wrench = np.concatenate((sample.force, sample.torque))
+        if not _all_finite(wrench):
+            self._reject('non_finite_command', f'NaN or inf in commanded wrench at {stamp}')
+            return
+        u = self.robot.group.dual_coordinates(wrench)
+        if self._command_scale is None:
+            # I^-1 at zero shape: the bound is an acceleration, the same at any mass.
+            zero = np.zeros((1, self.robot.m))
+            locked = self.kernel.mass_matrices(zero)[0][:self.robot.n, :self.robot.n]
+            self._command_scale = np.linalg.inv(locked)
+        acceleration = np.abs(self._command_scale @ u)
+        if float(acceleration.max(initial=0.0)) > self.config.command_acceleration_bound:
+            self._reject('command_bound', f'commanded wrench at {stamp} asks for a body '
+                                          f'acceleration of {acceleration.max():.3g} '
+                                          f'(bound {self.config.command_acceleration_bound:g})')
+            return
+        result = self._command_gate.offer(stamp, sample.receive_ns, (stamp, u))
+        if result is not ACCEPTED:
+            self._stamp_result(result, None)
+            return
+        self._accept_command((stamp, u))
+
+    def _accept_command(self, item: tuple) -> None:
+        """Hold a command whose stamp the stamp policy accepted (stamps ascend)."""
+        stamp, u = item
+        self._accepted_commands += 1
+        if self._command_stamps and stamp <= self._command_stamps[-1]:
+            # The command stream's own clock jumped back (its gate followed it): the
+            # held commands are of the old time.
+            self._command_stamps, self._command_values = [], []
+        self._command_stamps.append(stamp)
+        self._command_values.append(u)
+
+    def _command_at(self, index: int) -> np.ndarray:
+        """Return the command held at entry ``index - 1`` (zero before the first)."""
+        return self._command_values[index - 1] if index > 0 else self._command_zero
+
+    def _command_input(self, stamp: int) -> Command:
+        """
+        Return the command over the step that ends at ``stamp`` (zero-order hold).
+
+        ``mean``: its exact mean over [previous sample, stamp]; ``now``: the value
+        held at ``stamp``. Commands before the step's start are forgotten.
+        """
+        stamps, values = self._command_stamps, self._command_values
+        start, self._command_from_ns = self._command_from_ns, stamp
+        end_index = bisect_right(stamps, stamp)
+        now = self._command_at(end_index)
+        if start is None or stamp <= start:
+            mean = now
+        else:
+            index = bisect_right(stamps, start)
+            mean = now
+            if index < end_index:
+                # Piecewise constant over [start, stamp]: the switches in between.
+                total = self._command_at(index) * float(stamps[index] - start)
+                for k in range(index, end_index):
+                    until = stamps[k + 1] if k + 1 < end_index else stamp
+                    total = total + values[k] * float(until - stamps[k])
+                mean = total / float(stamp - start)
+        if end_index > 1:
+            del stamps[:end_index - 1], values[:end_index - 1]
+        return Command(mean, now)
+
+    def command_estimate(self) -> Optional[dict]:
+        """
+        Return the gain and bias of the delivered wrench with their sigmas (None: off).
+
+        Per axis of the base group's dual (``axes``); the bias is a body wrench
+        [N, N m]. The filter's latest estimate (at the end of a replay, also the
+        smoothed one).
+        """
+        if not self.commanded_wrench:
+            return None
+        flt, n = self.filter, self.robot.n
+        axes = _axis_names(self.robot.group)
+        if flt.g is None:
+            return {'axes': axes, 'samples': self._accepted_commands, 'gain': None,
+                    'gain_sigma': None, 'bias': None, 'bias_sigma': None}
+        sigma = np.sqrt(np.diag(flt.p))
+        return {'axes': axes, 'samples': self._accepted_commands,
+                'gain': flt.gain.tolist(), 'gain_sigma': sigma[3 * n:4 * n].tolist(),
+                'bias': flt.bias.tolist(), 'bias_sigma': sigma[4 * n:].tolist()}
+
     # --- stamp policy and clock restarts (estimator/stamps.py) -----------------------
-    def _stamp_result(self, result: StampResult, joint: bool) -> None:
-        """Apply a stamp decision of the joint (or base) stream: drops, a jump, accepts."""
-        prefix, accept = ('stamp_', self._accept_joint) if joint \
-            else ('base_stamp_', self._accept_base)
+    def _stamp_result(self, result: StampResult, joint: Optional[bool]) -> None:
+        """
+        Apply a stamp decision of the joint (or base) stream: drops, a jump, accepts.
+
+        ``joint`` None: the command stream, whose jumps restart nothing (its
+        commands are held by stamp; the sensor streams own the clock).
+        """
+        if joint is None:
+            prefix, accept = 'command_stamp_', self._accept_command
+        else:
+            prefix, accept = ('stamp_', self._accept_joint) if joint \
+                else ('base_stamp_', self._accept_base)
         for _, reason, detail in result.dropped:
             self._reject(prefix + reason, detail)
-        if result.jump is not None:
+        if result.jump is not None and joint is not None:
             self._clock_jump(result.jump, joint)
         for item in result.accepted:
             accept(item)
@@ -659,13 +818,18 @@ class Estimator:
         against the new clock.
         """
         held = [(self._joint_gate.restart(), True), (self._base_gate.restart(), False)]
+        if self.commanded_wrench:
+            held.append((self._command_gate.restart(), None))
         self._restart_clock(reason)
+        accepts = {True: self._accept_joint, False: self._accept_base,
+                   None: self._accept_command}
+        gates = {True: self._joint_gate, False: self._base_gate, None: self._command_gate}
         for items, joint in held:
-            gate = self._joint_gate if joint else self._base_gate
+            gate = gates[joint]
             for stamp, receive, item in items:
                 result = gate.offer(stamp, receive, item)
                 if result is ACCEPTED:
-                    (self._accept_joint if joint else self._accept_base)(item)
+                    accepts[joint](item)
                 else:
                     self._stamp_result(result, joint)
         return self._close_streaming()
@@ -684,7 +848,12 @@ class Estimator:
         old = self.filter
         config = self.config
         self.filter = MomentumFilter(self.robot.group, self.noise, config.innovation_gate,
-                                     record=self.record_steps)
+                                     record=self.record_steps, command=self.commanded_wrench)
+        if self.commanded_wrench:
+            # The held commands belong to the old clock; the command stream re-anchors.
+            self._command_stamps, self._command_values = [], []
+            self._command_from_ns = None
+            self._command_gate.restart()
         for name in ('steps', 'gated', 'log_likelihood', 'nis_sum', 'nis_dof'):
             setattr(self.filter, name, getattr(old, name))
         events = self.detector.events
@@ -734,6 +903,13 @@ class Estimator:
         """Queue a synchronised sample for the update (processing it where it must be)."""
         chunk = self._chunk
         chunk.rows.append(row)
+        if self.commanded_wrench:
+            # The commands known now (arrival order), whatever the chunk's length: one per
+            # filter step of the row (to each base measurement before it, then to it).
+            stamp = row[0]
+            command_input = self._command_input
+            chunk.commands.append([command_input(sample_ns) for sample_ns, _ in row[5]
+                                   if sample_ns < stamp] + [command_input(stamp)])
         period = self._diagnostics_period_ns
         if period is not None:
             # Diagnostics report the counters at their sample: close the chunk there.
@@ -778,6 +954,8 @@ class Estimator:
         poses: list[pin.SE3] = []
         quiet: list[bool] = []
         rotation, translation = result.rotation, result.translation
+        commands = chunk.commands if self.commanded_wrench else None
+        disturbance = None if commands is None else np.empty((count, n))
         for k in range(count):
             stamp = stamp_list[k]
             prior = None
@@ -789,7 +967,8 @@ class Estimator:
                                     None if twists is None else twists[k])
                 if at_row:
                     measurements[-1] = prior
-            for gated, nis in flt.row(stamp, lins[k], prior, measurements):
+            for gated, nis in flt.row(stamp, lins[k], prior, measurements,
+                                      None if commands is None else commands[k]):
                 self.rejected['innovation_gate'] += 1
                 self._period_rejected += 1
                 self.last_rejection = (f'innovation_gate: base measurement at {gated} '
@@ -797,11 +976,17 @@ class Estimator:
             g = flt.g
             x, p = flt.x, flt.p
             mu[k] = x[:n]
-            rate[k] = x[n:]
             pi[k] = adjoint(g).T @ x[:n]
             mu_cov[k] = p[n:2 * n, n:2 * n]
-            w_cov[k] = p[2 * n:, 2 * n:]
-            detector.update(stamp, mu[k], math.sqrt(float(rate[k] @ rate[k])),
+            if disturbance is None:
+                rate[k] = peak = x[n:]
+                w_cov[k] = p[2 * n:, 2 * n:]
+            else:
+                # The total wrench is what mu does; events concern the disturbance
+                # beyond the command (a commanded firing is expected, not an event).
+                rate[k], w_cov[k] = flt.total_wrench()
+                disturbance[k] = peak = flt.wrench
+            detector.update(stamp, mu[k], math.sqrt(float(peak @ peak)),
                             flt.wrench_significance())
             poses.append(g)
             quiet.append(not detector.in_event)
@@ -834,6 +1019,7 @@ class Estimator:
         out = OutputChunk(self, stamps, mu, pi, rate, drift, qbar, qbar_dot, result.pbar,
                           energy, extras, cyclic)
         out.mu_cov, out.w_cov = mu_cov, w_cov
+        out.disturbance = disturbance
         self._done.append(out)
 
     def _filter_measurements(self, measured: tuple, stamp: int) -> list:
@@ -1030,8 +1216,15 @@ class Estimator:
         smoothed = smooth(group, recorded)
         states = [smoothed[k] for k in rows]
         steps = [recorded[k] for k in rows]
+        flt = self.filter
         mu = np.array([state.x[:n] for state in states])
-        rate = np.array([state.x[n:] for state in states])
+        if self.commanded_wrench:
+            totals = [flt._total(state.g, state.x, state.p, step.command)
+                      for state, step in zip(states, steps)]
+            rate = np.array([total for total, _ in totals])
+            disturbance = kernel.wrenches(np.array([state.x[n:2 * n] for state in states]))
+        else:
+            rate = np.array([state.x[n:] for state in states])
         pi = np.array([group.Ad(state.g).T @ state.x[:n] for state in states])
         drift = np.array([step.locked_inverse @ row for step, row in zip(steps, pi)])
         momentum, body = kernel.wrenches(mu), kernel.wrenches(pi)
@@ -1049,7 +1242,12 @@ class Estimator:
             output.drift_twist = trusted_sample(TwistSample, stamp, base, twist[k, :3],
                                                 twist[k, 3:])
             output.momentum_covariance = states[k].p[n:2 * n, n:2 * n]
-            output.wrench_covariance = states[k].p[2 * n:, 2 * n:]
+            if self.commanded_wrench:
+                output.wrench_covariance = totals[k][1]
+                output.disturbance = trusted_sample(WrenchSample, stamp, world,
+                                                    disturbance[k, :3], disturbance[k, 3:])
+            else:
+                output.wrench_covariance = states[k].p[2 * n:, 2 * n:]
 
     # --- reporting -------------------------------------------------------------------
     def diagnostics(self, stamp_ns: int) -> Diagnostics:
@@ -1097,8 +1295,50 @@ class Estimator:
 
                  'kinetic_plus_potential_energy': f'{self._last_energy:.9g}',
                  **self._cyclic_diagnostics()}))
+        if self.commanded_wrench:
+            statuses.append(self._command_status())
         statuses.append(self._prediction_status())
         return Diagnostics(stamp_ns, statuses)
+
+    def _command_status(self) -> DiagnosticStatusSample:
+        """
+        Return the thruster-health status: gain and bias of the delivered wrench.
+
+        WARN when a gain is off 1 by more than 3 sigma and more than
+        COMMAND_GAIN_WARN (the delivered wrench is not what was commanded).
+        """
+        estimate = self.command_estimate()
+        values = {'commands_received': str(self._received_commands),
+                  'commands_used': str(self._accepted_commands),
+                  'axes': ' '.join(estimate['axes'])}
+        level, message = DIAG_OK, 'no estimate yet'
+        if estimate['gain'] is not None:
+            flt = self.filter
+            gain, gain_sigma = np.array(estimate['gain']), np.array(estimate['gain_sigma'])
+            total, total_cov = flt.total_wrench()
+            values.update({
+                'gain': ' '.join(f'{v:.4g}' for v in gain),
+                'gain_sigma': ' '.join(f'{v:.3g}' for v in gain_sigma),
+                'bias': ' '.join(f'{v:.4g}' for v in estimate['bias']),
+                'bias_sigma': ' '.join(f'{v:.3g}' for v in estimate['bias_sigma']),
+                'command': ' '.join(f'{v:.4g}' for v in flt._command),
+                'disturbance': ' '.join(f'{v:.6g}' for v in flt.wrench),
+                'disturbance_sigma': ' '.join(
+                    f'{v:.3g}' for v in np.sqrt(np.diag(flt.wrench_cov))),
+                'total_wrench': ' '.join(f'{v:.6g}' for v in total),
+                'total_wrench_sigma': ' '.join(
+                    f'{v:.3g}' for v in np.sqrt(np.diag(total_cov)))})
+            off = (np.abs(gain - 1.0) > 3.0 * gain_sigma) \
+                & (np.abs(gain - 1.0) > COMMAND_GAIN_WARN)
+            if off.any():
+                level = DIAG_WARN
+                message = 'delivered wrench differs from the command: ' + ', '.join(
+                    f'gain {axis} {g:.3g} +- {s:.2g}' for axis, g, s, bad in
+                    zip(estimate['axes'], gain, gain_sigma, off) if bad)
+            else:
+                message = 'delivered wrench as commanded'
+        return DiagnosticStatusSample(level, 'reduced_dynamics: commanded wrench', message,
+                                      self.robot.model.name, values)
 
     def _prediction_status(self) -> DiagnosticStatusSample:
         """Return the prediction status: mode, residuals, drift/phase split, failures."""
@@ -1176,6 +1416,7 @@ class Estimator:
             'predictions': self.predictor.made,
             'prediction_failures': dict(failures),
             'filter': self.filter_statistics(),
+            **({'commanded_wrench': self.command_estimate()} if self.commanded_wrench else {}),
             'prediction_shape_residual_max': max(residuals) if residuals else None,
             'prediction_shape_residual_median': float(np.median(residuals))
             if residuals else None,
@@ -1184,6 +1425,17 @@ class Estimator:
             'prediction_residuals': _residuals_by_mode(finished),
             'trajectories_received': self.trajectories_received,
         }
+
+
+def _axis_names(group) -> list[str]:
+    """Return a name per coordinate of the group's dual (fx ... tz, or a combination)."""
+    names = ('fx', 'fy', 'fz', 'tx', 'ty', 'tz')
+    out = []
+    for column in group.algebra_basis.T:
+        nonzero = np.flatnonzero(np.abs(column) > 1e-12)
+        out.append(names[nonzero[0]] if len(nonzero) == 1
+                   else '+'.join(names[i] for i in nonzero))
+    return out
 
 
 def _residuals_by_mode(finished: list[FinishedPrediction]) -> dict:

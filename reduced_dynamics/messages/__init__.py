@@ -18,6 +18,7 @@ from reduced_dynamics.messages.convert import (
     base_state_to_odometry,
     base_state_to_pose_stamped,
     clock_from_ros,
+    command_from_ros,
     clock_to_ros,
     diagnostics_from_ros,
     diagnostics_to_ros,
@@ -42,6 +43,7 @@ from reduced_dynamics.messages.convert import (
 )
 from reduced_dynamics.messages.samples import (
     BaseStateSample,
+    CommandSample,
     DIAG_ERROR,
     DIAG_OK,
     DIAG_STALE,
@@ -71,6 +73,7 @@ from reduced_dynamics.messages.types import (
 
 __all__ = [
     'BaseStateSample',
+    'CommandSample',
     'DIAG_ERROR',
     'DIAG_OK',
     'DIAG_STALE',
@@ -92,6 +95,7 @@ __all__ = [
     'byte_to_int',
     'clock_from_ros',
     'clock_to_ros',
+    'command_from_ros',
     'diagnostics_from_ros',
     'diagnostics_to_ros',
     'duration_from_ros',

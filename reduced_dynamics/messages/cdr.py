@@ -45,6 +45,7 @@ import numpy as np
 
 from reduced_dynamics.messages.samples import (
     BaseStateSample,
+    CommandSample,
     Diagnostics,
     JointStateSample,
     PosePath,
@@ -482,8 +483,20 @@ def decode_pose_stamped(data: Buffer, child_frame_id: str = '') -> BaseStateSamp
                           pose[3:], None, None)
 
 
+@_strict
+def decode_wrench_stamped(data: Buffer) -> CommandSample:
+    """Decode geometry_msgs/msg/WrenchStamped like ``command_from_ros`` (an input)."""
+    _check_header(data)
+    stamp_ns, frame_id, pos = _stamp_frame(data)
+    pos = (pos + 7) & -8
+    _check_end(data, pos + 6 * 8)
+    wrench = np.frombuffer(data, _F8, 6, 4 + pos).copy()
+    return trusted_sample(CommandSample, stamp_ns, frame_id, wrench[:3], wrench[3:])
+
+
 #: Message type -> decoder into the sample its ``*_from_ros`` converter returns.
 DECODERS: dict[str, Callable[..., Any]] = {
+    'geometry_msgs/msg/WrenchStamped': decode_wrench_stamped,
     'sensor_msgs/msg/JointState': decode_joint_state,
     'nav_msgs/msg/Odometry': decode_odometry,
     'geometry_msgs/msg/PoseStamped': decode_pose_stamped,

@@ -30,6 +30,7 @@ from numpy.typing import ArrayLike
 
 from reduced_dynamics.messages.samples import (
     BaseStateSample,
+    CommandSample,
     Diagnostics,
     DiagnosticStatusSample,
     JointStateSample,
@@ -237,6 +238,14 @@ def wrench_from_ros(msg: Any) -> WrenchSample:
         force=xyz_from_ros(msg.wrench.force),
         torque=xyz_from_ros(msg.wrench.torque),
     )
+
+
+def command_from_ros(msg: Any) -> CommandSample:
+    """Convert geometry_msgs/msg/WrenchStamped into a commanded-wrench input sample."""
+    stamp_ns, frame_id = header_from_ros(msg.header)
+    return CommandSample(stamp_ns=stamp_ns, frame_id=frame_id,
+                         force=xyz_from_ros(msg.wrench.force),
+                         torque=xyz_from_ros(msg.wrench.torque))
 
 
 def twist_to_ros(sample: TwistSample, types: MessageTypes) -> Any:

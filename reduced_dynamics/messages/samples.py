@@ -186,6 +186,28 @@ class WrenchSample:
 
 
 @dataclass(frozen=True, eq=False)
+class CommandSample:
+    """
+    A commanded wrench (geometry_msgs/WrenchStamped as an input), base (body) frame.
+
+    What the thrusters or actuators were told to deliver; ``receive_ns`` as for
+    the other inputs (the stamp policy uses it).
+    """
+
+    stamp_ns: int
+    frame_id: str
+    force: np.ndarray
+    torque: np.ndarray
+    receive_ns: Optional[int] = None
+
+    def __post_init__(self) -> None:
+        """Validate and normalize fields."""
+        _validate_stamps(self)
+        object.__setattr__(self, 'force', _array(self.force, (3,), 'force'))
+        object.__setattr__(self, 'torque', _array(self.torque, (3,), 'torque'))
+
+
+@dataclass(frozen=True, eq=False)
 class TwistSample:
     """Linear/angular velocity pair expressed in ``frame_id``."""
 
