@@ -409,7 +409,6 @@ class MomentumFilter:
         f[n:2 * n, 3 * n:4 * n] = to_world * u
         f[n:2 * n, 4 * n:] = to_world
 
-
     def twist_jacobian(self, g: pin.SE3, mu: np.ndarray, lin: Linearisation) -> np.ndarray:
         """Return H of the twist measurement (n x 3n)."""
         n = self.n
