@@ -24,7 +24,9 @@ rotated by the measured yaw), both smoothed by the same Savitzky-Golay filter
 
 The commands are ``ff_msgs/msg/ThrusterCommand`` (``std_msgs/Header header``,
 ``bool[8] switches``), whose definition is not in the bags: their CDR bytes are
-read directly (:func:`decode_thruster_command`).
+read directly (:func:`decode_thruster_command`). :func:`write_command_bag`
+turns them into the body-frame geometry_msgs/WrenchStamped the estimator's
+commanded-wrench input takes (README "Commanded wrench").
 """
 
 from __future__ import annotations
@@ -37,9 +39,14 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from reduced_dynamics.bag.reader import open_bag
+from reduced_dynamics.bag.writer import BagWriter
+from reduced_dynamics.messages.cdr import encode_wrench_stamped
+from reduced_dynamics.messages.samples import WrenchSample
 from reduced_dynamics.thrusters import FREEFLYER_FORCE, LAYOUTS
 
 COMMAND_TOPIC = '/robot/commands/binary_thrust'
+#: The commands as body wrenches in :func:`write_command_bag`'s output.
+WRENCH_COMMAND_TOPIC = '/robot/commands/wrench'
 POSE_TOPIC = '/vrpn_mocap/robot/pose'
 RATE_TOPIC = '/reduced_dynamics/drift/momentum_rate'
 WINDOW = 61
@@ -140,3 +147,34 @@ def momentum_spread(out_bag: str) -> Optional[np.ndarray]:
             wrench = message.msg.wrench
             rows.append((wrench.force.x, wrench.force.y, wrench.torque.z))
     return np.array(rows).std(axis=0) if rows else None
+
+
+def write_command_bag(bag: str, out: str, pose_topic: str = POSE_TOPIC,
+                      frame_id: str = 'robot') -> int:
+    """
+    Copy ``bag``'s poses and write its thruster switches as body wrenches; return the count.
+
+    Each ff_msgs/msg/ThrusterCommand becomes a geometry_msgs/msg/WrenchStamped on
+    :data:`WRENCH_COMMAND_TOPIC` at the same record time: the nominal body wrench of
+    the switches by the data README's thruster map (0.2 N per thruster, 0.11461 m
+    lever arm; :data:`reduced_dynamics.thrusters.LAYOUTS`), stamped with the
+    header stamp (the record time where it is 0), ``frame_id`` the base link.
+    The poses are copied byte for byte.
+    """
+    units = np.array(LAYOUTS['freeflyer']) * FREEFLYER_FORCE
+    count = 0
+    topics = {pose_topic: 'geometry_msgs/msg/PoseStamped',
+              WRENCH_COMMAND_TOPIC: 'geometry_msgs/msg/WrenchStamped'}
+    with open_bag(bag) as reader, BagWriter(out, topics, overwrite=True) as writer:
+        for message in reader.raw_messages([pose_topic, COMMAND_TOPIC]):
+            if message.topic == pose_topic:
+                writer.write_raw(pose_topic, message.timestamp_ns, bytes(message.data))
+                continue
+            stamp, switches = decode_thruster_command(bytes(message.data))
+            wrench = np.array(switches, dtype=float) @ units
+            sample = WrenchSample(stamp or message.timestamp_ns, frame_id, wrench[:3],
+                                  wrench[3:])
+            writer.write_raw(WRENCH_COMMAND_TOPIC, message.timestamp_ns,
+                             encode_wrench_stamped(sample))
+            count += 1
+    return count

@@ -662,25 +662,38 @@ def test_node_and_replay_publish_the_same_bytes_for_the_same_bag(ros, node_facto
                 assert mine == theirs, f'{topic.name}[{i}]'
 
 
+@pytest.mark.parametrize('robot', ['freeflyer', 'paper'])
 def test_node_with_a_commanded_wrench_publishes_what_replay_writes(ros, node_factory,
-                                                                   tmp_path):
+                                                                   tmp_path, robot):
     """commanded_wrench_topic: the same bytes as replay --commanded-wrench-topic."""
     from reduced_dynamics.bag.reader import open_bag
     from reduced_dynamics.replay import replay, ReplayOptions
     from reduced_dynamics.topics import active_topics, resolved_name
-    path = REPO_ROOT / 'test' / 'data' / 'freeflyer_realistic'
-    urdf = str(config_path('robots/freeflyer.urdf'))
-    summary = replay(str(path), str(tmp_path / 'out'), load_robot(urdf),
-                     ReplayOptions(base_pose_topic='/base_pose', smooth=False,
-                                   commanded_wrench_topic='/commanded_wrench'))
-    node = node_factory(urdf_path=urdf, base_input='pose',
-                        commanded_wrench_topic='/commanded_wrench')
+    if robot == 'freeflyer':  # base-driven, poses only
+        path = REPO_ROOT / 'test' / 'data' / 'freeflyer_realistic'
+        urdf = str(config_path('robots/freeflyer.urdf'))
+        inputs, base = ['/base_pose', '/commanded_wrench'], {'base_input': 'pose'}
+        options = ReplayOptions(base_pose_topic='/base_pose', smooth=False,
+                                commanded_wrench_topic='/commanded_wrench')
+    else:  # joint states and Odometry, SE(3)
+        try:
+            from test_commanded_wrench import simulate_paper_thrusters
+        except ImportError:  # test/ imported as a package
+            from test.test_commanded_wrench import simulate_paper_thrusters
+        path = tmp_path / 'paper'
+        simulate_paper_thrusters(path)
+        urdf = str(paper_robot_urdf())
+        inputs, base = ['/joint_states', '/odom', '/commanded_wrench'], {}
+        options = ReplayOptions(smooth=False, commanded_wrench_topic='/commanded_wrench')
+    summary = replay(str(path), str(tmp_path / 'out'), load_robot(urdf), options)
+    node = node_factory(urdf_path=urdf, commanded_wrench_topic='/commanded_wrench', **base)
     assert node.describe_parameter('commanded_wrench_topic').read_only
     with open_bag(path) as reader:
-        for message in reader.raw_messages(['/base_pose', '/commanded_wrench']):
+        for message in reader.raw_messages(inputs):
             ros.deliver(node, message.topic, bytes(message.data), message.timestamp_ns)
     node.wait_for_predictions()
-    assert node.received['command'] == 122
+    commands = summary['messages_in']['/commanded_wrench']
+    assert node.received['command'] == commands > 50
     assert node.estimator.command_estimate() == {
         k: v for k, v in summary['commanded_wrench'].items() if k != 'topic'}
     with open_bag(tmp_path / 'out') as reader:
@@ -692,7 +705,7 @@ def test_node_with_a_commanded_wrench_publishes_what_replay_writes(ros, node_fac
             for i, (mine, theirs) in enumerate(zip(published, replayed)):
                 assert mine == theirs, f'{topic.name}[{i}]'
     status = node.node_status().values_dict()
-    assert status['received_command'] == '122'
+    assert status['received_command'] == str(commands)
     assert 'missing_command' not in status
 
 
