@@ -238,7 +238,9 @@ def time_crba(robot, calls: int) -> float:
     return (time.perf_counter() - start) / calls
 
 
-UPDATE_PATHS = ('streaming', 'batched', 'batched+outputs')
+UPDATE_PATHS = ('streaming', 'batched', 'batched+outputs', 'streaming, odometry 200 Hz')
+#: The node bench's mix: every 5th base sample, stamped 0.3 ms after its joint state.
+ODOMETRY_EVERY, ODOMETRY_OFFSET_NS = 5, 300_000
 
 
 def time_update(robot, joints: list, bases: list, warmup: int = 20,
@@ -250,11 +252,34 @@ def time_update(robot, joints: list, bases: list, warmup: int = 20,
     sample, per-sample outputs (the node). ``batched``: the same messages in
     arrival order, :data:`UPDATE_FEED` per ``add_samples`` call, column outputs;
     ``batched+outputs`` also builds the per-sample outputs from the columns.
+    ``streaming, odometry 200 Hz``: streaming with every fifth base sample only,
+    stamped 0.3 ms after its joint state (1 kHz joint states + 200 Hz odometry on
+    their own clocks, as in the node bench): a base measurement updates the filter
+    at its own stamp, the rows between only propagate.
     """
     from reduced_dynamics.estimator.config import EstimatorConfig
     from reduced_dynamics.estimator.pipeline import Estimator
+    from reduced_dynamics.messages.samples import BaseStateSample
     estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0))
-    if path == 'streaming':
+    if path == 'streaming, odometry 200 Hz':
+        shifted = [BaseStateSample(b.stamp_ns + ODOMETRY_OFFSET_NS, b.frame_id,
+                                   b.child_frame_id, b.position, b.orientation_xyzw,
+                                   b.twist_linear, b.twist_angular)
+                   for b in bases[::ODOMETRY_EVERY]]
+        messages = sorted([(j.stamp_ns, 0, j) for j in joints]
+                          + [(b.stamp_ns, 1, b) for b in shifted], key=lambda e: e[:2])
+        calls = [estimator.add_base_state if kind else estimator.add_joint_state
+                 for _, kind, _ in messages]
+        samples = [sample for _, _, sample in messages]
+        split = 2 * warmup
+        for call, sample in zip(calls[:split], samples[:split]):
+            call(sample)
+        before = estimator.processed
+        start = time.perf_counter()
+        for call, sample in zip(calls[split:], samples[split:]):
+            call(sample)
+        elapsed = time.perf_counter() - start
+    elif path == 'streaming':
         add_joint, add_base = estimator.add_joint_state, estimator.add_base_state
         for joint, base in zip(joints[:warmup], bases[:warmup]):
             add_joint(joint)
@@ -300,10 +325,15 @@ def bench_update(report: Report, robot, settings: Settings) -> None:
     updates, crbas = measure_update(robot, settings, settings.update_samples)
     names = {'streaming': 'estimator update (paper robot)',
              'batched': 'estimator update, batched (paper robot)',
-             'batched+outputs': 'estimator update, batched + outputs (paper robot)'}
-    notes = {'streaming': 'add_joint_state/add_base_state per sample, outputs built',
+             'batched+outputs': 'estimator update, batched + outputs (paper robot)',
+             'streaming, odometry 200 Hz':
+                 'estimator update, 1 kHz joints + 200 Hz odometry (paper robot)'}
+    notes = {'streaming': 'add_joint_state/add_base_state per sample, outputs built; '
+                          'joint and base stamps equal: an update every sample',
              'batched': f'add_samples, {UPDATE_FEED} messages per call, column outputs',
-             'batched+outputs': 'as batched, then EstimatorOutput per sample'}
+             'batched+outputs': 'as batched, then EstimatorOutput per sample',
+             'streaming, odometry 200 Hz': 'streaming; odometry every 5th sample, 0.3 ms '
+                                           'later: an update per odometry sample'}
     for path, values in updates.items():
         ratios = [u / c for u, c in zip(values, crbas)]
         report.add(make_figure('update', names[path], 'us/sample',

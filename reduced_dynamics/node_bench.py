@@ -179,10 +179,14 @@ def publish(args: argparse.Namespace) -> int:
         for joint_rate in joint_rates:
             base_rate = min(args.base_rate, joint_rate)
             for repeat in range(args.repeats):
+                # One base sample more, at the window's end: the estimator processes a
+                # joint state once a base sample at or after its stamp has come (every
+                # base measurement up to it is then known); without it the joint states
+                # after the last base sample of a window would wait for the next window.
                 events = sorted([(k / joint_rate, 0) for k in
                                  range(int(phase_seconds * joint_rate))]
                                 + [(k / base_rate, 1) for k in
-                                   range(int(phase_seconds * base_rate))])
+                                   range(int(phase_seconds * base_rate) + 1)])
                 sent: list[int] = []
                 base_sent = 0
                 start = time.monotonic()

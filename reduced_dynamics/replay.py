@@ -257,7 +257,8 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                 expected = JOINT_STATE_TYPE if topic == joint_topic else base_type
                 inputs[topic, msgtype] = _wrong_type(topic, msgtype, expected)
         read: Counter = Counter()
-        series = {'mu': _Series(), 'rate': _Series(), 'shape': _Series(), 'residual': []}
+        series = {'mu': _Series(), 'rate': _Series(), 'shape': _Series(), 'residual': [],
+                  'disturbance': _Series()}
         last_report = started
         with BagWriter(out_path, out_topics, overwrite=options.overwrite) as writer:
             write = writer.write_raw
@@ -283,6 +284,10 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                         series['rate'].add((output.stamp_ns, *output.momentum_rate.force,
                                             *output.momentum_rate.torque))
                         series['shape'].add((output.stamp_ns, *output.shape_state.position))
+                        if output.disturbance is not None:
+                            series['disturbance'].add((output.stamp_ns,
+                                                       *output.disturbance.force,
+                                                       *output.disturbance.torque))
 
             batch: list = []
             for count, message in enumerate(reader.raw_messages(wanted, start_ns, end_ns)):
@@ -447,6 +452,10 @@ def write_plots(directory: str, series: dict, robot: RobotModel,
     if rate.size:
         wrench_plot(rate, ('F', 'T'), ('force [N]', 'torque about origin [N m]'),
                     'momentum drift: estimated external wrench dμ/dt', 'drift.png')
+    disturbance = np.array(series.get('disturbance', _Series()).rows)
+    if disturbance.size:
+        wrench_plot(disturbance, ('F', 'T'), ('force [N]', 'torque about origin [N m]'),
+                    'disturbance beyond the commanded wrench', 'disturbance.png')
     shape = np.array(series['shape'].rows)
     if shape.size and shape.shape[1] > 1:
         t = (shape[:, 0] - t0) * 1e-9

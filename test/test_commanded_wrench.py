@@ -248,8 +248,12 @@ def test_without_the_option_nothing_changes(causal, tmp_path):
 
 
 def test_smoothed_replay_reports_the_same_gain_and_a_closer_wrench(causal, tmp_path):
-    summary, out = _replay(tmp_path, smooth=True)
+    options = ReplayOptions(base_pose_topic='/base_pose', plots_dir=str(tmp_path / 'plots'),
+                            commanded_wrench_topic='/commanded_wrench')
+    out = tmp_path / 'out'
+    summary = replay(FREEFLYER_BAG, str(out), FREEFLYER, options)
     assert summary['commanded_wrench'] == causal[0]['commanded_wrench']
+    assert str(tmp_path / 'plots' / 'disturbance.png') in summary['plots']
     stamps, total = _wrenches(out, '/reduced_dynamics/drift/momentum_rate')
     truth_stamps, truth = _wrenches(FREEFLYER_BAG, '/ground_truth/external_wrench')
     truth = truth[np.clip(np.searchsorted(truth_stamps, stamps), 0, len(truth) - 1)]

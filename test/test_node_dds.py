@@ -25,6 +25,7 @@ machine do not mix.
 import importlib.util
 import os
 from pathlib import Path
+import shlex
 import signal
 import subprocess
 import sys
@@ -54,8 +55,23 @@ PKG = 'reduced_dynamics'
 DATA = REPO_ROOT / 'test' / 'data'
 RELIABLE_INPUTS = [
     f'qos_overrides./{topic}.subscription.{policy}:={value}'
-    for topic in ('joint_states', 'odom')
+    for topic in ('joint_states', 'odom', 'base_pose')
     for policy, value in (('reliability', 'reliable'), ('history', 'keep_all'))]
+#: The shipped bags and the node parameters they need (replay gets the same): the
+#: paper robot with Odometry (defaults), the planar testbed with joints and poses only
+#: (gravity in the plane's normal), the jointless free-flyer with mocap poses only.
+BAGS = {
+    'paper_constant': {},
+    'paper_realistic': {},
+    'paper_thruster': {},
+    'planar_pose_only': {'urdf': 'robots/planar_testbed.urdf', 'base_joint': 'planar',
+                         'gravity': [0.0, 0.0, -9.81], 'base_input': 'pose'},
+    'freeflyer_realistic': {'urdf': 'robots/freeflyer.urdf', 'base_input': 'pose'},
+}
+#: Input topics and their types as the bags and the node's defaults name them.
+INPUT_TYPES = {'/joint_states': 'sensor_msgs/msg/JointState',
+               '/odom': 'nav_msgs/msg/Odometry',
+               '/base_pose': 'geometry_msgs/msg/PoseStamped'}
 
 
 #: Estimator diagnostics that count inputs taken so far when the status is made: DDS
@@ -141,7 +157,7 @@ def spin_until(executor, condition, timeout):
 
 
 # ------------------------------------------------------------------ bags over DDS
-@pytest.mark.parametrize('bag', ['paper_constant', 'paper_realistic', 'paper_thruster'])
+@pytest.mark.parametrize('bag', list(BAGS))
 def test_bag_played_over_dds_gives_replays_bytes(install, client, tmp_path, bag):
     """
     Every output the replay writes for the bag, bit for bit, from the running executable.
@@ -150,11 +166,28 @@ def test_bag_played_over_dds_gives_replays_bytes(install, client, tmp_path, bag)
     published on the node clock with input and processed rates, which depend on the
     machine, and the replay has no node. Everything else is compared byte for byte.
     """
+    import numpy as np
+    from reduced_dynamics.params import defaults
     from reduced_dynamics.replay import replay, ReplayOptions
+    from reduced_dynamics.resources import config_path
     from reduced_dynamics.robot.model import load_robot
     node, executor = client
-    replay(str(DATA / bag), str(tmp_path / 'out'), load_robot(),
-           ReplayOptions(smooth=False))  # causal: what the node publishes
+    spec = BAGS[bag]
+    urdf = str(config_path(spec['urdf'])) if 'urdf' in spec else paper_robot_urdf()
+    params = defaults()
+    node_params = [f'urdf_path:={urdf}']
+    for name in ('base_joint', 'gravity', 'base_input'):
+        if name in spec:
+            params[name] = spec[name]
+            value = spec[name]
+            if isinstance(value, list):  # a YAML list, no spaces: one shell word
+                value = '[' + ','.join(str(v) for v in value) + ']'
+            node_params.append(shlex.quote(f'{name}:={value}'))
+    robot = load_robot(urdf, params['base_joint'], np.array(params['gravity'], dtype=float))
+    pose_input = params['base_input'] == 'pose'
+    replay(str(DATA / bag), str(tmp_path / 'out'), robot,
+           ReplayOptions(params=params, base_pose_topic='/base_pose' if pose_input else None,
+                         smooth=False))  # causal: what the node publishes
     expected = {}
     with open_bag(tmp_path / 'out') as reader:
         for topic in active_topics(False):
@@ -175,14 +208,15 @@ def test_bag_played_over_dds_gives_replays_bytes(install, client, tmp_path, bag)
         name = resolved_name(topic)
         node.create_subscription(types.get(topic.msgtype), name,
                                  lambda data, name=name: keep(name, data), keep_all, raw=True)
-    publishers = {t: node.create_publisher(types.get(m), t, keep_all) for t, m in
-                  (('/joint_states', 'sensor_msgs/msg/JointState'),
-                   ('/odom', 'nav_msgs/msg/Odometry'))}
+    with open_bag(DATA / bag) as reader:
+        inputs = [t for t in INPUT_TYPES if t in reader.topics()]
+    publishers = {t: node.create_publisher(types.get(INPUT_TYPES[t]), t, keep_all)
+                  for t in inputs}
     # Outputs kept whole too: a reliable KEEP_LAST writer may overwrite what a busy
     # reader has not acknowledged yet.
     keep_outputs = [f'-p qos_overrides.{name}.publisher.history:=keep_all' for name in expected]
-    proc = start_node(install, '-p', f'urdf_path:={paper_robot_urdf()}', *(
-        f'-p {arg}' for arg in RELIABLE_INPUTS), *keep_outputs)
+    proc = start_node(install, *(f'-p {arg}' for arg in node_params + RELIABLE_INPUTS),
+                      *keep_outputs)
     try:
         matched = spin_until(executor, lambda: all(
             p.get_subscription_count() for p in publishers.values()) and all(
@@ -192,7 +226,7 @@ def test_bag_played_over_dds_gives_replays_bytes(install, client, tmp_path, bag)
         with open_bag(DATA / bag) as reader:
             # Paced: two topics have no common order in DDS; 2 ms apart, the node takes
             # them in the bag's order (the estimator's counts in /diagnostics follow it).
-            for message in reader.raw_messages(['/joint_states', '/odom']):
+            for message in reader.raw_messages(inputs):
                 publishers[message.topic].publish(bytes(message.data))
                 executor.spin_once(timeout_sec=0.002)
         spin_until(executor, lambda: all(len(got[n]) >= len(expected[n]) for n in expected),

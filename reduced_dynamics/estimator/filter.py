@@ -38,6 +38,14 @@ with W(pi)[a, b] = <pi, [e_a, e_b]> (``BaseGroup.coadjoint_form``), because
 ``Ad_{g exp d}^T mu = pi + ad_d^T pi = pi - W(pi) d``. Encoder velocity noise
 enters through A: ``A Sigma_qdot A^T`` on delta_g for the step it is held.
 
+The joint states are the filter's inputs and its output rows; the base samples are
+its measurements, each used once, at its own stamp (:meth:`MomentumFilter.row`):
+between two joint-state rows the filter propagates to a measurement's stamp with
+the joint inputs interpolated between the rows, updates, and propagates on to the
+next row, as robot_localization orders measurements. Interpolating the base to
+every joint-state stamp instead would use one measurement several times as if
+independent (over-confident) and pay an update per row.
+
 Measurements: a pose (PoseStamped), residual ``log(g_hat^-1 g_meas)``, H = [1 0 0];
 a body twist (Odometry), ``h = I^-1 Ad_g^T mu - A qbar_dot``,
 H = [-I^-1 W(pi), I^-1 Ad_g^T, 0], with the joint-velocity noise through A in R.
@@ -126,13 +134,13 @@ class NoiseModel:
     initial_speed: float = 1.0
     initial_rate: float = 1.0
     initial_acceleration: float = 1.0
-    pose_stamp: float = 0.0
     command_gain: float = 0.5
     command_gain_drift: float = 2e-3
     command_bias_linear: float = 5e-3
     command_bias_angular: float = 2.5e-2
     disturbance_linear: float = 1e-3
     disturbance_angular: float = 5e-3
+    pose_stamp: float = 0.0
 
 
 class Linearisation(NamedTuple):
@@ -144,9 +152,41 @@ class Linearisation(NamedTuple):
     joint_cov: np.ndarray
 
 
+def between(before: Linearisation, after: Linearisation, fraction: float) -> Linearisation:
+    """
+    Return the inputs ``fraction`` of the way from ``before`` to ``after``.
+
+    I^-1 and A qbar_dot are interpolated linearly (the trapezoid of the step's
+    inputs); I and A Sigma A^T are those of ``after``. ``fraction`` 0.5 is the
+    middle of a joint-state interval, written as the plain mean.
+    """
+    if fraction == 0.5:
+        return Linearisation(after.locked,
+                             0.5 * (before.locked_inverse + after.locked_inverse),
+                             0.5 * (before.connection_qd + after.connection_qd), after.joint_cov)
+    return Linearisation(
+        after.locked,
+        before.locked_inverse + fraction * (after.locked_inverse - before.locked_inverse),
+        before.connection_qd + fraction * (after.connection_qd - before.connection_qd),
+        after.joint_cov)
+
+
+class Measurement(NamedTuple):
+    """A base measurement at its own stamp: the pose, and the body twist with Odometry."""
+
+    stamp_ns: int
+    pose: pin.SE3
+    twist: Optional[np.ndarray]
+
+
 @dataclass
 class FilterStep:
-    """What the RTS smoother needs from one step (predicted and filtered)."""
+    """
+    What the RTS smoother needs from one step (predicted and filtered).
+
+    ``output``: the step is a joint-state row (an output of the estimator);
+    False for a base measurement between two rows.
+    """
 
     stamp_ns: int
     transition: Optional[np.ndarray]
@@ -157,6 +197,7 @@ class FilterStep:
     x: np.ndarray
     p: np.ndarray
     locked_inverse: np.ndarray
+    output: bool = True
     #: commanded wrench only: the command held at this step's end
     command: Optional[np.ndarray] = None
 
@@ -191,8 +232,13 @@ class MomentumFilter:
     """
     The error-state Kalman filter on G x R^n x R^n (see the module docstring).
 
-    Call :meth:`step` once per sample, in stamp order. ``record`` keeps the
-    steps for :func:`smooth`.
+    :meth:`row` processes one joint-state row with the base measurements
+    stamped since the previous one (each updates once, at its own stamp);
+    :meth:`step` is the row with one measurement at the row's stamp. ``record``
+    keeps the steps for :func:`smooth`.
+
+    Arrays of the state (``x``, ``p``) are replaced, never modified in place, so
+    that recorded steps can share them.
     """
 
     def __init__(self, group: BaseGroup, noise: NoiseModel, gate_probability: float,
@@ -233,25 +279,45 @@ class MomentumFilter:
         self._gated_run = 0
         self.last_nis: float = 0.0
         self._eye = np.eye(dim)
+        self._eye_n = np.eye(n)
         if command:
             self._bias_var = np.where(angular, noise.command_bias_angular ** 2,
                                       noise.command_bias_linear ** 2)
             self._jerk_var = np.where(angular, noise.disturbance_angular ** 2,
                                       noise.disturbance_linear ** 2)
             self._command = np.zeros(n)
+            self._command_zero = np.zeros(n)
         #: sum of the innovations' log-likelihoods, of their NIS and of their dimensions
         self.log_likelihood = 0.0
         self.nis_sum = 0.0
         self.nis_dof = 0
         self._lin: Optional[Linearisation] = None
-        self.step_test = WrenchStepTest(n, step_significance, dim)
-        #: re-initialisations after the covariance lost positive definiteness
-        self.diverged = 0
-        self._stamp_twist = np.zeros(n)
-        self._stamp_dt = 0.0
-        #: the wrench step taken at the last step (None: none detected)
+        # Structure constants as matrices: ad(eta) = (eta @ ad_rows).reshape(n, n) and
+        # W(pi) = (form_rows @ pi).reshape(n, n) (one matmul each, no einsum).
+        structure = group.structure_constants
+        self._ad_rows = np.ascontiguousarray(structure.reshape(n, n * n))
+        self._form_rows = np.ascontiguousarray(structure.transpose(0, 2, 1).reshape(n * n, n))
+        self._whole = group.is_whole
+        self._basis, self._pinv = group.algebra_basis, group.algebra_pinv
+        # Phi has the identity on its diagonal and dt I from w to mu (set per step).
+        self._chain = (np.arange(n, 2 * n), np.arange(2 * n, 3 * n))
+        # Coefficients of the series terms of Phi's top block row (see _transition).
+        self._series1 = np.r_[np.full(2 * n, 0.5), np.full(n, 1.0 / 3.0)]
+        self._series2 = np.r_[np.full(2 * n, 1.0 / 6.0), np.zeros(n)]
+        self._r_pose = np.diag(self._pose_var)
+        self._r_twist = np.diag(self._twist_var)
+        self.step_test = WrenchStepTest(n, step_significance, self.dim)
+        #: the wrench step taken since the last row (None: none detected)
         self.step_detected: Optional[StepDetection] = None
         self.steps_taken = 0
+        #: re-initialisations after the covariance lost positive definiteness
+        self.diverged = 0
+        # Body twist averaged over STAMP_TWIST_TIME (pose stamp noise) and its time.
+        self._stamp_twist = np.zeros(n)
+        self._stamp_twist_ns: Optional[int] = None
+        # H of a pose measurement, [1 0 0] (the step test's signatures need it).
+        self._h_pose = np.zeros((n, self.dim))
+        self._h_pose[:, :n] = np.eye(n)
 
     # --- pieces of the model ----------------------------------------------------------
     @property
@@ -319,9 +385,26 @@ class MomentumFilter:
         w = self.wrench
         return float(w @ np.linalg.solve(self.wrench_cov, w))
 
+    def _adjoint(self, g: pin.SE3) -> np.ndarray:
+        """Return Ad_g on the subalgebra (n x n)."""
+        if self._whole:
+            return g.action
+        return self._pinv @ g.action @ self._basis
+
+    def _adjoint_inverse(self, g: pin.SE3) -> np.ndarray:
+        """Return Ad_{g^-1} on the subalgebra (n x n)."""
+        if self._whole:
+            return g.actionInverse
+        return self._pinv @ g.actionInverse @ self._basis
+
+    def _form(self, covector: np.ndarray) -> np.ndarray:
+        """Return W(covector)[a, b] = <covector, [e_a, e_b]> (``coadjoint_form``)."""
+        n = self.n
+        return (self._form_rows @ covector).reshape(n, n)
+
     def twist(self, g: pin.SE3, mu: np.ndarray, lin: Linearisation) -> np.ndarray:
         """Return xi = I^-1 Ad_g^T mu - A qbar_dot (reconstruction)."""
-        return lin.locked_inverse @ (self.group.Ad(g).T @ mu) - lin.connection_qd
+        return lin.locked_inverse @ (self._adjoint(g).T @ mu) - lin.connection_qd
 
     def jacobian(self, g: pin.SE3, mu: np.ndarray, lin: Linearisation) -> np.ndarray:
         """Return F of the error dynamics at (g, mu) (3n x 3n)."""
@@ -347,17 +430,17 @@ class MomentumFilter:
 
     def twist_jacobian(self, g: pin.SE3, mu: np.ndarray, lin: Linearisation) -> np.ndarray:
         """Return H of the twist measurement (n x 3n)."""
-        n, group = self.n, self.group
-        ad_t = group.Ad(g).T
+        n = self.n
+        ad_t = self._adjoint(g).T
         pi = ad_t @ mu
         h = np.zeros((n, self.dim))
-        h[:, :n] = -lin.locked_inverse @ group.coadjoint_form(pi)
+        h[:, :n] = -lin.locked_inverse @ self._form(pi)
         h[:, n:2 * n] = lin.locked_inverse @ ad_t
         return h
 
     def wrench_density(self, g: pin.SE3, locked: np.ndarray) -> np.ndarray:
         """Return the spectral density of w_dot: Ad_{g^-1}^T I diag(s^2) I Ad_{g^-1}."""
-        scaled = self.group.Ad(g.inverse()).T @ locked
+        scaled = self._adjoint_inverse(g).T @ locked
         return (scaled * self._jerk_var) @ scaled.T
 
     def propagate_mean(self, g: pin.SE3, x: np.ndarray, lin: Linearisation,
@@ -369,15 +452,15 @@ class MomentumFilter:
         ``u`` (commanded wrench): the command's mean over the step; the
         delivered wrench is taken at the pose of the step's middle.
         """
-        n, group = self.n, self.group
         if u is not None:
             return self._propagate_commanded(g, x, lin, dt, u)
+        n, exp = self.n, self.group.exp
         mu, w = x[:n], x[n:]
-        half = group.exp(self.twist(g, mu, lin) * (0.5 * dt))
+        half = exp(self.twist(g, mu, lin) * (0.5 * dt))
         xi = self.twist(g * half, mu + w * (0.5 * dt), lin)
         out = x.copy()
         out[:n] = mu + w * dt
-        return g * group.exp(xi * dt), out
+        return g * exp(xi * dt), out
 
     def _propagate_commanded(self, g: pin.SE3, x: np.ndarray, lin: Linearisation,
                              dt: float, u: np.ndarray) -> tuple[pin.SE3, np.ndarray]:
@@ -393,22 +476,65 @@ class MomentumFilter:
     def _transition(self, g: pin.SE3, x: np.ndarray, lin: Linearisation,
                     dt: float, u: Optional[np.ndarray] = None
                     ) -> tuple[np.ndarray, np.ndarray]:
-        """Return Phi = exp(F dt) and the discrete process noise (series to dt^4)."""
+        """
+        Return Phi = exp(F dt) (third order) and the discrete process noise Q.
+
+        F has two non-trivial blocks only, F_gg = -(ad_xi + I^-1 W(pi)) and
+        F_gmu = I^-1 Ad_g^T, at mu in the middle of the step; the mu-w chain is
+        nilpotent. With a = F_gg dt, b = F_gmu dt the series gives, blockwise,
+        Phi_gg = 1 + a + a^2/2 + a^3/6, Phi_gmu = b + ab/2 + a^2 b/6,
+        Phi_gw = (b/2 + ab/6) dt, Phi_muw = dt. Van Loan's integral
+        int_0^dt Phi(s) Qc Phi(s)^T ds as its Taylor series to fourth order in F dt
+        (exact for the mu-w chain), with q = Q_w dt: Q_ww = q, Q_muw = q dt/2,
+        Q_mumu = q dt^2/3, Q_gw = (b/6 + ab/24) q dt, Q_gmu = b q dt^2/8, and
+        Q_gg = A Sigma_qdot A^T dt^2 (encoder velocity noise held over the step).
+        With the commanded wrench (``u``: its mean over the step) F has more blocks
+        (module docstring): the series is then evaluated on the dense 5n matrices.
+        """
+        if u is not None:
+            return self._transition_commanded(g, x, lin, dt, u)
         n = self.n
-        if u is None:
-            mu_mid = x[:n] + x[n:] * (0.5 * dt)
-            f = self.jacobian(g, mu_mid, lin)
-        else:
-            mu_mid = x[:n] + (x[n:2 * n] + self.delivered(g, x, u)) * (0.5 * dt)
-            f = self.jacobian(g, mu_mid, lin)
-            self.command_jacobian(f, g, x, u)
+        ad_t = self._adjoint(g).T
+        pi = ad_t @ (x[:n] + x[n:] * (0.5 * dt))
+        inverse = lin.locked_inverse
+        xi = inverse @ pi - lin.connection_qd
+        a = ((xi @ self._ad_rows).reshape(n, n) + inverse @ self._form(pi)) * -dt
+        b = (inverse @ ad_t) * dt
+        # The top block row of Phi - 1 from t = [a, b, b dt/2]: t + (a t) c1 + (a a t) c2
+        # with c1 = 1/2 (1/3 in the last block) and c2 = 1/6 (0): the series above.
+        t = np.concatenate((a, b, b * (0.5 * dt)), axis=1)
+        at = a @ t
+        phi = self._eye.copy()
+        phi[:n] += t + at * self._series1 + (a @ at) * self._series2
+        phi[self._chain] = dt
+        # Q_w = Ad_{g^-1}^T I diag(s^2) I Ad_{g^-1}; Ad_{g^-1} = Ad_g^-1 on the subgroup.
+        scaled = self._adjoint_inverse(g).T @ lin.locked
+        qa = ((scaled * self._jerk_var) @ scaled.T) * dt
+        q = np.empty((3 * n, 3 * n))
+        q[:n, :n] = lin.joint_cov * (dt * dt)
+        # [Q_gmu, Q_gw] = [b dt^2/8, (b/6 + ab/24) dt] (1 x 2 blocks) times q.
+        q[:n, n:] = (np.concatenate((b * (dt * dt / 8.0),
+                                     (b / 6.0 + at[:, n:2 * n] / 24.0) * dt)) @ qa
+                     ).reshape(2, n, n).transpose(1, 0, 2).reshape(n, 2 * n)
+        q[n:, :n] = q[:n, n:].T
+        # [[Q_mumu, Q_muw], [Q_wmu, Q_ww]] = [[dt^2/3, dt/2], [dt/2, 1]] (x) q.
+        q[n:, n:] = (np.array([[dt * dt / 3.0, 0.5 * dt], [0.5 * dt, 1.0]])[:, None, :, None]
+                     * qa[None, :, None, :]).reshape(2 * n, 2 * n)
+        return phi, q
+
+    def _transition_commanded(self, g: pin.SE3, x: np.ndarray, lin: Linearisation,
+                              dt: float, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return Phi and Q of the commanded-wrench filter (dense series, see _transition)."""
+        n = self.n
+        mu_mid = x[:n] + (x[n:2 * n] + self.delivered(g, x, u)) * (0.5 * dt)
+        f = self.jacobian(g, mu_mid, lin)
+        self.command_jacobian(f, g, x, u)
         fdt = f * dt
         f2 = fdt @ fdt
         phi = self._eye + fdt + 0.5 * f2 + (f2 @ fdt) / 6.0
         qc = np.zeros((self.dim, self.dim))
         qc[2 * n:3 * n, 2 * n:3 * n] = self.wrench_density(g, lin.locked)
-        if u is not None:
-            qc[3 * n:, 3 * n:] = self._command_density(lin.locked)
+        qc[3 * n:, 3 * n:] = self._command_density(lin.locked)
         # Van Loan's integral int_0^dt Phi(s) Qc Phi(s)^T ds as its Taylor series:
         # exact for the mu-w chain (nilpotent), fourth order in dt otherwise.
         a = qc * dt
@@ -447,7 +573,7 @@ class MomentumFilter:
         self.g = g
         self.stamp_ns = stamp_ns
         self._lin = lin
-        to_world = self.group.Ad(g.inverse()).T @ lin.locked  # body velocity -> mu
+        to_world = self._adjoint_inverse(g).T @ lin.locked  # body velocity -> mu
         p = np.zeros((self.dim, self.dim))
         p[:n, :n] = np.diag(self._pose_var)
         if twist is None:
@@ -464,11 +590,116 @@ class MomentumFilter:
             self.x = np.concatenate((self.x, np.ones(n), np.zeros(n)))
         self.p = p
         self._stamp_twist = np.zeros(n) if twist is None else np.array(twist, dtype=float)
+        self._stamp_twist_ns = stamp_ns
         self.step_test.reset()
         if self.record:
-            self.steps.append(FilterStep(stamp_ns, None, g, self.x.copy(), p.copy(), g,
-                                         self.x.copy(), p.copy(), lin.locked_inverse,
-                                         self._command.copy() if self.command else None))
+            self.steps.append(FilterStep(stamp_ns, None, g, self.x, p, g, self.x, p,
+                                         lin.locked_inverse, True, self._held_command()))
+
+    def _held_command(self) -> Optional[np.ndarray]:
+        """Return a copy of the command held now (commanded wrench only, else None)."""
+        return self._command.copy() if self.command else None
+
+    def _propagate(self, stamp_ns: int, lin: Linearisation,
+                   command: Optional[Command]) -> np.ndarray:
+        """
+        Propagate mean and covariance to ``stamp_ns`` with inputs ``lin``; return Phi.
+
+        ``command``: the commanded wrench over the step (commanded-wrench filters;
+        None there: zero).
+        """
+        u = None
+        if self.command:
+            u = self._command_zero if command is None else command.mean
+            self._command = self._command_zero if command is None else command.now
+        dt = (stamp_ns - self.stamp_ns) * 1e-9
+        if dt <= 0.0:
+            self.step_test.propagate(stamp_ns, self._eye)
+            return self._eye
+        transition, q = self._transition(self.g, self.x, lin, dt, u)
+        self.g, self.x = self.propagate_mean(self.g, self.x, lin, dt, u)
+        p = transition @ self.p @ transition.T + q
+        self.p = 0.5 * (p + p.T)
+        self.stamp_ns = stamp_ns
+        self.step_test.propagate(stamp_ns, transition)
+        return transition
+
+    def row(self, stamp_ns: int, lin: Linearisation, prior: Optional[Measurement],
+            measurements: Sequence[Measurement] = (),
+            commands: Optional[Sequence[Optional[Command]]] = None
+            ) -> list[tuple[int, float]]:
+        """
+        Process one joint-state row at ``stamp_ns`` with its inputs ``lin``.
+
+        Each base measurement stamped since the previous row updates the filter
+        once, at its own stamp: the filter propagates to it with the joint inputs
+        interpolated between the bracketing rows, updates, and propagates on to
+        the row (robot_localization's order); a row without a measurement only
+        propagates. A measurement at the row's stamp updates at the row.
+        Measurements not after the filter's time (late) are skipped. Before the
+        first row the filter starts from ``prior`` (the base state at the row's
+        stamp) and skips the measurements it came from. ``commands``
+        (commanded-wrench filters): the command over each step, one per
+        measurement before the row's stamp, then the one of the step that ends at
+        the row. Return the gated measurements as (stamp, NIS).
+        """
+        self.step_detected = None
+        if self.g is None:
+            if prior is not None:
+                if self.command and commands:
+                    self._command = commands[-1].now
+                self.initialise(stamp_ns, prior.pose, lin, prior.twist)
+            return []
+        before = self._lin if self._lin is not None else lin
+        self._lin = lin
+        start = self.stamp_ns
+        span = stamp_ns - start
+        gated: list[tuple[int, float]] = []
+        last: Optional[Measurement] = None
+        done = 0.0  # fraction of the row's interval already propagated
+        for index, measurement in enumerate(measurements):
+            stamp = measurement.stamp_ns
+            if stamp >= stamp_ns:
+                if stamp == stamp_ns:
+                    last = measurement
+                break
+            if stamp <= self.stamp_ns:
+                continue
+            fraction = (stamp - start) / span
+            transition = self._propagate(stamp, between(before, lin, 0.5 * (done + fraction)),
+                                         None if commands is None else commands[index])
+            done = fraction
+            self._measure(stamp, transition, measurement, between(before, lin, fraction),
+                          False, gated)
+        transition = self._propagate(stamp_ns, between(before, lin, 0.5 * (done + 1.0)),
+                                     None if commands is None else commands[-1])
+        self._measure(stamp_ns, transition, last, lin, True, gated)
+        return gated
+
+    def _measure(self, stamp_ns: int, transition: np.ndarray,
+                 measurement: Optional[Measurement], lin: Linearisation, output: bool,
+                 gated: list) -> None:
+        """Update with ``measurement`` (if any) at the current time and record the step."""
+        g_pred, x_pred, p_pred = self.g, self.x, self.p
+        if measurement is not None:
+            try:
+                accepted = self._update(measurement.pose, measurement.twist, lin)
+                broken = not (np.isfinite(self.p).all() and (np.diag(self.p) >= 0.0).all())
+            except np.linalg.LinAlgError:
+                accepted, broken = False, True
+            if broken:
+                # The covariance lost positive definiteness (noise settings far below
+                # what the data do, e.g. tuned on stamps that are off by milliseconds):
+                # start again from this measurement (a restart step) instead of failing.
+                self.diverged += 1
+                self.initialise(stamp_ns, measurement.pose, lin, measurement.twist)
+                return
+            if not accepted:
+                gated.append((measurement.stamp_ns, self.last_nis))
+        if self.record:
+            self.steps.append(FilterStep(stamp_ns, transition, g_pred, x_pred, p_pred,
+                                         self.g, self.x, self.p, lin.locked_inverse, output,
+                                         self._held_command()))
 
     def step(self, stamp_ns: int, lin: Linearisation, pose: Optional[pin.SE3],
              twist: Optional[np.ndarray], command: Optional[Command] = None) -> bool:
@@ -479,132 +710,101 @@ class MomentumFilter:
         ``command=True``; None there means no command: zero).
         Return False when the measurement was gated out (counted in ``gated``).
         """
-        u = None
-        if self.command:
-            u = np.zeros(self.n) if command is None else command.mean
-            self._command = np.zeros(self.n) if command is None else command.now
+        measurement = None if pose is None else Measurement(stamp_ns, pose, twist)
+        commands = None if command is None else (command,)
         if self.g is None:
-            if pose is None:
-                return True
-            self.initialise(stamp_ns, pose, lin, twist)
+            self.row(stamp_ns, lin, measurement, (), commands)
             return True
-        dt = (stamp_ns - self.stamp_ns) * 1e-9
-        self._stamp_dt = dt
-        previous, self._lin = self._lin, lin
-        if dt > 0.0:
-            # The inputs at the middle of the step (trapezoid in I^-1 and A qbar_dot):
-            # second order in dt, like the midpoint rule of the mean.
-            middle = lin if previous is None else Linearisation(
-                lin.locked, 0.5 * (previous.locked_inverse + lin.locked_inverse),
-                0.5 * (previous.connection_qd + lin.connection_qd), lin.joint_cov)
-            transition, q = self._transition(self.g, self.x, middle, dt, u)
-            self.g, self.x = self.propagate_mean(self.g, self.x, middle, dt, u)
-            p = transition @ self.p @ transition.T + q
-            self.p = 0.5 * (p + p.T)
-            self.stamp_ns = stamp_ns
-        else:
-            transition = self._eye
-        self.step_test.propagate(stamp_ns, transition)
-        self.step_detected = None
-        g_pred, x_pred, p_pred = self.g, self.x.copy(), self.p.copy()
-        accepted = True
-        if pose is not None:
-            try:
-                accepted = self._update(pose, twist, lin)
-                broken = not (np.isfinite(self.p).all() and (np.diag(self.p) >= 0.0).all())
-            except np.linalg.LinAlgError:
-                broken = True
-            if broken:
-                # The covariance lost positive definiteness (noise settings far below
-                # what the data do, e.g. tuned on stamps that are off by milliseconds):
-                # start again from this measurement instead of failing.
-                self.diverged += 1
-                self.initialise(stamp_ns, pose, lin, twist)
-                return False
-        if self.record:
-            self.steps.append(FilterStep(stamp_ns, transition, g_pred, x_pred, p_pred,
-                                         self.g, self.x.copy(), self.p.copy(),
-                                         lin.locked_inverse,
-                                         self._command.copy() if self.command else None))
-        return accepted
-
-    def _measurement(self, g: pin.SE3, x: np.ndarray, pose: pin.SE3,
-                     twist: Optional[np.ndarray], lin: Linearisation
-                     ) -> tuple[np.ndarray, np.ndarray]:
-        """Return H and the innovation of the pose (and twist) at the state (g, x)."""
-        n = self.n
-        residual = self.group.log(g.inverse() * pose)
-        if twist is None:
-            h = np.zeros((n, self.dim))
-            h[:, :n] = np.eye(n)
-            return h, residual
-        h = np.zeros((2 * n, self.dim))
-        h[:n, :n] = np.eye(n)
-        h[n:] = self.twist_jacobian(g, x[:n], lin)
-        return h, np.concatenate((residual, twist - self.twist(g, x[:n], lin)))
+        return not self.row(stamp_ns, lin, None, () if measurement is None else (measurement,),
+                            commands)
 
     def _update(self, pose: pin.SE3, twist: Optional[np.ndarray],
                 lin: Linearisation) -> bool:
         n, group = self.n, self.group
-        g0, x0 = self.g, self.x
-        h, nu = self._measurement(g0, x0, pose, twist, lin)
-        r = np.zeros((len(nu), len(nu)))
-        r[:n, :n] = np.diag(self._pose_var)
+        g0, x0, p0 = self.g, self.x, self.p
+        residual = group.log(g0.inverse() * pose)
+        r_pose = self._r_pose
         if self.noise.pose_stamp > 0.0:
             # Stamp error dt: the measured pose is g exp(xi dt), so R += xi xi^T sigma_t^2,
             # with xi the body twist averaged over STAMP_TWIST_TIME: the estimate's own
             # transients (after a gate reset) must not weaken the poses that correct them.
             xi = self._stamp_twist * self.noise.pose_stamp
-            r[:n, :n] += np.outer(xi, xi)
-        if twist is not None:
-            r[n:, n:] = np.diag(self._twist_var) + lin.joint_cov
-        ph = self.p @ h.T
-        s = h @ ph + r
+            r_pose = r_pose + np.outer(xi, xi)
+        if twist is None:
+            # H = [1 0 0]: P H^T and H P H^T are blocks of P.
+            h = None
+            nu = residual
+            r = r_pose
+            ph = p0[:, :n]
+            s = p0[:n, :n] + r
+        else:
+            h, nu = self._twist_measurement(g0, x0, pose, twist, lin, residual)
+            r = np.zeros((2 * n, 2 * n))
+            r[:n, :n] = r_pose
+            r[n:, n:] = self._r_twist + lin.joint_cov
+            ph = p0 @ h.T
+            s = h @ ph + r
         s = 0.5 * (s + s.T)
-        nis = float(nu @ np.linalg.solve(s, nu))
+        size = len(nu)
+        # One solve for the gain and the NIS: S^-1 [(P H^T)^T, nu].
+        solved = np.linalg.solve(s, np.column_stack((ph.T, nu)))
+        nis = float(nu @ solved[:, -1])
         self.last_nis = nis
         # Innovation log-likelihood (what `reduced-dynamics tune` maximises) and NIS sums.
         sign, logdet = np.linalg.slogdet(s)
-        self.log_likelihood -= 0.5 * (nis + logdet + len(nu) * LOG_2PI)
+        self.log_likelihood -= 0.5 * (nis + logdet + size * LOG_2PI)
         self.nis_sum += nis
-        self.nis_dof += len(nu)
-        if nis > self._gates[len(nu)]:
+        self.nis_dof += size
+        if nis > self._gates[size]:
             self.gated += 1
             self._gated_run += 1
             if self._gated_run < GATE_RESET:
                 return False
             # A momentum jump no wrench of the random walk explains, seen 3 times in a
             # row: believe it, with the prior spread of mu and w added.
-            to_world = group.Ad(g0.inverse()).T @ lin.locked
-            self.p[n:2 * n, n:2 * n] += (to_world * self._speed_var) @ to_world.T
-            self.p[2 * n:3 * n, 2 * n:3 * n] += (to_world * self._accel_var) @ to_world.T
+            to_world = self._adjoint_inverse(g0).T @ lin.locked
+            p0 = p0.copy()
+            p0[n:2 * n, n:2 * n] += (to_world * self._speed_var) @ to_world.T
+            p0[2 * n:3 * n, 2 * n:3 * n] += (to_world * self._accel_var) @ to_world.T
+            self.p = p0
             # The step hypotheses described the filter before the jump: start afresh.
             self.step_test.reset()
-            ph = self.p @ h.T
-            s = h @ ph + r
+            if h is None:
+                ph = p0[:, :n]
+                s = p0[:n, :n] + r
+            else:
+                ph = p0 @ h.T
+                s = h @ ph + r
+            solved = np.linalg.solve(s, ph.T)
         self._gated_run = 0
-        gain = np.linalg.solve(s, ph.T).T
+        gain = solved[:, :self.dim].T
         dx = gain @ nu
-        if twist is not None:
+        if h is not None:
             # Iterated EKF (Gauss-Newton on the posterior): the twist is bilinear in
             # (g, mu), so one linearisation leaves a second-order miss where w steps.
             for _ in range(ITERATIONS):
                 g_i = g0 * group.exp(dx[:n])
-                h, nu_i = self._measurement(g_i, x0 + dx[n:], pose, twist, lin)
-                ph = self.p @ h.T
+                h, nu_i = self._twist_measurement(g_i, x0 + dx[n:], pose, twist, lin, None)
+                ph = p0 @ h.T
                 s = h @ ph + r
                 gain = np.linalg.solve(0.5 * (s + s.T), ph.T).T
                 dx = gain @ (nu_i + h @ dx)
         self.g = g0 * group.exp(dx[:n])
         self.x = x0 + dx[n:]
-        keep = self._eye - gain @ h
-        p = keep @ self.p @ keep.T + gain @ r @ gain.T
+        if h is None:
+            keep = self._eye.copy()
+            keep[:, :n] -= gain
+        else:
+            keep = self._eye - gain @ h
+        p = keep @ p0 @ keep.T + gain @ r @ gain.T
         self.p = 0.5 * (p + p.T)
         if self.noise.pose_stamp > 0.0:
-            weight = min(1.0, max(self._stamp_dt, 0.0) / STAMP_TWIST_TIME)
-            self._stamp_twist += weight * (self.twist(self.g, self.x[:n], lin)
-                                           - self._stamp_twist)
-        detection = self.step_test.update(h, s, gain, nu)
+            last, self._stamp_twist_ns = self._stamp_twist_ns, self.stamp_ns
+            dt = 0.0 if last is None else max(self.stamp_ns - last, 0) * 1e-9
+            weight = min(1.0, dt / STAMP_TWIST_TIME)
+            self._stamp_twist = self._stamp_twist + weight * (
+                self.twist(self.g, self.x[:n], lin) - self._stamp_twist)
+        detection = self.step_test.update(self._h_pose if h is None else h, s, gain, nu)
         if detection is not None:
             # A wrench step (thruster on/off: a jump, not a random walk): take its
             # maximum-likelihood size and its uncertainty (Willsky-Jones compensation).
@@ -616,6 +816,23 @@ class MomentumFilter:
             self.step_detected = detection
             self.steps_taken += 1
         return True
+
+    def _twist_measurement(self, g: pin.SE3, x: np.ndarray, pose: pin.SE3,
+                           twist: np.ndarray, lin: Linearisation,
+                           residual: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Return H and the innovation of pose and twist at (g, x) (``residual``: the pose's)."""
+        n = self.n
+        if residual is None:
+            residual = self.group.log(g.inverse() * pose)
+        ad_t = self._adjoint(g).T
+        pi = ad_t @ x[:n]
+        inverse = lin.locked_inverse
+        h = np.zeros((2 * n, self.dim))
+        h[:n, :n] = self._eye_n
+        h[n:, :n] = -inverse @ self._form(pi)
+        h[n:, n:2 * n] = inverse @ ad_t
+        predicted = inverse @ pi - lin.connection_qd
+        return h, np.concatenate((residual, twist - predicted))
 
     def state(self) -> FilterState:
         """Return the current estimate (copies)."""

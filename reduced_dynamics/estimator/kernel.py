@@ -52,6 +52,27 @@ class KernelResult(NamedTuple):
     xi: np.ndarray
 
 
+class FilterInputs(NamedTuple):
+    """
+    What the Kalman filter and the outputs need of a chunk (row k belongs to sample k).
+
+    ``locked`` I, ``inverse`` I^-1, ``connection_qd`` A qbar_dot, ``joint_cov``
+    A Sigma_qdot A^T (the filter's inputs), ``pbar`` = S qbar_dot (5.35), the
+    base rotation and translation and body twist coordinates ``xi`` of the rows'
+    base states, and the mass matrices.
+    """
+
+    locked: np.ndarray
+    inverse: np.ndarray
+    connection_qd: np.ndarray
+    joint_cov: np.ndarray
+    pbar: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+    xi: np.ndarray
+    mass: np.ndarray
+
+
 def _columnwise(formula: Callable[..., tuple], columns: np.ndarray) -> np.ndarray:
     """
     Apply an elementwise formula to every row of ``columns`` (K, p); return (K, q).
@@ -216,6 +237,31 @@ class UpdateKernel:
                 raise np.linalg.LinAlgError('locked inertia is not positive definite')
             return solved[:, :6]
         return np.linalg.solve(locked, covectors[:, :, None])[:, :, 0]
+
+    def filter_inputs(self, qbar: np.ndarray, qbar_dot: np.ndarray, bases: np.ndarray,
+                      joint_variance: float) -> FilterInputs:
+        """
+        Evaluate a chunk for the filter: rows qbar, qbar_dot (m,), base state (13,).
+
+        One stacked inverse of I gives the connection A = I^-1 B (5.29), the input
+        A qbar_dot, the encoder noise A Sigma A^T (Sigma = ``joint_variance`` 1)
+        and pbar = Mr qbar_dot - B^T A qbar_dot (5.35). Momenta are the filter's:
+        none are computed here.
+        """
+        n = self.n
+        mass = self.mass_matrices(qbar)
+        # Copies: the stack of mass matrices is reused by the next chunk.
+        locked = mass[:, :n, :n].copy()
+        coupling = mass[:, :n, n:]
+        inverse = np.linalg.inv(locked)
+        connection = np.matmul(inverse, coupling)
+        connection_qd = np.matmul(connection, qbar_dot[:, :, None])[:, :, 0]
+        joint_cov = joint_variance * np.matmul(connection, np.swapaxes(connection, 1, 2))
+        shape_qd = np.matmul(mass[:, n:, n:], qbar_dot[:, :, None])[:, :, 0]
+        pbar = shape_qd - np.matmul(connection_qd[:, None, :], coupling)[:, 0]
+        return FilterInputs(locked, inverse, connection_qd, joint_cov, pbar,
+                            rotations(bases[:, 3:7]), bases[:, :3],
+                            self.coordinates(bases[:, 7:]), mass)
 
     def evaluate(self, qbar: np.ndarray, qbar_dot: np.ndarray,
                  bases: np.ndarray) -> KernelResult:

@@ -15,24 +15,28 @@
 """
 The estimator pipeline: samples in, momentum, shape state, drift and predictions out.
 
-One class serves the replay tool and the node. Per joint-state sample it pairs
-the shape with the base pose (and twist) at the same stamp (:mod:`.sync`),
-evaluates the metric once (:mod:`.kernel`: I, A = I^-1 B, pbar = S qbar_dot,
-5.29, 5.35) and steps the error-state Kalman filter of base pose, momentum mu
-and external wrench w (:mod:`.filter`), whose process model is the reduced
-mechanics with the joint states as inputs. From the filter's state it reports
-mu (5.27), pi = Ad_g^T mu, the drift twist I^-1 pi and w with covariances,
-detects events from the filter's statistics (:mod:`.events`), predicts with
-the reduced model at a set rate (:mod:`.prediction`) and reports diagnostics.
-Bad input is rejected with a reason and counted; it never raises.
+One class serves the replay tool and the node. A joint-state sample becomes a
+row once a base sample at or after its stamp has come (:mod:`.sync`; base stamps
+only increase, so every base sample up to the row is then known, whatever the
+order in which the two inputs arrived). The row carries the base samples
+stamped since the previous row, which the error-state Kalman filter of base
+pose, momentum mu and external wrench w (:mod:`.filter`) updates with at their
+own stamps, and the metric evaluated once (:mod:`.kernel`: I, A = I^-1 B,
+pbar = S qbar_dot, 5.29, 5.35) as the inputs of its process model, the reduced
+mechanics. From the filter's state at the row it reports mu (5.27),
+pi = Ad_g^T mu, the drift twist I^-1 pi and w with covariances, detects events
+from the filter's statistics (:mod:`.events`), predicts with the reduced model
+at a set rate (:mod:`.prediction`) and reports diagnostics. Bad input is
+rejected with a reason and counted; it never raises.
 
 Work happens in two passes. Validation and synchronisation run per sample, in
 arrival order; synchronised samples collect in a chunk, which the vectorised
 kernel evaluates together before the filter steps through them. ``add_joint_state`` and
-``add_base_state`` close the chunk at every call (streaming, one sample);
-``add_samples`` closes it every few hundred samples (batched). A chunk is also
-closed where a diagnostics message is due, so that its counters are those a
-sample-by-sample run would report; the two paths give bit-identical outputs.
+``add_base_state`` close the chunk at the end of every call (streaming: the rows
+one message released); ``add_samples`` closes it every few hundred samples
+(batched). A chunk is also closed where a diagnostics message is due, so that its
+counters are those a sample-by-sample run would report; the two paths give
+bit-identical outputs.
 """
 
 from __future__ import annotations
@@ -53,8 +57,8 @@ from reduced_dynamics.estimator.cyclic import (CYCLIC_OFF, CyclicColumns, Cyclic
                                                resolve_cyclic_joints)
 from reduced_dynamics.estimator.kernel import UpdateKernel
 from reduced_dynamics.estimator.events import EventDetector, MomentumEvent
-from reduced_dynamics.estimator.filter import (Command, Linearisation, MomentumFilter,
-                                               NoiseModel, smooth)
+from reduced_dynamics.estimator.filter import (Command, Linearisation, Measurement,
+                                               MomentumFilter, NoiseModel, smooth)
 from reduced_dynamics.estimator.plausibility import BaseBounds, JointBounds
 from reduced_dynamics.estimator.prediction import (
     FinishedPrediction, Plan, PredictionJob, PredictionMessages, Predictor, PRESCRIBED_MODES)
@@ -229,9 +233,13 @@ class _Chunk:
     """
     Synchronised samples waiting for the vectorised update.
 
-    Rows are tuples (stamp_ns, qbar, qbar_dot, tau, base row), like the pending
-    shape samples (stamp_ns, qbar, qbar_dot, tau): tuples, because one object
-    per sample is a measurable part of the per-sample cost.
+    Rows are tuples (stamp_ns, qbar, qbar_dot, tau, base row, measurements), like
+    the pending shape samples (stamp_ns, qbar, qbar_dot, tau): tuples, because
+    one object per sample is a measurable part of the per-sample cost. The base
+    row is the base state at the row's stamp (interpolated: the measured history
+    of the prediction residuals, and the filter's start); ``measurements`` are
+    the base samples (stamp_ns, row) stamped since the previous row, which the
+    filter updates with at their own stamps.
     """
 
     __slots__ = ('rows', 'diagnose', 'commands')
@@ -239,8 +247,8 @@ class _Chunk:
     def __init__(self) -> None:
         self.rows: list[tuple] = []
         self.diagnose = False
-        #: commanded wrench on: one :class:`~.filter.Command` per row
-        self.commands: list[Command] = []
+        #: commanded wrench on: per row, one :class:`~.filter.Command` per filter step
+        self.commands: list[list[Command]] = []
 
 
 class _Identity:
@@ -332,6 +340,8 @@ class Estimator:
         self.prediction_failures: Counter = Counter()
         self.first_stamp_ns: Optional[int] = None
         self._buffer = BaseBuffer()
+        #: stamp up to which base samples went to the filter (with the row at that stamp)
+        self._measured_ns: Optional[int] = None
         self._pending: deque[tuple] = deque()
         self._last_joint_ns: Optional[int] = None
         self._last_base_ns: Optional[int] = None
@@ -406,7 +416,7 @@ class Estimator:
             # New noise and gate; the estimate and the recorded steps stay.
             for name in ('g', 'x', 'p', 'stamp_ns', 'steps', 'gated', 'log_likelihood',
                          'nis_sum', 'nis_dof', '_lin', '_gated_run', '_stamp_twist',
-                         'diverged'):
+                         '_stamp_twist_ns', 'diverged'):
                 setattr(self.filter, name, getattr(old_filter, name))
             if self.commanded_wrench:
                 self.filter._command = old_filter._command
@@ -451,12 +461,22 @@ class Estimator:
 
     def add_joint_state(self, sample: JointStateSample) -> list[EstimatorOutput]:
         """Take a joint-state sample; return the outputs that became ready."""
-        self._take_joint(sample)
+        # The rows one message releases (e.g. the joint states that waited for the
+        # next odometry) are updated as one chunk: the same outputs, fewer calls.
+        self._chunk_limit = self._batch_limit
+        try:
+            self._take_joint(sample)
+        finally:
+            self._chunk_limit = 1
         return self._close_streaming()
 
     def add_base_state(self, sample: BaseStateSample) -> list[EstimatorOutput]:
         """Take a base pose (with twist for Odometry); return outputs that became ready."""
-        self._take_base(sample)
+        self._chunk_limit = self._batch_limit
+        try:
+            self._take_base(sample)
+        finally:
+            self._chunk_limit = 1
         return self._close_streaming()
 
     def add_command(self, sample: CommandSample) -> list[EstimatorOutput]:
@@ -658,7 +678,7 @@ class Estimator:
         if odometry and len(pending) == 1 and pending[0][0] == stamp:
             # The one waiting shape sample has this very stamp (simulators, drivers on
             # one clock tick): _drain would find gap 0, ready, and this row. Skip it.
-            self._resolve(pending.popleft() + (row,))
+            self._resolve(pending.popleft() + (row, self._measurements(stamp)))
             return
         self._drain(final=False)
 
@@ -823,6 +843,7 @@ class Estimator:
         self.predictor.finish()
         self.predictor.forget_history()
         self._buffer = BaseBuffer()
+        self._measured_ns = None
         self._last_joint_ns = self._last_base_ns = None
         self._last_prediction_ns = self._last_diagnostics_ns = None
         # The filter restarts from the next sample (its recorded steps stay, the
@@ -869,15 +890,30 @@ class Estimator:
                 detail = f'nearest base pose {gap * 1e-9:.3f} s from joint state {stamp}'
                 self._reject('stale_base_state', detail)
             else:
-                self._resolve(head + (buffer.query(stamp, index),))
+                self._resolve(head + (buffer.query(stamp, index), self._measurements(stamp)))
+
+    def _measurements(self, stamp_ns: int) -> tuple:
+        """
+        Return the base samples (stamp_ns, row) stamped after the previous row, up to ``stamp_ns``.
+
+        Called when the row is resolved, i.e. when the buffer holds a base sample
+        at or after ``stamp_ns`` (base stamps only increase): every sample up to the
+        row has arrived, whatever the order in which the two streams came in.
+        """
+        after, self._measured_ns = self._measured_ns, stamp_ns
+        return self._buffer.between(after, stamp_ns)
 
     def _resolve(self, row: tuple) -> None:
         """Queue a synchronised sample for the update (processing it where it must be)."""
         chunk = self._chunk
         chunk.rows.append(row)
         if self.commanded_wrench:
-            # The commands known now (arrival order), whatever the chunk's length.
-            chunk.commands.append(self._command_input(row[0]))
+            # The commands known now (arrival order), whatever the chunk's length: one per
+            # filter step of the row (to each base measurement before it, then to it).
+            stamp = row[0]
+            command_input = self._command_input
+            chunk.commands.append([command_input(sample_ns) for sample_ns, _ in row[5]
+                                   if sample_ns < stamp] + [command_input(stamp)])
         period = self._diagnostics_period_ns
         if period is not None:
             # Diagnostics report the counters at their sample: close the chunk there.
@@ -900,56 +936,66 @@ class Estimator:
         self._chunk = _Chunk()
         rejected_at, self._rejected_at = self._rejected_at, 0
         m, n = self.robot.m, self.robot.n
-        stamp_list, qbar, qbar_dot, taus, bases = zip(*chunk.rows)
+        stamp_list, qbar, qbar_dot, taus, bases, measured = zip(*chunk.rows)
         stamps = np.array(stamp_list, dtype=np.int64)
         # The cheapest ways to stack these rows (arrays; lists of 13 floats).
         qbar = np.concatenate(qbar).reshape(count, m)
         qbar_dot = np.concatenate(qbar_dot).reshape(count, m)
         bases = np.fromiter(chain.from_iterable(bases), float, count * 13).reshape(count, 13)
-        result = self.kernel.evaluate(qbar, qbar_dot, bases)
-        lins = self._linearisations(result.mass, qbar_dot)
+        result = self.kernel.filter_inputs(qbar, qbar_dot, bases,
+                                           self.config.joint_velocity_noise ** 2)
+        inverse = result.inverse
+        lins = [Linearisation(*row) for row in zip(result.locked, inverse, result.connection_qd,
+                                                   result.joint_cov)]
         # The recursion, one sample at a time (the same code whatever the chunk).
-        flt, detector, group = self.filter, self.detector, self.robot.group
+        flt, detector, adjoint = self.filter, self.detector, self.filter._adjoint
         twists = result.xi if self.use_odometry else None
         mu = np.empty((count, n))
         rate = np.empty((count, n))
         pi = np.empty((count, n))
-        drift = np.empty((count, n))
         mu_cov = np.empty((count, n, n))
         w_cov = np.empty((count, n, n))
         poses: list[pin.SE3] = []
         quiet: list[bool] = []
+        rotation, translation = result.rotation, result.translation
         commands = chunk.commands if self.commanded_wrench else None
         disturbance = None if commands is None else np.empty((count, n))
         for k in range(count):
-            lin = lins[k]
-            pose = pin.SE3(result.rotation[k], result.translation[k])
-            command = None if commands is None else commands[k]
-            if not flt.step(stamp_list[k], lin, pose, None if twists is None else twists[k],
-                            command):
+            stamp = stamp_list[k]
+            prior = None
+            measurements = self._filter_measurements(measured[k], stamp)
+            at_row = bool(measurements) and measurements[-1] is None
+            if at_row or flt.g is None:
+                # The base state at the row's stamp (a measurement there, or the start).
+                prior = Measurement(stamp, pin.SE3(rotation[k], translation[k]),
+                                    None if twists is None else twists[k])
+                if at_row:
+                    measurements[-1] = prior
+            for gated, nis in flt.row(stamp, lins[k], prior, measurements,
+                                      None if commands is None else commands[k]):
                 self.rejected['innovation_gate'] += 1
                 self._period_rejected += 1
-                self.last_rejection = (f'innovation_gate: base measurement at {stamp_list[k]} '
-                                       f'improbable under the filter (chi-square '
-                                       f'{flt.last_nis:.3g})')
+                self.last_rejection = (f'innovation_gate: base measurement at {gated} '
+                                       f'improbable under the filter (chi-square {nis:.3g})')
             g = flt.g
-            mu[k] = flt.mu
-            pi[k] = group.Ad(g).T @ mu[k]
-            drift[k] = lin.locked_inverse @ pi[k]
-            mu_cov[k] = flt.p[n:2 * n, n:2 * n]
+            x, p = flt.x, flt.p
+            mu[k] = x[:n]
+            pi[k] = adjoint(g).T @ x[:n]
+            mu_cov[k] = p[n:2 * n, n:2 * n]
             if disturbance is None:
-                rate[k] = flt.wrench
-                w_cov[k] = flt.p[2 * n:, 2 * n:]
-                peak = rate[k]
+                rate[k] = peak = x[n:]
+                w_cov[k] = p[2 * n:, 2 * n:]
             else:
                 # The total wrench is what mu does; events concern the disturbance
                 # beyond the command (a commanded firing is expected, not an event).
                 rate[k], w_cov[k] = flt.total_wrench()
                 disturbance[k] = peak = flt.wrench
-            detector.update(stamp_list[k], mu[k], math.sqrt(float(peak @ peak)),
+            detector.update(stamp, mu[k], math.sqrt(float(peak @ peak)),
                             flt.wrench_significance(), flt.step_detected is not None)
             poses.append(g)
             quiet.append(not detector.in_event)
+        # Drift twist I^-1 pi, stacked (the same kernel per row, whatever the chunk).
+        drift = np.matmul(inverse, pi[:, :, None])[:, :, 0]
         # Reduced energy (5.36) from the filtered momentum: 1/2 pi.I^-1 pi + 1/2 pbar.qbar_dot.
         energy = 0.5 * (np.matmul(pi[:, None, :], drift[:, :, None])[:, 0, 0]
                         + np.matmul(qbar_dot[:, None, :], result.pbar[:, :, None])[:, 0, 0])
@@ -958,7 +1004,7 @@ class Estimator:
         extras: dict = {}
         cyclic = None
         if self._cyclic_view is not None:
-            xi_hat = drift - np.array([lin.connection_qd for lin in lins])
+            xi_hat = drift - result.connection_qd
             cyclic = self._cyclic_view.columns(result.mass, xi_hat, qbar, qbar_dot)
             self._last_theta = cyclic.theta[-1]
         if self.predictor.active or self._prediction_enabled():
@@ -991,21 +1037,26 @@ class Estimator:
         """
         return 0.0 if self.commanded_wrench else self.config.event_significance
 
-    def _linearisations(self, mass: np.ndarray, qbar_dot: np.ndarray) -> list[Linearisation]:
+    def _filter_measurements(self, measured: tuple, stamp: int) -> list:
         """
-        Return the filter's per-sample inputs: I, I^-1, A qbar_dot and A Sigma_qdot A^T.
+        Return a row's base samples as filter measurements, in stamp order.
 
-        Stacked LAPACK calls run the same kernel per matrix: the rows do not
-        depend on the chunk length.
+        The one at the row's own stamp is None: the row's base state is that
+        sample, already evaluated by the kernel (the caller fills it in).
         """
-        n = self.robot.n
-        locked = mass[:, :n, :n]
-        inverse = np.linalg.inv(locked)
-        connection = np.matmul(inverse, mass[:, :n, n:])
-        connection_qd = np.matmul(connection, qbar_dot[:, :, None])[:, :, 0]
-        variance = self.config.joint_velocity_noise ** 2
-        joint_cov = variance * np.matmul(connection, np.swapaxes(connection, 1, 2))
-        return [Linearisation(*row) for row in zip(locked, inverse, connection_qd, joint_cov)]
+        out: list = []
+        odometry, kernel = self.use_odometry, self.kernel
+        for sample_ns, row in measured:
+            if sample_ns == stamp:
+                out.append(None)
+                continue
+            twist = None
+            if odometry:
+                twist = np.array(row[7:13])
+                if kernel.projects_twists:
+                    twist = kernel.coordinates(twist[None])[0]
+            out.append(Measurement(sample_ns, pin.XYZQUATToSE3(np.array(row[:7])), twist))
+        return out
 
     def _accumulate_statistics(self, mu: np.ndarray) -> None:
         """Update the running mean and squared deviations of mu (Welford; Chan et al.)."""
@@ -1166,17 +1217,21 @@ class Estimator:
         Replace the filtered estimates of ``outputs`` by the RTS-smoothed ones, in place.
 
         ``outputs`` are all outputs since :meth:`enable_smoothing`, in order (one
-        recorded filter step each). Momentum, body momentum, momentum rate, drift
+        recorded filter row each). Momentum, body momentum, momentum rate, drift
         twist, mu and the covariances change; the shape state, predictions,
         diagnostics and events stay those of the causal run.
         """
-        steps = self.filter.steps
-        if len(steps) != len(outputs):
-            raise ValueError(f'{len(outputs)} outputs for {len(steps)} recorded filter steps')
+        recorded = self.filter.steps
+        # The steps of the rows; base measurements between rows are steps of their own.
+        rows = [k for k, step in enumerate(recorded) if step.output]
+        if len(rows) != len(outputs):
+            raise ValueError(f'{len(outputs)} outputs for {len(rows)} recorded filter rows')
         if not outputs:
             return
         n, group, kernel = self.robot.n, self.robot.group, self.kernel
-        states = smooth(group, steps)
+        smoothed = smooth(group, recorded)
+        states = [smoothed[k] for k in rows]
+        steps = [recorded[k] for k in rows]
         flt = self.filter
         mu = np.array([state.x[:n] for state in states])
         if self.commanded_wrench:

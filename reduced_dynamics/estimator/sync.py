@@ -13,16 +13,21 @@
 # limitations under the License.
 
 """
-Base state at a joint-state stamp: SE(3) interpolation.
+Base samples held for the joint-state rows.
 
-The pose is interpolated along the geodesic between the two bracketing samples
-and, with Odometry, the body twist linearly. Poses are never differentiated:
-the Kalman filter (estimator/filter.py) takes them as measurements.
+A row gets the base samples stamped since the previous row (its measurements)
+and the base state at its own stamp by SE(3) interpolation. The Kalman filter
+(estimator/filter.py) updates with each base sample once, at its own stamp
+(:meth:`BaseBuffer.between` hands them to the row after them). The interpolated
+state at a row's stamp (the pose along the geodesic between the two bracketing
+samples and, with Odometry, the body twist linearly) is the measured history the
+prediction residuals compare against, and the filter's start. Poses are never
+differentiated.
 """
 
 from __future__ import annotations
 
-from bisect import bisect_left
+from bisect import bisect_left, bisect_right
 from collections import deque
 from typing import Optional, Sequence
 
@@ -90,6 +95,18 @@ class BaseBuffer:
         """Add a sample newer than every held one: 7 values (pose) or 13 (with twist)."""
         self._rows.append(row)
         self._stamps.append(stamp_ns)
+
+    def between(self, after_ns: Optional[int], until_ns: int) -> tuple:
+        """Return the held samples (stamp_ns, row) with after_ns < stamp <= until_ns, in order."""
+        stamps = self._stamps
+        if not stamps or (after_ns is not None and stamps[-1] <= after_ns):
+            return ()
+        first = 0 if after_ns is None else bisect_right(stamps, after_ns)
+        last = bisect_right(stamps, until_ns)
+        if first >= last:
+            return ()
+        rows = self._rows
+        return tuple((stamps[i], rows[i]) for i in range(first, last))
 
     def point(self, index: int) -> BasePoint:
         """Return held sample ``index`` with its pose (cached by stamp)."""
