@@ -54,6 +54,14 @@ jumps no wrench of the random walk explains); after ``GATE_RESET`` rejections
 in a row the filter re-initialises its momentum and wrench covariance (a real
 impulse, e.g. a docking contact) and accepts.
 
+A pose stamp off by dt from the instant the pose was measured (a mocap client
+stamping on receipt) puts ``xi dt`` into the residual: the pose noise is
+``R + xi xi^T sigma_t^2`` (``pose_stamp``), with xi the body twist averaged over
+``STAMP_TWIST_TIME``. A GLR test of a step in w on the innovations
+(:class:`~reduced_dynamics.estimator.events.WrenchStepTest`) lets the filter take
+a thruster switching at once (``x += D Delta``, ``P += D J^-1 D^T``). A covariance
+that loses positive definiteness restarts the filter from the measurement.
+
 Each step may record what the fixed-interval (Rauch-Tung-Striebel) smoother
 needs (:class:`FilterStep`); :func:`smooth` runs it on the group.
 
