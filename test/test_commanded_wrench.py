@@ -343,8 +343,8 @@ def test_paper_robot_gains_with_joint_states_and_odometry(tmp_path):
     command = summary['commanded_wrench']
     assert command['axes'] == ['fx', 'fy', 'fz', 'tx', 'ty', 'tz']
     gain, sigma = np.array(command['gain']), np.array(command['gain_sigma'])
-    # Measured: 0.8955 +- 0.027, 0.8141 +- 0.022, 1.0971 +- 0.028, 0.9827 +- 0.15,
-    # 0.8723 +- 0.091, 1.0249 +- 0.15 (the torques are pinned less: 4 N m on the
+    # Measured: 0.8962 +- 0.027, 0.8142 +- 0.022, 1.1007 +- 0.028, 0.9826 +- 0.15,
+    # 0.8725 +- 0.091, 1.0252 +- 0.15 (the torques are pinned less: 4 N m on the
     # paper robot's inertia, with 0.5 mrad attitude noise).
     assert np.all(np.abs(gain - PAPER_GAIN) < 3 * sigma), (gain, sigma)
     assert np.all(sigma[:3] < 0.05) and np.all(sigma[3:] < 0.3)
