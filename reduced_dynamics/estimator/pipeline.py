@@ -1199,12 +1199,14 @@ class Estimator:
         ``log_likelihood``: sum over the updates of log N(nu; 0, S);
         ``nis_per_dof``: mean normalised innovation squared per measured
         coordinate (1 when the noise parameters fit the data); ``innovation_gated``;
-        ``filter_restarts``: re-initialisations after the covariance broke down.
+        ``filter_restarts``: re-initialisations after the covariance broke down;
+        ``steps_taken``: wrench steps the GLR test detected and the filter took.
         """
         flt = self.filter
         return {'log_likelihood': flt.log_likelihood,
                 'nis_per_dof': flt.nis_sum / flt.nis_dof if flt.nis_dof else None,
-                'innovation_gated': flt.gated, 'filter_restarts': flt.diverged}
+                'innovation_gated': flt.gated, 'filter_restarts': flt.diverged,
+                'steps_taken': flt.steps_taken}
 
     # --- smoothing (replay) -----------------------------------------------------------
     def enable_smoothing(self) -> None:
