@@ -119,7 +119,10 @@ def tune(robot: RobotModel, samples: Sequence, params: dict, is_odom: bool,
         count += 1
         x = np.clip(x, lows, highs)
         trial = dict(params, **{n: float(10.0 ** v) for n, v in zip(names, x)})
-        value = evaluate(robot, samples, trial, is_odom, base_driven)['log_likelihood']
+        try:
+            value = evaluate(robot, samples, trial, is_odom, base_driven)['log_likelihood']
+        except np.linalg.LinAlgError:
+            value = -math.inf  # the filter diverged at these values: no likelihood
         if progress is not None:
             progress(f'tune: evaluation {count}: log-likelihood {value:.6g} at '
                      + ', '.join(f'{n}={10.0 ** v:.3g}' for n, v in zip(names, x)))

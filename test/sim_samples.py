@@ -25,7 +25,7 @@ from reduced_dynamics.messages.samples import BaseStateSample, JointStateSample
 #: exact (1e-10 m, rad, m/s, rad/s), so it follows them; the innovation gate is off.
 NOISE_FREE = {'pose_position_noise': 1e-10, 'pose_angle_noise': 1e-10,
               'twist_linear_noise': 1e-10, 'twist_angular_noise': 1e-10,
-              'joint_velocity_noise': 0.0, 'innovation_gate': 0.0}
+              'joint_velocity_noise': 0.0, 'innovation_gate': 0.0, 'pose_stamp_noise': 0.0}
 
 
 def simulate(robot, state, torque, times, pulse=None):

@@ -31,7 +31,7 @@ from sim_samples import feed, samples, simulate
 RATE = 200.0
 #: Sensor noise of noise-free simulated data: the filter trusts the measurements.
 NOISE_FREE = dict(pose_position_noise=1e-9, pose_angle_noise=1e-9, twist_linear_noise=1e-9,
-                  twist_angular_noise=1e-9, joint_velocity_noise=0.0)
+                  twist_angular_noise=1e-9, joint_velocity_noise=0.0, pose_stamp_noise=0.0)
 
 
 def _run(robot, seconds=3.0, torque=None, pulse=None, seed=3, odometry=True, config=None,
@@ -142,7 +142,9 @@ def test_planar_robot_without_arm_from_poses():
     run = simulate(robot, state, zero_torque(0), times, pulse=(1.0, 0.1,
                                                                [5.0, 0, 0, 0, 0, 0.5]))
     _, bases = samples(robot, times, *run[:4], odometry=False)
-    estimator = Estimator(robot, EstimatorConfig(prediction_rate=1.0), use_odometry=False)
+    # The simulated stamps are exact (pose_stamp_noise 0).
+    estimator = Estimator(robot, EstimatorConfig(prediction_rate=1.0, pose_stamp_noise=0.0),
+                          use_odometry=False)
     outputs = []
     for base in bases:
         outputs += estimator.add_base_state(base)

@@ -167,7 +167,7 @@ def test_batched_equals_streaming_on_simulated_pulse(make_robot, odometry):
     config = EstimatorConfig(prediction_rate=2.0, prediction_horizon=0.3,
                              diagnostics_rate=5.0, event_hold=0.05, pose_position_noise=1e-5,
                              pose_angle_noise=1e-5, twist_linear_noise=1e-5,
-                             twist_angular_noise=1e-5)
+                             twist_angular_noise=1e-5, pose_stamp_noise=1e-3)
     expected, reference = _compare_paths(
         lambda: Estimator(robot, config, use_odometry=odometry), stream)
     assert len(expected) >= 395 and len(reference.events) >= 1

@@ -136,10 +136,12 @@ def test_nees_within_chi_square_bounds(name: str, twist: bool) -> None:
         steps = rng.choice([8_333_333, 40_000, 40_000_000], p=[0.9, 0.05, 0.05], size=count)
         stamps = np.cumsum(steps).tolist()
         states, measurements = _truth_run(group, lin, noise, rng, stamps, twist)
-        flt = MomentumFilter(group, noise, 0.0, record=True)
+        # The wrench-step test on: the truth has no steps, so it must stay silent.
+        flt = MomentumFilter(group, noise, 0.0, record=True, step_significance=1e-6)
         # A prior at the truth's spread: start from the first pose and zero momentum.
         for stamp, (pose, meas) in zip(stamps, measurements):
             flt.step(stamp, lin, pose, meas)
+        assert flt.steps_taken == 0
         burn = 40
         for k in range(burn, count):
             step = flt.steps[k]
@@ -163,6 +165,54 @@ def test_nees_within_chi_square_bounds(name: str, twist: bool) -> None:
         assert low <= mean <= high, (mean, low, high)
 
 
+def _step_run(mass: float, force: float, seconds: float, seed: int,
+              onset: float = 1.0) -> tuple[MomentumFilter, list[float]]:
+    """Run a planar body of ``mass`` (inertia scaled alike), pose-only at 120 Hz, 1 mm / 2 mrad."""
+    import pinocchio as pin
+    group = SUBGROUPS['SE(2)']
+    locked = np.diag([mass, mass, mass * 0.18 / 16.0])
+    lin = Linearisation(locked, np.linalg.inv(locked), np.zeros(3), np.zeros((3, 3)))
+    flt = MomentumFilter(group, NoiseModel(), 1e-6, step_significance=1e-6)
+    rng = np.random.default_rng(seed)
+    position, velocity, detections = np.zeros(2), np.zeros(2), []
+    for k in range(int(seconds * 120)):
+        t = k / 120.0
+        accel = np.array([force / mass, 0.0]) if t >= onset else np.zeros(2)
+        velocity = velocity + accel / 120.0
+        position = position + velocity / 120.0
+        meas = position + rng.normal(0.0, 1e-3, 2)
+        pose = pin.SE3(pin.utils.rotate('z', rng.normal(0.0, 2e-3)), np.r_[meas, 0.0])
+        flt.step(int(round(t * 1e9)), lin, pose, None)
+        if flt.step_detected is not None:
+            detections.append((t, flt.wrench.copy()))
+    return flt, detections
+
+
+@pytest.mark.parametrize('mass', [16.0, 500.0])
+def test_wrench_step_is_detected_and_taken_at_once(mass: float) -> None:
+    """
+    A 0.3 m/s^2 step (5 N on 16 kg, 156 N on 500 kg): the GLR test is dimensionless.
+
+    Position-only, 1 mm noise at 120 Hz: the information on an acceleration step a
+    after tau seconds is a^2 f tau^5 / (20 sigma^2), so chi2_3(1e-6) = 30.7 needs
+    ~0.25 s here (measured 0.19 s at both masses).
+    """
+    force = 0.3125 * mass
+    flt, detections = _step_run(mass, force, 2.0, seed=1)
+    assert detections and 1.0 < detections[0][0] <= 1.35, detections
+    # At detection w jumps to the step's maximum-likelihood size (measured 1.27 x, its
+    # uncertainty J^-1 is added to P_ww); 0.65 s later it is within 10 %.
+    wrench = detections[0][1]
+    assert 0.5 * force <= wrench[0] <= 1.5 * force and abs(wrench[1]) <= 0.2 * force
+    assert abs(flt.wrench[0] - force) <= 0.1 * force
+
+
+def test_wrench_step_test_is_silent_on_noise() -> None:
+    """60 s of noise only (7 200 pose samples): no step (union bound 8e-6 per sample)."""
+    flt, detections = _step_run(16.0, 0.0, 60.0, seed=2)
+    assert detections == [] and flt.steps_taken == 0
+
+
 def test_spacecraft_params_file_loads_and_configures_the_filter() -> None:
     from reduced_dynamics.estimator import Estimator, EstimatorConfig
     from reduced_dynamics.params import load_params_file
@@ -173,3 +223,21 @@ def test_spacecraft_params_file_loads_and_configures_the_filter() -> None:
     estimator = Estimator(load_robot(), EstimatorConfig.from_mapping(params))
     assert estimator.filter.noise.pose_angle == 5e-5
     assert estimator.filter.noise.jerk_angular == 0.05
+
+
+def test_a_broken_covariance_restarts_the_filter() -> None:
+    """A covariance that lost positive definiteness restarts from the measurement."""
+    import pinocchio as pin
+    group = SUBGROUPS['SE(2)']
+    locked = np.diag([16.0, 16.0, 0.18])
+    lin = Linearisation(locked, np.linalg.inv(locked), np.zeros(3), np.zeros((3, 3)))
+    flt = MomentumFilter(group, NoiseModel(), 1e-6, record=True, step_significance=1e-6)
+    flt.step(0, lin, pin.SE3.Identity(), None)
+    broken = flt.p.copy()
+    broken[4, 4] = -1e24  # what rounding leaves of a filter driven far outside its model
+    flt.p = broken
+    pose = pin.SE3(np.eye(3), np.array([0.1, 0.0, 0.0]))
+    flt.step(10_000_000, lin, pose, None)
+    assert flt.diverged == 1 and flt.steps[-1].transition is None
+    assert np.allclose(flt.g.translation, pose.translation) and np.all(np.diag(flt.p) > 0)
+    assert flt.step(20_000_000, lin, pose, None)

@@ -145,11 +145,14 @@ def test_real_freeflyer2_bags_correlate_with_the_commanded_thrust(tmp_path, name
         assert np.all(momentum_spread(out) <= SPREAD_BOUND)
         assert summary['processed'] >= 6000
     causal, smoothed = figures[False], figures[True]
-    # Measured (README table): causal 0.81/0.68/0.74 and 0.45/0.45/0.77, smoothed
-    # 0.91/0.89/0.97 and 0.76/0.77/0.94. The floors (0.7 causal, 0.8 smoothed)
-    # hold for the trajectory-optimisation bag smoothed; these are regression floors.
-    assert min(smoothed.fx, smoothed.fy) >= 0.7 and smoothed.mz >= 0.9
-    assert min(causal.fx, causal.fy) >= 0.4 and causal.mz >= 0.7
+    # Measured (README table): causal 0.81/0.68/0.74 and 0.72/0.75/0.91, smoothed
+    # 0.91/0.89/0.97 and 0.76/0.79/0.96. The PD bag's causal figures were 0.45/0.45/0.77
+    # before the pose stamp noise (its mocap client stamps on receipt, 100 Hz polling).
+    # The floors (0.7 causal, 0.8 smoothed) hold on 9 of 12 figures.
     if name == REAL_BAGS[0]:
         assert min(smoothed[:3]) >= 0.8
+        assert causal.fx >= 0.8 and causal.fy >= 0.65 and causal.mz >= 0.7
+    else:
+        assert min(smoothed.fx, smoothed.fy) >= 0.75 and smoothed.mz >= 0.95
+        assert min(causal[:3]) >= 0.7 and causal.mz >= 0.9
     assert os.path.isdir(out)

@@ -74,7 +74,7 @@ ROBOT = load_robot()
 CONFIG = EstimatorConfig.from_mapping({
     'prediction_rate': 0.0, 'diagnostics_rate': 0.0, 'pose_position_noise': 1e-10,
     'pose_angle_noise': 1e-10, 'twist_linear_noise': 1e-10, 'twist_angular_noise': 1e-10,
-    'joint_velocity_noise': 0.0, 'innovation_gate': 0.0})
+    'joint_velocity_noise': 0.0, 'innovation_gate': 0.0, 'pose_stamp_noise': 0.0})
 #: The estimator's transient after a missing sample: the filtered outputs may
 #: differ from the clean run's until then. Measured: a single missing joint state
 #: changes mu by <= 3e-8 and the rate by <= 1.3e-7 of their largest values with

@@ -38,7 +38,7 @@ FAR_FUTURE_S = 2_147_000_000
 #: Replay settings for the noise-free simulated bags: the filter follows the sensors.
 NOISE_FREE = {**defaults(), 'pose_position_noise': 1e-10, 'pose_angle_noise': 1e-10,
               'twist_linear_noise': 1e-10, 'twist_angular_noise': 1e-10,
-              'joint_velocity_noise': 0.0, 'innovation_gate': 0.0}
+              'joint_velocity_noise': 0.0, 'innovation_gate': 0.0, 'pose_stamp_noise': 0.0}
 
 
 def _run_gate(gate, stamps, receives=None):

@@ -185,7 +185,8 @@ def test_planned_mode_predicts_the_measured_base_path():
     config = EstimatorConfig(prediction_rate=1.0, prediction_horizon=1.0,
                              pose_position_noise=1e-10, pose_angle_noise=1e-10,
                              twist_linear_noise=1e-10, twist_angular_noise=1e-10,
-                             joint_velocity_noise=0.0, innovation_gate=0.0)
+                             joint_velocity_noise=0.0, innovation_gate=0.0,
+                             pose_stamp_noise=0.0)
     estimator = Estimator(robot, config)
     outputs = _feed(estimator, joints, bases, plan)
     started = [o for o in outputs if o.prediction_path is not None]

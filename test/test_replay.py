@@ -130,7 +130,8 @@ def _noise_free_params():
     """Return the defaults for noise-free simulated sensors (the filter is told so)."""
     params = defaults()
     params.update(pose_position_noise=1e-10, pose_angle_noise=1e-10, twist_linear_noise=1e-10,
-                  twist_angular_noise=1e-10, joint_velocity_noise=0.0, innovation_gate=0.0)
+                  twist_angular_noise=1e-10, joint_velocity_noise=0.0, innovation_gate=0.0,
+                  pose_stamp_noise=0.0)
     return params
 
 

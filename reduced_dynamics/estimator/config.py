@@ -51,6 +51,11 @@ PARAMETERS: dict[str, ParameterSpec] = {
         2e-3, 1e-12, 3.2, (),
         'standard deviation [rad] of a measured base orientation, per axis (motion '
         'capture: ~0.1 deg)'),
+    'pose_stamp_noise': ParameterSpec(
+        3e-3, 0.0, 1.0, (),
+        'standard deviation [s] of a base pose header stamp about the instant the pose was '
+        'measured (a mocap client stamping on receipt in a 100 Hz polling loop: 10 ms / '
+        'sqrt(12)); the pose noise grows by the body twist times it'),
     'twist_linear_noise': ParameterSpec(
         1e-2, 1e-12, 1e3, (),
         'standard deviation [m/s] of an Odometry base linear velocity'),
@@ -109,9 +114,10 @@ PARAMETERS: dict[str, ParameterSpec] = {
         'row are accepted as a momentum jump (0: gate off)'),
     'event_significance': ParameterSpec(
         1e-6, 0.0, 0.5, (),
-        'false-alarm probability per sample of the event test w^T P_ww^-1 w > '
-        'chi2_n quantile: a thruster/contact event starts above it (dimensionless, '
-        'the same at any mass; 0: no events)'),
+        'false-alarm probability per sample of the event tests: w^T P_ww^-1 w > chi2_n '
+        'quantile, or the GLR statistic of a wrench step on the innovations above it (the '
+        'step is then taken at once); a thruster/contact event starts on either '
+        '(dimensionless, the same at any mass; 0: no events)'),
     'event_hold': ParameterSpec(0.1, 0.0, 10.0, (),
                                 'quiet time [s] with w consistent with zero (chi-square '
                                 'below its 99 % quantile) before an event ends and the model '
@@ -191,6 +197,7 @@ class EstimatorConfig:
     sync_tolerance: float = PARAMETERS['sync_tolerance'].default
     pose_position_noise: float = PARAMETERS['pose_position_noise'].default
     pose_angle_noise: float = PARAMETERS['pose_angle_noise'].default
+    pose_stamp_noise: float = PARAMETERS['pose_stamp_noise'].default
     twist_linear_noise: float = PARAMETERS['twist_linear_noise'].default
     twist_angular_noise: float = PARAMETERS['twist_angular_noise'].default
     joint_velocity_noise: float = PARAMETERS['joint_velocity_noise'].default

@@ -22,18 +22,169 @@ chi2_n quantile at the false-alarm probability ``event_significance``; it ends
 after ``hold`` seconds with s below the 99 % quantile, and the reduced model
 is then re-reduced at the new momentum. The test is dimensionless: the same
 default works for a 16 kg testbed and a 500 kg spacecraft.
+
+The random-walk w needs time to grow after a thruster switches, so the test on
+w alone lags. :class:`WrenchStepTest` is a generalised-likelihood-ratio test
+(Willsky & Jones 1976) of a *step* Delta in w at an unknown time theta, run on
+the filter's own innovations: after the step the error state carries
+``D_k Delta`` with ``D_theta = [0; 0; 1]``, ``D^-_k = Phi_k D_{k-1}``,
+``G_k = H_k D^-_k`` (the step's signature in the innovation) and
+``D_k = D^-_k - K_k G_k``. With ``J = sum G^T S^-1 G`` and ``b = sum G^T S^-1 nu``
+the log-likelihood ratio of the step's maximum-likelihood size ``J^-1 b`` is
+``T/2``, ``T = b^T J^-1 b``, chi-square with n degrees of freedom without a
+step. Onsets are hypothesised every ``GLR_SPACING`` s and each is followed for
+``GLR_WINDOW`` s. A step is detected when T exceeds the same chi2_n quantile
+as the wrench test; the filter then takes it (Willsky-Jones compensation:
+``x += D Delta``, ``P += D J^-1 D^T``), so w follows a thruster switching on or
+off at once instead of through its random walk. Without a step, the
+per-sample false-alarm probability is at most ``GLR_HYPOTHESES`` times
+``event_significance`` (a union bound over the hypotheses alive). That holds
+when the noise parameters fit; when the sensors are noisier than assumed, the
+innovations' mean NIS per coordinate (``nis_scale``, an exponential average
+over ``NIS_TIME`` s, a running mean before, floored at 1) exceeds 1 and T is divided by it, so an
+underestimated noise does not read as steps. A single innovation beyond the
+chi2_m 1e-3 quantile (a pose stamped tens of milliseconds off) is left out of
+the evidence: a step shows as a drift of the innovations, growing with time.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
+import math
+from typing import NamedTuple, Optional
 
 import numpy as np
 from scipy.stats import chi2
 
 #: Seconds after an event's end during which its mu_after follows the filter.
 SETTLE = 1.0
+#: Seconds between hypothesised step onsets of the GLR test, and how long each is followed.
+GLR_SPACING = 0.125
+GLR_WINDOW = 1.0
+#: Onset hypotheses alive at once (GLR_WINDOW / GLR_SPACING).
+GLR_HYPOTHESES = 8
+#: Probability below which one innovation is an outlier to the GLR test (not evidence).
+OUTLIER = 1e-3
+#: Time constant [s] of the average NIS per coordinate that scales the GLR statistic.
+NIS_TIME = 10.0
+
+
+class StepDetection(NamedTuple):
+    """A detected wrench step: its size (n), the error-state correction and covariance."""
+
+    statistic: float
+    step: np.ndarray
+    correction: np.ndarray
+    covariance: np.ndarray
+
+
+class WrenchStepTest:
+    """
+    GLR test of a step in the external wrench from a Kalman filter's innovations.
+
+    A bank of onset hypotheses (see the module docstring); per hypothesis the
+    signature D (dim x n), the information J (n x n) and the score b (n) are
+    kept stacked, so one step costs a few matrix products whatever their number.
+    """
+
+    def __init__(self, n: int, significance: float, dim: Optional[int] = None) -> None:
+        """
+        Set up for wrenches of dimension ``n``; ``significance`` 0 turns it off.
+
+        ``dim``: the filter's error-state dimension (3n; more with further states
+        after w, e.g. the commanded wrench's gain and bias); w is at [2n, 3n).
+        """
+        self.n = n
+        self.dim = 3 * n if dim is None else dim
+        self.threshold = math.inf if significance <= 0.0 \
+            else float(chi2.isf(significance, n))
+        self._onsets: list[int] = []
+        self._d = np.zeros((self.dim, 0))
+        self._j: list[np.ndarray] = []
+        self._b: list[np.ndarray] = []
+        self.last_statistic = 0.0
+        #: exponential average of the NIS per measured coordinate (1 when the noise fits)
+        self.nis_scale = 1.0
+        self._stamp: Optional[int] = None
+        self._dt = 0.0
+        self._elapsed = 0.0
+        #: NIS above which a single innovation is left out of the evidence (chi2_m 1e-3)
+        self._outlier = {m: float(chi2.isf(OUTLIER, m)) for m in (n, 2 * n)}
+
+    def reset(self) -> None:
+        """Forget every hypothesis (after a detection or a filter restart)."""
+        self._onsets = []
+        self._d = np.zeros((self.dim, 0))
+        self._j, self._b = [], []
+        # nis_scale stays: it describes the sensors, not the hypotheses.
+
+    def propagate(self, stamp_ns: int, transition: np.ndarray) -> None:
+        """Carry the signatures over a propagation step; open a new onset when due."""
+        if not math.isfinite(self.threshold):
+            return
+        n = self.n
+        self._dt = 0.0 if self._stamp is None else max(stamp_ns - self._stamp, 0) * 1e-9
+        self._stamp = stamp_ns
+        if self._onsets:
+            self._d = transition @ self._d
+        # Expire hypotheses older than the window; open one every GLR_SPACING s.
+        window = int(GLR_WINDOW * 1e9)
+        while self._onsets and stamp_ns - self._onsets[0] > window:
+            self._onsets.pop(0)
+            self._j.pop(0)
+            self._b.pop(0)
+            self._d = self._d[:, n:]
+        if not self._onsets or stamp_ns - self._onsets[-1] >= int(GLR_SPACING * 1e9):
+            fresh = np.zeros((self.dim, n))
+            fresh[2 * n:3 * n] = np.eye(n)
+            self._onsets.append(stamp_ns)
+            self._j.append(np.zeros((n, n)))
+            self._b.append(np.zeros(n))
+            self._d = np.hstack((self._d, fresh))
+
+    def update(self, h: np.ndarray, s: np.ndarray, gain: np.ndarray,
+               nu: np.ndarray) -> Optional[StepDetection]:
+        """Take one accepted measurement (H, S, K, innovation); return a detection or None."""
+        if not self._onsets:
+            return None
+        n = self.n
+        g = h @ self._d                        # signatures in the innovation, m x (n M)
+        self._d = self._d - gain @ g
+        nis_total = float(nu @ np.linalg.solve(s, nu))
+        nis = nis_total / len(nu)
+        if nis_total > self._outlier.get(len(nu), math.inf):
+            # One improbable innovation is an outlier (a pose stamped tens of ms off),
+            # not the growing drift a step makes: it carries no evidence here.
+            return None
+        s_inv_g = np.linalg.solve(s, g)
+        info = g.T @ s_inv_g                   # (n M) x (n M); the diagonal blocks are J
+        score = s_inv_g.T @ nu
+        # A running mean over the first NIS_TIME seconds, then an exponential average.
+        self._elapsed += self._dt
+        horizon = min(self._elapsed, NIS_TIME)
+        weight = 1.0 if horizon <= 0.0 else min(1.0, self._dt / horizon)
+        self.nis_scale += weight * (nis - self.nis_scale)
+        scale = max(1.0, self.nis_scale)
+        best: Optional[StepDetection] = None
+        self.last_statistic = 0.0
+        for i in range(len(self._onsets)):
+            block = slice(i * n, (i + 1) * n)
+            self._j[i] += info[block, block]
+            self._b[i] += score[block]
+            j, b = self._j[i], self._b[i]
+            try:
+                step = np.linalg.solve(j, b)
+            except np.linalg.LinAlgError:
+                continue
+            statistic = float(b @ step) / scale
+            if not math.isfinite(statistic):
+                continue
+            self.last_statistic = max(self.last_statistic, statistic)
+            if statistic > self.threshold and (best is None or statistic > best.statistic):
+                d = self._d[:, block]
+                best = StepDetection(statistic, step, d @ step,
+                                     d @ np.linalg.solve(j, d.T))
+        return best
 
 
 @dataclass
@@ -85,8 +236,13 @@ class EventDetector:
         return changed
 
     def update(self, stamp_ns: int, mu: np.ndarray, wrench_norm: float,
-               significance: float) -> None:
-        """Feed one filtered sample: mu, |w| and s = w^T P_ww^-1 w."""
+               significance: float, step: bool = False) -> None:
+        """
+        Feed one filtered sample: mu, |w|, s = w^T P_ww^-1 w, and a GLR step (True: found).
+
+        A step starts an event as s above its threshold does (the step test reacts
+        to a thruster switching on before the random-walk w has grown).
+        """
         event = self.events[-1] if self.in_event else None
         if event is None and self.events and significance < self.end_threshold:
             last = self.events[-1]
@@ -94,8 +250,15 @@ class EventDetector:
                 # The filter's mu still converges after the wrench has gone: the
                 # impulse keeps following it for SETTLE seconds (or to the next event).
                 last.mu_after = mu.copy()
+        if event is None and step and self.events and \
+                (stamp_ns - self.events[-1].end_ns) * 1e-9 <= SETTLE:
+            # A step while the filter settles after an event (the compensation of its
+            # own overshoot) belongs to that event: re-open it, its mu_before stays.
+            event = self.events[-1]
+            event.end_ns = None
+            self._changed = False
         if event is None:
-            if significance > self.start_threshold:
+            if significance > self.start_threshold or step:
                 before = self._quiet_mu if self._quiet_mu is not None else mu
                 self.events.append(MomentumEvent(stamp_ns, mu_before=before.copy(),
                                                  peak_wrench=wrench_norm,
@@ -106,7 +269,7 @@ class EventDetector:
             return
         event.peak_wrench = max(event.peak_wrench, wrench_norm)
         event.peak_significance = max(event.peak_significance, significance)
-        if significance >= self.end_threshold:
+        if significance >= self.end_threshold or step:
             self._quiet_since = None
             return
         if self._quiet_since is None:

@@ -54,6 +54,14 @@ jumps no wrench of the random walk explains); after ``GATE_RESET`` rejections
 in a row the filter re-initialises its momentum and wrench covariance (a real
 impulse, e.g. a docking contact) and accepts.
 
+A pose stamp off by dt from the instant the pose was measured (a mocap client
+stamping on receipt) puts ``xi dt`` into the residual: the pose noise is
+``R + xi xi^T sigma_t^2`` (``pose_stamp``), with xi the body twist averaged over
+``STAMP_TWIST_TIME``. A GLR test of a step in w on the innovations
+(:class:`~reduced_dynamics.estimator.events.WrenchStepTest`) lets the filter take
+a thruster switching at once (``x += D Delta``, ``P += D J^-1 D^T``). A covariance
+that loses positive definiteness restarts the filter from the measurement.
+
 Each step may record what the fixed-interval (Rauch-Tung-Striebel) smoother
 needs (:class:`FilterStep`); :func:`smooth` runs it on the group.
 
@@ -90,10 +98,13 @@ import numpy as np
 import pinocchio as pin
 from scipy.stats import chi2
 
+from reduced_dynamics.estimator.events import StepDetection, WrenchStepTest
 from reduced_dynamics.geometry.lie_group import BaseGroup
 
 #: Consecutive gated measurements after which a momentum jump is accepted.
 GATE_RESET = 3
+#: Time constant [s] of the twist average that scales the pose stamp noise.
+STAMP_TWIST_TIME = 0.5
 #: Re-linearisations of an update with a twist (iterated EKF).
 ITERATIONS = 2
 LOG_2PI = math.log(2.0 * math.pi)
@@ -137,6 +148,7 @@ class NoiseModel:
     command_bias_angular: float = 2.5e-2
     disturbance_linear: float = 1e-3
     disturbance_angular: float = 5e-3
+    pose_stamp: float = 0.0
 
 
 class Linearisation(NamedTuple):
@@ -238,11 +250,14 @@ class MomentumFilter:
     """
 
     def __init__(self, group: BaseGroup, noise: NoiseModel, gate_probability: float,
-                 record: bool = False, command: bool = False) -> None:
+                 record: bool = False, command: bool = False,
+                 step_significance: float = 0.0) -> None:
         """
         Set up for ``group``; ``gate_probability``: innovation gate (0: off).
 
         ``command``: the commanded-wrench model (gain and bias states, 5n).
+        ``step_significance``: false-alarm probability of the GLR test of a wrench
+        step (:class:`~reduced_dynamics.estimator.events.WrenchStepTest`; 0: off).
         """
         self.group = group
         self.n = n = group.dim
@@ -299,6 +314,18 @@ class MomentumFilter:
         self._series2 = np.r_[np.full(2 * n, 1.0 / 6.0), np.zeros(n)]
         self._r_pose = np.diag(self._pose_var)
         self._r_twist = np.diag(self._twist_var)
+        self.step_test = WrenchStepTest(n, step_significance, self.dim)
+        #: the wrench step taken since the last row (None: none detected)
+        self.step_detected: Optional[StepDetection] = None
+        self.steps_taken = 0
+        #: re-initialisations after the covariance lost positive definiteness
+        self.diverged = 0
+        # Body twist averaged over STAMP_TWIST_TIME (pose stamp noise) and its time.
+        self._stamp_twist = np.zeros(n)
+        self._stamp_twist_ns: Optional[int] = None
+        # H of a pose measurement, [1 0 0] (the step test's signatures need it).
+        self._h_pose = np.zeros((n, self.dim))
+        self._h_pose[:, :n] = np.eye(n)
 
     # --- pieces of the model ----------------------------------------------------------
     @property
@@ -570,6 +597,9 @@ class MomentumFilter:
             p[3 * n:, 3 * n:] = self._command_prior(lin.locked)
             self.x = np.concatenate((self.x, np.ones(n), np.zeros(n)))
         self.p = p
+        self._stamp_twist = np.zeros(n) if twist is None else np.array(twist, dtype=float)
+        self._stamp_twist_ns = stamp_ns
+        self.step_test.reset()
         if self.record:
             self.steps.append(FilterStep(stamp_ns, None, g, self.x, p, g, self.x, p,
                                          lin.locked_inverse, True, self._held_command()))
@@ -592,12 +622,14 @@ class MomentumFilter:
             self._command = self._command_zero if command is None else command.now
         dt = (stamp_ns - self.stamp_ns) * 1e-9
         if dt <= 0.0:
+            self.step_test.propagate(stamp_ns, self._eye)
             return self._eye
         transition, q = self._transition(self.g, self.x, lin, dt, u)
         self.g, self.x = self.propagate_mean(self.g, self.x, lin, dt, u)
         p = transition @ self.p @ transition.T + q
         self.p = 0.5 * (p + p.T)
         self.stamp_ns = stamp_ns
+        self.step_test.propagate(stamp_ns, transition)
         return transition
 
     def row(self, stamp_ns: int, lin: Linearisation, prior: Optional[Measurement],
@@ -619,6 +651,7 @@ class MomentumFilter:
         measurement before the row's stamp, then the one of the step that ends at
         the row. Return the gated measurements as (stamp, NIS).
         """
+        self.step_detected = None
         if self.g is None:
             if prior is not None:
                 if self.command and commands:
@@ -656,9 +689,21 @@ class MomentumFilter:
                  gated: list) -> None:
         """Update with ``measurement`` (if any) at the current time and record the step."""
         g_pred, x_pred, p_pred = self.g, self.x, self.p
-        if measurement is not None and not self._update(measurement.pose, measurement.twist,
-                                                        lin):
-            gated.append((measurement.stamp_ns, self.last_nis))
+        if measurement is not None:
+            try:
+                accepted = self._update(measurement.pose, measurement.twist, lin)
+                broken = not (np.isfinite(self.p).all() and (np.diag(self.p) >= 0.0).all())
+            except np.linalg.LinAlgError:
+                accepted, broken = False, True
+            if broken:
+                # The covariance lost positive definiteness (noise settings far below
+                # what the data do, e.g. tuned on stamps that are off by milliseconds):
+                # start again from this measurement (a restart step) instead of failing.
+                self.diverged += 1
+                self.initialise(stamp_ns, measurement.pose, lin, measurement.twist)
+                return
+            if not accepted:
+                gated.append((measurement.stamp_ns, self.last_nis))
         if self.record:
             self.steps.append(FilterStep(stamp_ns, transition, g_pred, x_pred, p_pred,
                                          self.g, self.x, self.p, lin.locked_inverse, output,
@@ -686,17 +731,24 @@ class MomentumFilter:
         n, group = self.n, self.group
         g0, x0, p0 = self.g, self.x, self.p
         residual = group.log(g0.inverse() * pose)
+        r_pose = self._r_pose
+        if self.noise.pose_stamp > 0.0:
+            # Stamp error dt: the measured pose is g exp(xi dt), so R += xi xi^T sigma_t^2,
+            # with xi the body twist averaged over STAMP_TWIST_TIME: the estimate's own
+            # transients (after a gate reset) must not weaken the poses that correct them.
+            xi = self._stamp_twist * self.noise.pose_stamp
+            r_pose = r_pose + np.outer(xi, xi)
         if twist is None:
             # H = [1 0 0]: P H^T and H P H^T are blocks of P.
             h = None
             nu = residual
-            r = self._r_pose
+            r = r_pose
             ph = p0[:, :n]
             s = p0[:n, :n] + r
         else:
             h, nu = self._twist_measurement(g0, x0, pose, twist, lin, residual)
             r = np.zeros((2 * n, 2 * n))
-            r[:n, :n] = self._r_pose
+            r[:n, :n] = r_pose
             r[n:, n:] = self._r_twist + lin.joint_cov
             ph = p0 @ h.T
             s = h @ ph + r
@@ -723,6 +775,8 @@ class MomentumFilter:
             p0[n:2 * n, n:2 * n] += (to_world * self._speed_var) @ to_world.T
             p0[2 * n:3 * n, 2 * n:3 * n] += (to_world * self._accel_var) @ to_world.T
             self.p = p0
+            # The step hypotheses described the filter before the jump: start afresh.
+            self.step_test.reset()
             if h is None:
                 ph = p0[:, :n]
                 s = p0[:n, :n] + r
@@ -752,6 +806,23 @@ class MomentumFilter:
             keep = self._eye - gain @ h
         p = keep @ p0 @ keep.T + gain @ r @ gain.T
         self.p = 0.5 * (p + p.T)
+        if self.noise.pose_stamp > 0.0:
+            last, self._stamp_twist_ns = self._stamp_twist_ns, self.stamp_ns
+            dt = 0.0 if last is None else max(self.stamp_ns - last, 0) * 1e-9
+            weight = min(1.0, dt / STAMP_TWIST_TIME)
+            self._stamp_twist = self._stamp_twist + weight * (
+                self.twist(self.g, self.x[:n], lin) - self._stamp_twist)
+        detection = self.step_test.update(self._h_pose if h is None else h, s, gain, nu)
+        if detection is not None:
+            # A wrench step (thruster on/off: a jump, not a random walk): take its
+            # maximum-likelihood size and its uncertainty (Willsky-Jones compensation).
+            self.g = self.g * group.exp(detection.correction[:n])
+            self.x = self.x + detection.correction[n:]
+            p = self.p + detection.covariance
+            self.p = 0.5 * (p + p.T)
+            self.step_test.reset()
+            self.step_detected = detection
+            self.steps_taken += 1
         return True
 
     def _twist_measurement(self, g: pin.SE3, x: np.ndarray, pose: pin.SE3,
