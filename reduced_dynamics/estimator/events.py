@@ -88,7 +88,7 @@ class WrenchStepTest:
 
     A bank of onset hypotheses (see the module docstring); per hypothesis the
     signature D (dim x n), the information J (n x n) and the score b (n) are
-    kept stacked, so one step costs a few array operations whatever their number.
+    kept stacked, so one step costs a few matrix products whatever their number.
     """
 
     def __init__(self, n: int, significance: float, dim: Optional[int] = None) -> None:
@@ -102,9 +102,11 @@ class WrenchStepTest:
         self.dim = 3 * n if dim is None else dim
         self.threshold = math.inf if significance <= 0.0 \
             else float(chi2.isf(significance, n))
-        self._fresh = np.zeros((self.dim, n))
-        self._fresh[2 * n:3 * n] = np.eye(n)
-        self.reset()
+        self._onsets: list[int] = []
+        self._d = np.zeros((self.dim, 0))
+        #: per hypothesis: information J (M x n x n) and score b (M x n), stacked
+        self._j = np.zeros((0, n, n))
+        self._b = np.zeros((0, n))
         self.last_statistic = 0.0
         #: exponential average of the NIS per measured coordinate (1 when the noise fits)
         self.nis_scale = 1.0
@@ -116,11 +118,10 @@ class WrenchStepTest:
 
     def reset(self) -> None:
         """Forget every hypothesis (after a detection or a filter restart)."""
-        n = self.n
-        self._onsets: list[int] = []
-        self._d = np.zeros((self.dim, 0))        # signatures, hypothesis i in columns i n..
-        self._j = np.zeros((0, n, n))            # information per hypothesis
-        self._b = np.zeros((0, n))               # score per hypothesis
+        self._onsets = []
+        self._d = np.zeros((self.dim, 0))
+        self._j = np.zeros((0, self.n, self.n))
+        self._b = np.zeros((0, self.n))
         # nis_scale stays: it describes the sensors, not the hypotheses.
 
     def propagate(self, stamp_ns: int, transition: np.ndarray) -> None:
@@ -139,60 +140,77 @@ class WrenchStepTest:
             expired += 1
         if expired:
             del self._onsets[:expired]
-            self._d = self._d[:, expired * n:]
             self._j, self._b = self._j[expired:], self._b[expired:]
+            self._d = self._d[:, expired * n:]
         if not self._onsets or stamp_ns - self._onsets[-1] >= int(GLR_SPACING * 1e9):
+            fresh = np.zeros((self.dim, n))
+            fresh[2 * n:3 * n] = np.eye(n)
             self._onsets.append(stamp_ns)
-            self._d = np.hstack((self._d, self._fresh))
             self._j = np.concatenate((self._j, np.zeros((1, n, n))))
             self._b = np.concatenate((self._b, np.zeros((1, n))))
+            self._d = np.hstack((self._d, fresh))
 
     def update(self, h: np.ndarray, s: np.ndarray, gain: np.ndarray,
                nu: np.ndarray) -> Optional[StepDetection]:
         """Take one accepted measurement (H, S, K, innovation); return a detection or None."""
         if not self._onsets:
             return None
-        n, count = self.n, len(self._onsets)
+        n = self.n
         g = h @ self._d                        # signatures in the innovation, m x (n M)
         self._d = self._d - gain @ g
-        nis_total = float(nu @ np.linalg.solve(s, nu))
+        # One solve for the innovation and every signature: S^-1 [nu, G].
+        solved = np.linalg.solve(s, np.column_stack((nu, g)))
+        nis_total = float(nu @ solved[:, 0])
         nis = nis_total / len(nu)
         if nis_total > self._outlier.get(len(nu), math.inf):
             # One improbable innovation is an outlier (a pose stamped tens of ms off),
             # not the growing drift a step makes: it carries no evidence here.
             return None
-        s_inv_g = np.linalg.solve(s, g)
-        # Per hypothesis i: J_i += G_i^T S^-1 G_i, b_i += G_i^T S^-1 nu (blocks of n columns).
-        g3 = g.reshape(len(nu), count, n)
-        self._j += np.einsum('aik,aij->ikj', g3, s_inv_g.reshape(len(nu), count, n))
-        self._b += (s_inv_g.T @ nu).reshape(count, n)
+        count, m = len(self._onsets), len(nu)
+        # Per hypothesis i: G_i (m x n) and S^-1 G_i, stacked as (M, m, n).
+        g_stack = g.reshape(m, count, n).transpose(1, 0, 2)
+        s_inv_g = solved[:, 1:].reshape(m, count, n).transpose(1, 0, 2)
+        self._j = self._j + np.matmul(g_stack.transpose(0, 2, 1), s_inv_g)
+        self._b = self._b + np.matmul(nu, s_inv_g)
         # A running mean over the first NIS_TIME seconds, then an exponential average.
         self._elapsed += self._dt
         horizon = min(self._elapsed, NIS_TIME)
         weight = 1.0 if horizon <= 0.0 else min(1.0, self._dt / horizon)
         self.nis_scale += weight * (nis - self.nis_scale)
         scale = max(1.0, self.nis_scale)
-        # A hypothesis opened at this stamp has no information yet (J = 0): skip it.
-        live = np.einsum('ikk->i', self._j) > 0.0
-        steps = np.full_like(self._b, np.nan)
+        steps = self._steps()
+        statistics = np.einsum('ij,ij->i', self._b, steps) / scale
+        statistics[~np.isfinite(statistics)] = -math.inf
+        best_index = int(np.argmax(statistics))
+        self.last_statistic = max(0.0, float(statistics[best_index]))
+        statistic = float(statistics[best_index])
+        if not statistic > self.threshold:
+            return None
+        block = slice(best_index * n, (best_index + 1) * n)
+        d, j, step = self._d[:, block], self._j[best_index], steps[best_index]
+        return StepDetection(statistic, step, d @ step, d @ np.linalg.solve(j, d.T))
+
+    def _steps(self) -> np.ndarray:
+        """
+        Return each hypothesis' maximum-likelihood step J^-1 b (M x n), NaN where J is singular.
+
+        A hypothesis opened at this update has J = 0 (its step is not yet in the
+        innovation): it is left out of the stacked solve, which is tried whole
+        first and hypothesis by hypothesis if some J is singular.
+        """
+        steps = np.full(self._b.shape, math.nan)
+        seen = np.flatnonzero(np.abs(self._j).sum(axis=(1, 2)) > 0.0)
+        if not len(seen):
+            return steps
         try:
-            steps[live] = np.linalg.solve(self._j[live], self._b[live][:, :, None])[:, :, 0]
+            steps[seen] = np.linalg.solve(self._j[seen], self._b[seen][..., None])[..., 0]
         except np.linalg.LinAlgError:
-            for i in np.flatnonzero(live):
+            for i in seen:
                 try:
                     steps[i] = np.linalg.solve(self._j[i], self._b[i])
                 except np.linalg.LinAlgError:
-                    pass
-        statistics = np.einsum('ik,ik->i', self._b, steps) / scale
-        statistics[~np.isfinite(statistics)] = -math.inf
-        best = int(np.argmax(statistics))
-        self.last_statistic = max(0.0, float(statistics[best]))
-        if statistics[best] <= self.threshold:
-            return None
-        d = self._d[:, best * n:(best + 1) * n]
-        step = steps[best]
-        return StepDetection(float(statistics[best]), step, d @ step,
-                             d @ np.linalg.solve(self._j[best], d.T))
+                    continue
+        return steps
 
 
 @dataclass
