@@ -179,7 +179,8 @@ class SimulationOptions:
     momentum constant to ~1e-11 relative (1e-12 gives occasional 2e-10 spikes between
     steps) at no noticeable cost. Noise standard deviations: ``noise_position`` on joint positions,
     ``noise_velocity`` on joint velocities and the base twist (``noise_twist`` when
-    given), ``noise_effort`` on joint efforts, ``noise_pose`` on the base position (m)
+    given; ``noise_twist_angular`` on its angular part when given), ``noise_effort`` on
+    joint efforts, ``noise_pose`` on the base position (m)
     and orientation (a small rotation, rad; ``noise_orientation`` when given).
     ``quantize`` holds (field, step) pairs of :data:`QUANTIZE_FIELDS`. The timing
     fields (``stamp_jitter`` ... ``outage_duration``) apply to every measured topic,
@@ -206,6 +207,7 @@ class SimulationOptions:
     drop_rate: float = 0.0
     noise_effort: float = 0.0
     noise_twist: Optional[float] = None
+    noise_twist_angular: Optional[float] = None
     noise_orientation: Optional[float] = None
     quantize: tuple[tuple[str, float], ...] = ()
     stamp_jitter: float = 0.0
@@ -259,7 +261,7 @@ class SimulationOptions:
         for name in ('noise_effort', 'stamp_jitter', 'latency', 'latency_jitter',
                      'outage_rate'):
             _check_nonnegative(name, getattr(self, name))
-        for name in ('noise_twist', 'noise_orientation'):
+        for name in ('noise_twist', 'noise_twist_angular', 'noise_orientation'):
             if getattr(self, name) is not None:
                 _check_nonnegative(name, getattr(self, name))
         if not 0.0 <= self.bunch_fraction < 1.0:
@@ -638,7 +640,10 @@ class _Noise:
         orientation = options.noise_pose if options.noise_orientation is None \
             else options.noise_orientation
         self.pose_sigma = np.where(angular, orientation, options.noise_pose)
-        self.twist_sigma = np.full(robot.n, float(twist))
+        # A gyro and a velocity solution differ by orders of magnitude (config/spacecraft.yaml).
+        twist_angular = twist if options.noise_twist_angular is None \
+            else options.noise_twist_angular
+        self.twist_sigma = np.where(angular, float(twist_angular), float(twist))
         self.steps = {name: options.step(name) for name in QUANTIZE_FIELDS}
 
     def joints(self, qbar: np.ndarray, qbar_dot: np.ndarray, tau: np.ndarray
@@ -1147,6 +1152,9 @@ def register_command(subparsers: Any) -> None:
                         help='std of joint effort noise (N m or N)')
     parser.add_argument('--noise-twist', type=_nonnegative, default=None,
                         help='std of base twist noise (m/s, rad/s; default --noise-velocity)')
+    parser.add_argument('--noise-twist-angular', type=_nonnegative, default=None,
+                        help='std of the base angular velocity noise (rad/s; default '
+                             '--noise-twist)')
     parser.add_argument('--noise-orientation', type=_nonnegative, default=None,
                         help='std of base orientation noise (rad; default --noise-pose)')
     parser.add_argument('--quantize', type=_quantize, action='append', default=[],
@@ -1222,6 +1230,7 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         noise_velocity=args.noise_velocity, noise_pose=args.noise_pose,
         drop_rate=args.drop_rate, base_pose_only=args.base_pose_only,
         noise_effort=args.noise_effort, noise_twist=args.noise_twist,
+        noise_twist_angular=args.noise_twist_angular,
         noise_orientation=args.noise_orientation, quantize=tuple(args.quantize),
         stamp_jitter=args.stamp_jitter, bunch_fraction=args.bunch_fraction,
         bunch_gap=args.bunch_gap, latency=args.latency, latency_jitter=args.latency_jitter,

@@ -46,6 +46,13 @@ simulate -o "$OUT/paper_constant" --summary "$OUT/paper_constant.summary.json" -
 # 4 +- 1 ms later, 1 % of messages lost; one 0.5 s thruster pulse at 3 s.
 simulate -o "$OUT/paper_realistic" --summary "$OUT/paper_realistic.summary.json" --overwrite --duration 6 --rate 100 --seed 4 --torque sinusoid --thruster 3,0.5,20,-10,5,2,-3,4 --noise-position 1e-4 --noise-velocity 0.005 --noise-effort 0.05 --noise-pose 0.001 --noise-orientation 0.0005 --noise-twist 0.002 --quantize joint_position=1e-5 --stamp-jitter 0.0003 --latency 0.004 --latency-jitter 0.001 --drop-rate 0.01
 
+# The same robot and pulse with a spacecraft's navigation (the sensor classes of
+# config/spacecraft.yaml): star tracker 5e-5 rad, relative navigation / GNSS position 0.1 m,
+# IMU-aided velocity 1e-3 m/s, gyro 1e-4 rad/s, resolver-grade joint rates 1e-3 rad/s;
+# encoders, efforts, stamp jitter, latency and drops as paper_realistic; coasting (no
+# external wrench) outside [3, 3.5) s.
+simulate -o "$OUT/paper_spacecraft" --summary "$OUT/paper_spacecraft.summary.json" --overwrite --duration 6 --rate 100 --seed 8 --torque sinusoid --thruster 3,0.5,20,-10,5,2,-3,4 --noise-position 1e-4 --noise-velocity 0.001 --noise-effort 0.05 --noise-pose 0.1 --noise-orientation 5e-5 --noise-twist 0.001 --noise-twist-angular 1e-4 --quantize joint_position=1e-5 --stamp-jitter 0.0003 --latency 0.004 --latency-jitter 0.001 --drop-rate 0.01
+
 # A planar free-flyer like the freeflyer2 testbed (16 kg, 0.18 kg m^2, no arm), mocap poses
 # only at 120 Hz: 0.5 mm and 2 mrad noise, positions quantised to 0.1 mm, 0.5 ms stamp
 # jitter, 1 % of the stamps bunched with the next one (gaps of 15-45 us, as in the real

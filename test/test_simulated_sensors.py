@@ -84,7 +84,7 @@ def nominal_index(stamp: int, rate: float) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- shipped bags
-@pytest.mark.parametrize('name', ['paper_realistic', 'freeflyer_realistic'])
+@pytest.mark.parametrize('name', ['paper_realistic', 'freeflyer_realistic', 'paper_spacecraft'])
 def test_shipped_realistic_bags_read_back(name: str) -> None:
     path = DATA / name
     summary = json.loads((DATA / f'{name}.summary.json').read_text())
@@ -194,6 +194,23 @@ def test_noise_per_field_and_ground_truth_unchanged(tmp_path: Path) -> None:
     assert np.allclose(np.diag(covariance), [0.004 ** 2] * 3 + [0.002 ** 2] * 3)
     velocity = np.array([n.velocity for n in noisy_j])
     assert np.allclose(velocity / 1e-3, np.rint(velocity / 1e-3), rtol=0, atol=1e-9)
+
+
+def test_angular_twist_noise_of_its_own(tmp_path: Path) -> None:
+    """--noise-twist-angular: a gyro's figure on the angular velocity, the linear one kept."""
+    robot = paper_robot()
+    base = dict(duration=2.0, rate=200.0, seed=8, torque='sinusoid')
+    simulate(tmp_path, 'clean', robot, **base)
+    simulate(tmp_path, 'gyro', robot, **base, noise_twist=0.05, noise_twist_angular=0.002)
+    linear, angular = [], []
+    for (_, a), (_, b) in zip(read(tmp_path / 'gyro', '/odom'), read(tmp_path / 'clean', '/odom')):
+        ta, tb = a.twist.twist, b.twist.twist
+        linear.append([ta.linear.x - tb.linear.x, ta.linear.z - tb.linear.z])
+        angular.append([ta.angular.x - tb.angular.x, ta.angular.z - tb.angular.z])
+    assert np.std(linear) == pytest.approx(0.05, rel=0.1)
+    assert np.std(angular) == pytest.approx(0.002, rel=0.1)
+    covariance = np.array(a.twist.covariance).reshape(6, 6)
+    assert np.allclose(np.diag(covariance), [0.05 ** 2] * 3 + [0.002 ** 2] * 3)
 
 
 @pytest.mark.parametrize('field, step', [('joint_position', 0.01), ('joint_effort', 0.5),
@@ -430,6 +447,7 @@ def test_freeflyer_has_no_joint_states(tmp_path: Path) -> None:
     (dict(quantize=(('joint_position', 0.0),)), 'quantize step'),
     (dict(bunch_fraction=1.0), 'bunch_fraction'), (dict(latency=-1.0), 'latency'),
     (dict(outage_duration=0.0), 'outage_duration'), (dict(noise_twist=-1.0), 'noise_twist'),
+    (dict(noise_twist_angular=-1.0), 'noise_twist_angular'),
     (dict(thruster_layout='freeflyer', thruster_force=0.0), 'thruster_force'),
 ])
 def test_bad_sensor_options(fields: dict, message: str) -> None:
