@@ -40,9 +40,9 @@ re-established (``LOCK_SAMPLES`` samples) every stamp is kept as it came, with
 
 ``auto`` re-times only a stream that shows the receive-stamp signature in its
 window: the consecutive-frame envelope holds (every latency within
-[-T/2, ``MAX_LATENCY``]) and at least one pair of consecutive frames came within
-a quarter period of each other (two frames delivered by one poll: a clock that
-stamps its own samples never does that). Hardware-stamped navigation, a simulator's
+[-T/2, ``MAX_LATENCY``]) and at least 1 % of its steps (3 or more) are under
+``BURST_STEP`` periods (two frames delivered by one poll, stamped microseconds
+apart: a clock that stamps its own samples does that only by rare chance). Hardware-stamped navigation, a simulator's
 jittered Odometry, and a polling client faster than its source (no bursts) keep
 their stamps. ``on`` skips the burst test (a stream known to be stamped on
 receipt); ``off`` never re-times.
@@ -76,6 +76,15 @@ MAX_LATENCY = 0.2
 #: the suspect length, see :meth:`FrameRetimer._fit`). Each on-time poll delivers a
 #: frame younger than one period (the newest it found), so runs end by themselves.
 LEVEL_SAMPLES = 8
+#: Two frames one poll delivered are stamped microseconds apart: a step under this
+#: fraction of the period (167 us at 120 Hz; the freeflyer2 bags: 19-20 % of their
+#: steps). A clock stamping its own samples with jitter sigma makes one with
+#: probability Phi(-T / (sqrt(2) sigma)): 4e-4 for 1 ms on 200 Hz.
+BURST_STEP = 0.05
+#: Such steps needed in the window (at least this many and this fraction of it), so
+#: that chance does not make the signature.
+BURST_COUNT = 3
+BURST_FRACTION = 0.01
 #: The modes of ``pose_retiming``.
 MODES = ('auto', 'on', 'off')
 
@@ -133,7 +142,6 @@ class FrameRetimer:
         self._run = 0
         self._suspect_after = 0
         self._natural = 0.0
-        self._far = 0
         self._locked = False
         #: samples re-timed, kept (not re-timed) and estimate restarts so far
         self.retimed = 0
@@ -163,7 +171,6 @@ class FrameRetimer:
         self._since_fit = 0
         self._above = 0
         self._run = 0
-        self._far = 0
         self._locked = False
         self.period_ns = None
 
@@ -181,7 +188,7 @@ class FrameRetimer:
             return
         n0, s0, _ = line
         limit = MAX_LATENCY * NS
-        low, burst = -0.5 * period, self.mode == 'on'
+        low, bursts = -0.5 * period, 0
         previous: Optional[int] = None
         consistent = True
         late, run, longest = 0.75 * period, 0, 0
@@ -192,8 +199,8 @@ class FrameRetimer:
             if d < low or d > limit:
                 consistent = False
                 break
-            if previous is not None and s - previous < 0.25 * period:
-                burst = True
+            if previous is not None and s - previous < BURST_STEP * period:
+                bursts += 1
             previous = s
             # Runs of late samples that a fresh frame ended (no frame lost in them).
             if d >= late:
@@ -215,7 +222,8 @@ class FrameRetimer:
             self.restarts += 1
             points.append((0, newest[1]))
             return
-        self._locked = burst
+        self._locked = self.mode == 'on' or bursts >= max(BURST_COUNT,
+                                                          BURST_FRACTION * len(points))
 
     def retime(self, stamp: int) -> tuple[int, Optional[float]]:
         """
@@ -256,11 +264,8 @@ class FrameRetimer:
                 self._above += 1
                 # A new poll's frame later than the stream's latencies go: either a late
                 # poll's oldest frame (the rest of its burst follows within microseconds)
-                # or frames were lost. Only the first of a run is given the benefit of
-                # the doubt (with a stamp sigma spanning both); a second one proves it.
+                # or frames were lost. Its stamp sigma spans both.
                 far = new_poll and d > self._natural
-                if far:
-                    self._far += 1
                 if self._above >= max(2 * self._suspect_after, LEVEL_SAMPLES):
                     # No sample of the run came within 3/4 period of its frame: every poll
                     # delivers one that fresh, so frames were lost during the run. Count
@@ -270,10 +275,10 @@ class FrameRetimer:
                     self._drop_last(self._above - 1)
                     index += self._run
                     self.shifts += 1
-                    self._above = self._far = 0
+                    self._above = 0
                     far = False
             else:
-                self._above = self._far = 0
+                self._above = 0
         elif points and stamp - points[-1][1] > MAX_LATENCY * NS + (
                 0 if line is None else line[2]):
             self._forget()
@@ -286,8 +291,7 @@ class FrameRetimer:
             line = self._line
         out: int = stamp
         sigma: Optional[float] = None
-        if self._locked and line is not None and self._above <= self._suspect_after \
-                and self._far <= 1:
+        if self._locked and line is not None and self._above <= self._suspect_after:
             n0, s0, period = line
             frame = s0 + int(round(period * (index - n0)))
             last = self._last_out
