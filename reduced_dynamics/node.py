@@ -88,6 +88,7 @@ try:
     from rclpy.serialization import deserialize_message
     from rclpy.signals import SignalHandlerOptions
     from rclpy.clock import JumpThreshold
+    from rclpy.event_handler import PublisherEventCallbacks
     from rcl_interfaces.msg import FloatingPointRange
     from rcl_interfaces.msg import ParameterDescriptor
     from rcl_interfaces.msg import SetParametersResult
@@ -177,6 +178,18 @@ def parameter_descriptor(name: str, spec: ParameterSpec) -> 'ParameterDescriptor
 def _default(spec: ParameterSpec) -> Any:
     """Return a fresh copy of a default (the table's lists are shared)."""
     return list(spec.default) if isinstance(spec.default, list) else spec.default
+
+
+def quiet_publisher_events() -> 'PublisherEventCallbacks':
+    """
+    Return publisher event callbacks without rclpy's default handlers (outputs only).
+
+    rclpy adds two QoS event handlers per publisher (incompatible QoS, incompatible
+    type) to every wait of the executor, which rebuilds its wait set for each input
+    message: on the 13 outputs they were two thirds of its entities. A subscriber
+    with an incompatible QoS or type still says so in its own log (its handlers).
+    """
+    return PublisherEventCallbacks(use_default_callbacks=False)
 
 
 def input_qos() -> 'QoSProfile':
@@ -474,7 +487,8 @@ class _Shell:
             self._publishers_by_topic[topic.name] = self.create_publisher(
                 self._types.get(topic.msgtype),
                 topic.name if topic.name.startswith('/') else '~/' + topic.name,
-                reliable_qos(), qos_overriding_options=overridable)
+                reliable_qos(), qos_overriding_options=overridable,
+                event_callbacks=quiet_publisher_events())
             self._encoders[topic.name] = cdr.ENCODERS[topic.msgtype]
         self._subscribe_inputs(overridable)
         self._worker = _PredictionWorker(self._publish_prediction, self._on_worker_error)
@@ -531,10 +545,11 @@ class _Shell:
         subscribe('trajectory_msgs/msg/JointTrajectory', PREDICT_REQUEST_TOPIC,
                   self._on_predict_request, reliable_qos())
         self._answer_path = self.create_publisher(self._types.get('nav_msgs/msg/Path'),
-                                                  PREDICT_PATH_TOPIC, reliable_qos())
+                                                  PREDICT_PATH_TOPIC, reliable_qos(),
+                                                  event_callbacks=quiet_publisher_events())
         self._answer_result = self.create_publisher(
             self._types.get('diagnostic_msgs/msg/DiagnosticArray'), PREDICT_RESULT_TOPIC,
-            reliable_qos())
+            reliable_qos(), event_callbacks=quiet_publisher_events())
 
     # --- inputs -----------------------------------------------------------------------
     def _on_trajectory(self, msg: Any) -> None:
