@@ -42,10 +42,10 @@ re-established (``LOCK_SAMPLES`` samples) every stamp is kept as it came, with
 window: the consecutive-frame envelope holds (every latency within
 [-T/2, ``MAX_LATENCY``]) and at least 1 % of its steps (3 or more) are under
 ``BURST_STEP`` periods (two frames delivered by one poll, stamped microseconds
-apart: a clock that stamps its own samples does that only by rare chance). Hardware-stamped navigation, a simulator's
-jittered Odometry, and a polling client faster than its source (no bursts) keep
-their stamps. ``on`` skips the burst test (a stream known to be stamped on
-receipt); ``off`` never re-times.
+apart: a clock that stamps its own samples does that only by rare chance).
+Hardware-stamped navigation, a simulator's jittered Odometry, and a polling client
+faster than its source (no bursts) keep their stamps. ``on`` skips the burst test
+(a stream known to be stamped on receipt); ``off`` never re-times.
 
 The re-timer sees the samples the stamp policy (:mod:`.stamps`) accepted, one at a
 time, in arrival order: streaming and batched paths give the same stamps.
