@@ -17,7 +17,8 @@
 import numpy as np
 import pytest
 
-from reduced_dynamics.estimator.filter import Linearisation, MomentumFilter, NoiseModel, smooth
+from reduced_dynamics.estimator.filter import (Linearisation, Measurement, MomentumFilter,
+                                               NoiseModel, smooth)
 from reduced_dynamics.geometry.lie_group import SUBGROUPS
 
 
@@ -241,3 +242,25 @@ def test_a_broken_covariance_restarts_the_filter() -> None:
     assert flt.diverged == 1 and flt.steps[-1].transition is None
     assert np.allclose(flt.g.translation, pose.translation) and np.all(np.diag(flt.p) > 0)
     assert flt.step(20_000_000, lin, pose, None)
+
+
+def test_measurement_between_rows_updates_once_and_records_its_own_step():
+    """A base sample between two rows is a step of its own, not an output row."""
+    group = SUBGROUPS['SE(3)']
+    n = group.dim
+    lin = _linearisation(n, 5)
+    flt = MomentumFilter(group, NoiseModel(), 0.0, record=True)
+    pose = group.exp(np.zeros(n))
+    flt.row(0, lin, Measurement(0, pose, None))
+    flt.row(1_000_000, lin, None, [Measurement(500_000, pose, None)])
+    flt.row(2_000_000, lin, None, [])
+    assert [(s.stamp_ns, s.output) for s in flt.steps] == [
+        (0, True), (500_000, False), (1_000_000, True), (2_000_000, True)]
+    assert flt.nis_dof == n  # one update
+    # A restart at a measurement between rows (covariance no longer positive definite)
+    # is recorded as that measurement's step: the rows stay one output step each.
+    flt._update = lambda *args: (_ for _ in ()).throw(np.linalg.LinAlgError('forced'))
+    flt.row(3_000_000, lin, None, [Measurement(2_500_000, pose, None)])
+    assert flt.diverged == 1
+    assert [s.output for s in flt.steps[-2:]] == [False, True]
+    assert sum(s.output for s in flt.steps) == 4

@@ -100,8 +100,9 @@ class WrenchStepTest:
             else float(chi2.isf(significance, n))
         self._onsets: list[int] = []
         self._d = np.zeros((self.dim, 0))
-        self._j: list[np.ndarray] = []
-        self._b: list[np.ndarray] = []
+        #: per hypothesis: information J (M x n x n) and score b (M x n), stacked
+        self._j = np.zeros((0, n, n))
+        self._b = np.zeros((0, n))
         self.last_statistic = 0.0
         #: exponential average of the NIS per measured coordinate (1 when the noise fits)
         self.nis_scale = 1.0
@@ -115,7 +116,8 @@ class WrenchStepTest:
         """Forget every hypothesis (after a detection or a filter restart)."""
         self._onsets = []
         self._d = np.zeros((self.dim, 0))
-        self._j, self._b = [], []
+        self._j = np.zeros((0, self.n, self.n))
+        self._b = np.zeros((0, self.n))
         # nis_scale stays: it describes the sensors, not the hypotheses.
 
     def propagate(self, stamp_ns: int, transition: np.ndarray) -> None:
@@ -129,17 +131,19 @@ class WrenchStepTest:
             self._d = transition @ self._d
         # Expire hypotheses older than the window; open one every GLR_SPACING s.
         window = int(GLR_WINDOW * 1e9)
-        while self._onsets and stamp_ns - self._onsets[0] > window:
-            self._onsets.pop(0)
-            self._j.pop(0)
-            self._b.pop(0)
-            self._d = self._d[:, n:]
+        expired = 0
+        while expired < len(self._onsets) and stamp_ns - self._onsets[expired] > window:
+            expired += 1
+        if expired:
+            del self._onsets[:expired]
+            self._j, self._b = self._j[expired:], self._b[expired:]
+            self._d = self._d[:, expired * n:]
         if not self._onsets or stamp_ns - self._onsets[-1] >= int(GLR_SPACING * 1e9):
             fresh = np.zeros((self.dim, n))
             fresh[2 * n:3 * n] = np.eye(n)
             self._onsets.append(stamp_ns)
-            self._j.append(np.zeros((n, n)))
-            self._b.append(np.zeros(n))
+            self._j = np.concatenate((self._j, np.zeros((1, n, n))))
+            self._b = np.concatenate((self._b, np.zeros((1, n))))
             self._d = np.hstack((self._d, fresh))
 
     def update(self, h: np.ndarray, s: np.ndarray, gain: np.ndarray,
@@ -150,41 +154,59 @@ class WrenchStepTest:
         n = self.n
         g = h @ self._d                        # signatures in the innovation, m x (n M)
         self._d = self._d - gain @ g
-        nis_total = float(nu @ np.linalg.solve(s, nu))
+        # One solve for the innovation and every signature: S^-1 [nu, G].
+        solved = np.linalg.solve(s, np.column_stack((nu, g)))
+        nis_total = float(nu @ solved[:, 0])
         nis = nis_total / len(nu)
         if nis_total > self._outlier.get(len(nu), math.inf):
             # One improbable innovation is an outlier (a pose stamped tens of ms off),
             # not the growing drift a step makes: it carries no evidence here.
             return None
-        s_inv_g = np.linalg.solve(s, g)
-        info = g.T @ s_inv_g                   # (n M) x (n M); the diagonal blocks are J
-        score = s_inv_g.T @ nu
+        count, m = len(self._onsets), len(nu)
+        # Per hypothesis i: G_i (m x n) and S^-1 G_i, stacked as (M, m, n).
+        g_stack = g.reshape(m, count, n).transpose(1, 0, 2)
+        s_inv_g = solved[:, 1:].reshape(m, count, n).transpose(1, 0, 2)
+        self._j = self._j + np.matmul(g_stack.transpose(0, 2, 1), s_inv_g)
+        self._b = self._b + np.matmul(nu, s_inv_g)
         # A running mean over the first NIS_TIME seconds, then an exponential average.
         self._elapsed += self._dt
         horizon = min(self._elapsed, NIS_TIME)
         weight = 1.0 if horizon <= 0.0 else min(1.0, self._dt / horizon)
         self.nis_scale += weight * (nis - self.nis_scale)
         scale = max(1.0, self.nis_scale)
-        best: Optional[StepDetection] = None
-        self.last_statistic = 0.0
-        for i in range(len(self._onsets)):
-            block = slice(i * n, (i + 1) * n)
-            self._j[i] += info[block, block]
-            self._b[i] += score[block]
-            j, b = self._j[i], self._b[i]
-            try:
-                step = np.linalg.solve(j, b)
-            except np.linalg.LinAlgError:
-                continue
-            statistic = float(b @ step) / scale
-            if not math.isfinite(statistic):
-                continue
-            self.last_statistic = max(self.last_statistic, statistic)
-            if statistic > self.threshold and (best is None or statistic > best.statistic):
-                d = self._d[:, block]
-                best = StepDetection(statistic, step, d @ step,
-                                     d @ np.linalg.solve(j, d.T))
-        return best
+        steps = self._steps()
+        statistics = np.einsum('ij,ij->i', self._b, steps) / scale
+        statistics[~np.isfinite(statistics)] = -math.inf
+        best_index = int(np.argmax(statistics))
+        self.last_statistic = max(0.0, float(statistics[best_index]))
+        statistic = float(statistics[best_index])
+        if not statistic > self.threshold:
+            return None
+        block = slice(best_index * n, (best_index + 1) * n)
+        d, j, step = self._d[:, block], self._j[best_index], steps[best_index]
+        return StepDetection(statistic, step, d @ step, d @ np.linalg.solve(j, d.T))
+
+    def _steps(self) -> np.ndarray:
+        """
+        Return each hypothesis' maximum-likelihood step J^-1 b (M x n), NaN where J is singular.
+
+        A hypothesis opened at this update has J = 0 (its step is not yet in the
+        innovation): it is left out of the stacked solve, which is tried whole
+        first and hypothesis by hypothesis if some J is singular.
+        """
+        steps = np.full(self._b.shape, math.nan)
+        seen = np.flatnonzero(np.abs(self._j).sum(axis=(1, 2)) > 0.0)
+        if not len(seen):
+            return steps
+        try:
+            steps[seen] = np.linalg.solve(self._j[seen], self._b[seen][..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            for i in seen:
+                try:
+                    steps[i] = np.linalg.solve(self._j[i], self._b[i])
+                except np.linalg.LinAlgError:
+                    continue
+        return steps
 
 
 @dataclass

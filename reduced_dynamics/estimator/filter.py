@@ -579,8 +579,13 @@ class MomentumFilter:
 
     # --- the recursion ----------------------------------------------------------------
     def initialise(self, stamp_ns: int, g: pin.SE3, lin: Linearisation,
-                   twist: Optional[np.ndarray]) -> None:
-        """Start from a first measurement (pose, and the body twist with Odometry)."""
+                   twist: Optional[np.ndarray], output: bool = True) -> None:
+        """
+        Start from a first measurement (pose, and the body twist with Odometry).
+
+        ``output``: the recorded restart step is a row's (False: a measurement
+        between rows, see :class:`FilterStep`).
+        """
         n = self.n
         self.g = g
         self.stamp_ns = stamp_ns
@@ -606,7 +611,7 @@ class MomentumFilter:
         self.step_test.reset()
         if self.record:
             self.steps.append(FilterStep(stamp_ns, None, g, self.x, p, g, self.x, p,
-                                         lin.locked_inverse, True, self._held_command()))
+                                         lin.locked_inverse, output, self._held_command()))
 
     def _held_command(self) -> Optional[np.ndarray]:
         """Return a copy of the command held now (commanded wrench only, else None)."""
@@ -705,7 +710,7 @@ class MomentumFilter:
                 # what the data do, e.g. tuned on stamps that are off by milliseconds):
                 # start again from this measurement (a restart step) instead of failing.
                 self.diverged += 1
-                self.initialise(stamp_ns, measurement.pose, lin, measurement.twist)
+                self.initialise(stamp_ns, measurement.pose, lin, measurement.twist, output)
                 return
             if not accepted:
                 gated.append((measurement.stamp_ns, self.last_nis))
