@@ -28,15 +28,24 @@ convex hull above the window's mean index) estimates t0 and T; a sample is
 re-timed to ``min(s, a + b n)``: never later than its receipt, always a frame of
 the estimated clock.
 
-Frame indices: consecutive messages are consecutive frames. A latency beyond
-``MAX_LATENCY`` (a gap longer than any poll delay: frames were lost, or the client
-stalled) makes the count unknown; a sample earlier than its frame by more than
-half a period (``d < -T/2``: the count is off by a frame, or the clock jumped)
-contradicts it; ``LEVEL_SAMPLES`` samples in a row more than half a period above
-the envelope (``d > T/2``) mean the envelope moved by about a frame (frames lost
-within a poll delay). Each restarts the estimate from that sample; until it is
-re-established (``LOCK_SAMPLES`` samples) every stamp is kept as it came, with
-``pose_stamp_noise``: when unsure, nothing is re-timed and nothing is lost.
+Frame indices: consecutive messages are consecutive frames. Where that is unsure,
+the stamp sigma says so (:meth:`FrameRetimer.retime`), and no sample is lost or
+moved after its receipt:
+
+* a latency under 3/4 period admits only the counted frame: its frame time, with
+  the re-timed sigma (``pose_retimed_stamp_noise``);
+* a latency of 3/4 period or more could also be a later frame, with frames lost
+  before it: such samples make a run; in it a sample gets its counted frame time
+  with the stream's ``pose_stamp_noise``, the first sample of a new poll whose
+  latency is beyond the stream's own range (99th percentile of its window) a sigma
+  spanning frame time to receipt (a late poll's oldest frame, or an outage);
+* a run longer than twice the longest run this stream ended by itself keeps its
+  stamps; one of twice that (at least ``LEVEL_SAMPLES``) proves lost frames (every
+  poll delivers a frame younger than a period): the count moves on by the largest
+  number every sample of the run allows;
+* a latency below -T/2 (the count or the clock is wrong) or beyond ``MAX_LATENCY``
+  (a stall), or a window no longer consistent, restarts the estimate; it re-times
+  again after ``LOCK_SAMPLES`` samples.
 
 ``auto`` re-times only a stream that shows the receive-stamp signature in its
 window: the consecutive-frame envelope holds (every latency within
