@@ -18,8 +18,9 @@ Noise parameters from data: ``reduced-dynamics tune BAG -o params.yaml``.
 The filter's innovations nu_k with covariances S_k give the log-likelihood of
 the measurements, ``sum_k log N(nu_k; 0, S_k)`` (prediction-error
 decomposition). Maximising it over the noise parameters (log-scaled,
-Nelder-Mead from the current values) is maximum-likelihood identification of
-the sensor and process noise. The bag's inputs are decoded once; each
+Nelder-Mead from the current values, after a scan of the wrench random walk
+over ``PROCESS_SCAN`` that picks the basin) is maximum-likelihood
+identification of the sensor and process noise. The bag's inputs are decoded once; each
 evaluation runs the causal filter over them (predictions and diagnostics off).
 The result is written as a params YAML the node (``--ros-args --params-file``)
 and ``replay --params`` read.
@@ -51,6 +52,12 @@ from reduced_dynamics.robot.model import RobotModel
 POSE_PARAMETERS = ('pose_position_noise', 'pose_angle_noise')
 PROCESS_PARAMETERS = ('wrench_jerk_linear', 'wrench_jerk_angular')
 TWIST_PARAMETERS = ('twist_linear_noise', 'twist_angular_noise')
+#: Factors tried on the wrench random walk before the local search. The likelihood has
+#: two basins: a random walk fast enough to absorb thruster switches (the step test then
+#: sees nothing) and a slow one with the switches taken as steps; Nelder-Mead from the
+#: defaults stays in the first (paper_realistic: jerk 0.68 at log-likelihood 36 662,
+#: against 37 563 at 0.0005 with the switches taken as steps).
+PROCESS_SCAN = (0.01, 0.1, 1.0, 10.0)
 
 
 def load_inputs(bag: str, robot: RobotModel, options: ReplayOptions
@@ -129,8 +136,14 @@ def tune(robot: RobotModel, samples: Sequence, params: dict, is_odom: bool,
         return -value if math.isfinite(value) else math.inf
 
     before = evaluate(robot, samples, params, is_odom, base_driven)
+    process = np.array([n in PROCESS_PARAMETERS for n in names])
+    if process.any():
+        # Pick the basin first: the process noise scaled together, the rest as given.
+        trials = [start + process * math.log10(factor) for factor in PROCESS_SCAN]
+        start = min(trials, key=cost)
     result = minimize(cost, start, method='Nelder-Mead',
-                      options={'maxfev': max_evaluations, 'xatol': 0.02, 'fatol': 0.5,
+                      options={'maxfev': max(max_evaluations - count, 1),
+                               'xatol': 0.02, 'fatol': 0.5,
                                'initial_simplex': np.vstack([start] + [
                                    start + 0.5 * np.eye(len(names))[i]
                                    for i in range(len(names))])})

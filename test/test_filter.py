@@ -196,7 +196,7 @@ def test_wrench_step_is_detected_and_taken_at_once(mass: float) -> None:
 
     Position-only, 1 mm noise at 120 Hz: the information on an acceleration step a
     after tau seconds is a^2 f tau^5 / (20 sigma^2), so chi2_3(1e-6) = 30.7 needs
-    ~0.25 s here (measured 0.19 s at both masses).
+    ~0.25 s here (measured 0.18 s at both masses; the summed bound, detectability.py: 0.14 s).
     """
     force = 0.3125 * mass
     flt, detections = _step_run(mass, force, 2.0, seed=1)
@@ -209,7 +209,7 @@ def test_wrench_step_is_detected_and_taken_at_once(mass: float) -> None:
 
 
 def test_wrench_step_test_is_silent_on_noise() -> None:
-    """60 s of noise only (7 200 pose samples): no step (union bound 8e-6 per sample)."""
+    """60 s of noise only (7 200 pose samples): no step (union bound 4e-5 per sample)."""
     flt, detections = _step_run(16.0, 0.0, 60.0, seed=2)
     assert detections == [] and flt.steps_taken == 0
 

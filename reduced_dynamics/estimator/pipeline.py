@@ -1235,6 +1235,7 @@ class Estimator:
         ``nis_per_dof``: mean normalised innovation squared per measured
         coordinate (1 when the noise parameters fit the data); ``innovation_gated``;
         ``filter_restarts``: re-initialisations after the covariance broke down;
+        ``steps_taken``: wrench steps the GLR test detected and the filter took;
         ``poses_retimed``, ``retiming_restarts``: base samples given their frame time,
         restarts of the frame-clock estimate (estimator/retiming.py).
         """
@@ -1242,7 +1243,7 @@ class Estimator:
         return {'log_likelihood': flt.log_likelihood,
                 'nis_per_dof': flt.nis_sum / flt.nis_dof if flt.nis_dof else None,
                 'innovation_gated': flt.gated, 'filter_restarts': flt.diverged,
-                'poses_retimed': self._retimer.retimed,
+                'steps_taken': flt.steps_taken, 'poses_retimed': self._retimer.retimed,
                 'retiming_restarts': self._retimer.restarts}
 
     # --- smoothing (replay) -----------------------------------------------------------

@@ -1,0 +1,213 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Issue 10's events on the realistic simulated bags, through the documented workflow.
+
+Settings per bag: the replay defaults, the sensor figures the simulation used
+(``test/data/*_realistic.sensors.yaml``) and ``reduced-dynamics tune BAG`` with its
+defaults (``test/data/*_realistic.tuned.yaml``, scripts/make_test_bags.sh). Event
+latencies are compared with the information bound of the bag's own sensor figures
+(``estimator/detectability.py``). Measured values are in README "Events on the
+realistic simulated bags".
+"""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from reduced_dynamics.bag.reader import open_bag
+from reduced_dynamics.estimator.detectability import detection_bound, step_information
+from reduced_dynamics.params import defaults, load_params_file
+from reduced_dynamics.replay import replay, ReplayOptions
+from reduced_dynamics.resources import config_path
+from reduced_dynamics.robot.model import load_robot
+
+DATA = Path(__file__).parent / 'data'
+SETTINGS = ('defaults', 'sensors', 'tuned')
+#: The free-flyer's pose noise: 0.5 mm plus the 0.1 mm quantisation (step^2 / 12), 2 mrad.
+FREEFLYER_POSE_SIGMA = (math.hypot(5e-4, 1e-4 / math.sqrt(12)),) * 2 + (2e-3,)
+
+
+def _params(bag: str, setting: str) -> dict:
+    params = defaults()
+    if setting != 'defaults':
+        params.update(load_params_file(str(DATA / f'{bag}.{setting}.yaml')))
+    return params
+
+
+def _robot(bag: str):
+    if bag.startswith('freeflyer'):
+        robot = load_robot(str(config_path('robots/freeflyer.urdf')))
+        return robot, {'base_pose_topic': '/base_pose'}
+    return load_robot(), {}
+
+
+def _series(path, topic: str) -> np.ndarray:
+    rows = []
+    with open_bag(path) as reader:
+        for message in reader.messages([topic]):
+            msg = message.msg
+            w = msg.wrench
+            rows.append((msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec,
+                         w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y, w.torque.z))
+    return np.array(rows)
+
+
+def _relative_error(robot, estimate, truth) -> float:
+    """Planar: the linear impulse of a push, the angular one of a pure torque firing."""
+    estimate, truth = np.asarray(estimate, float), np.asarray(truth, float)
+    if robot.n == 3:
+        estimate = estimate[[0, 1, 5]] if len(estimate) == 6 else estimate
+        truth = truth[[0, 1, 5]]
+        part = slice(0, 2) if np.linalg.norm(truth[:2]) > 0.1 else slice(2, 3)
+        estimate, truth = estimate[part], truth[part]
+    return float(np.linalg.norm(estimate - truth) / np.linalg.norm(truth))
+
+
+def _run(tmp_path, bag: str, setting: str, smooth: bool) -> tuple[list[dict], list[dict]]:
+    """Replay; return per firing (latency, errors) and the events outside every firing."""
+    truth = json.loads((DATA / f'{bag}.summary.json').read_text())
+    robot, topics = _robot(bag)
+    out = tmp_path / f'{bag}-{setting}-{smooth}'
+    summary = replay(str(DATA / bag), str(out), robot,
+                     ReplayOptions(params=_params(bag, setting), smooth=smooth, **topics))
+    origin = truth['start_time_ns']
+    rate = _series(out, '/reduced_dynamics/drift/momentum_rate')
+    seconds = (rate[:, 0] - origin) * 1e-9
+    events = list(summary['events'])
+    firings = []
+    for firing in truth['firings'] or truth['pulses']:
+        start, end = firing['start'], firing['start'] + firing['duration']
+        window = (seconds >= start - 0.5) & (seconds <= end + 1.0)
+        integral = np.trapezoid(rate[window, 1:], seconds[window], axis=0)
+        mine = [e for e in events if start <= (e['start_stamp_ns'] - origin) * 1e-9 <= end]
+        for event in mine:
+            events.remove(event)
+        first = mine[0] if mine else None
+        firings.append({
+            'latency': None if first is None else
+            (first['start_stamp_ns'] - origin) * 1e-9 - start,
+            'event_error': None if first is None or first['impulse'] is None else
+            _relative_error(robot, first['impulse'], firing['world_impulse']),
+            'rate_error': _relative_error(robot, integral, firing['world_impulse'])})
+    return firings, events
+
+
+def _freeflyer_bounds() -> list[float]:
+    """Information bound of each firing of freeflyer_realistic (120 Hz poses, pose only)."""
+    robot, _ = _robot('freeflyer_realistic')
+    inertia = robot.metric_blocks(np.zeros(0)).locked_inertia
+    truth = json.loads((DATA / 'freeflyer_realistic.summary.json').read_text())
+    return [detection_bound(np.linalg.solve(inertia, np.array(f['body_delivered'])[[0, 1, 5]]),
+                            120.0, FREEFLYER_POSE_SIGMA) for f in truth['firings']]
+
+
+def _paper_bound() -> float:
+    """Information bound of paper_realistic's pulse (100 Hz odometry, its own figures)."""
+    robot = load_robot()
+    truth = json.loads((DATA / 'paper_realistic.summary.json').read_text())
+    pulse = truth['pulses'][0]
+    with open_bag(DATA / 'paper_realistic') as reader:
+        for message in reader.messages(['/joint_states']):
+            stamp = message.msg.header.stamp
+            if stamp.sec * 10**9 + stamp.nanosec >= truth['start_time_ns'] + 3 * 10**9:
+                qbar = np.array(message.msg.position)
+                break
+    blocks = robot.metric_blocks(qbar)
+    acceleration = np.linalg.solve(blocks.locked_inertia, pulse['body_wrench'])
+    # Twist noise 2e-3 plus the tachometers' 5e-3 rad/s through the connection A.
+    twist = np.sqrt(2e-3 ** 2 + 5e-3 ** 2 * np.sum(blocks.connection ** 2, axis=1))
+    return detection_bound(acceleration, 100.0, (1e-3,) * 3 + (5e-4,) * 3, twist)
+
+
+def test_information_bound_matches_its_continuous_limits():
+    """Sums over samples against a^2 f tau^5 / (20 sigma^2) and a^2 f tau^3 / (3 sigma_v^2)."""
+    a, f, tau = 0.3, 2000.0, 0.2
+    assert step_information([a], tau, f, [1e-3]) == pytest.approx(
+        a ** 2 * f * tau ** 5 / (20 * 1e-6), rel=0.01)
+    assert step_information([a], tau, f, [1e9], [1e-2]) == pytest.approx(
+        a ** 2 * f * tau ** 3 / (3 * 1e-4), rel=0.01)
+    # The colleague's figures: 0.36 N on 16 kg at 120 Hz, 0.5 mm, chi2_3(1e-6) = 30.7,
+    # needs ~0.3 s; flagging within 0.1 s needs ~5.7 N.
+    assert detection_bound([0.36 / 16, 0, 0], 120.0, [5e-4, 5e-4, 2e-3]) == \
+        pytest.approx(0.30, abs=0.01)
+    assert detection_bound([5.7 / 16, 0, 0], 120.0, [5e-4, 5e-4, 2e-3]) == \
+        pytest.approx(0.1, abs=0.01)
+
+
+def test_bounds_of_the_shipped_bags():
+    """No test can flag the free-flyer's pushes within 100 ms; the paper pulse just about."""
+    bounds = _freeflyer_bounds()
+    # pushes 0.36 / 0.34 / 0.36 N on 16 kg; the torque firing 0.087 N m on 0.18 kg m^2
+    assert bounds == pytest.approx([0.300, 0.308, 0.158, 0.300], abs=0.005)
+    assert _paper_bound() == pytest.approx(0.10, abs=0.005)
+
+
+def test_paper_realistic_tuned_flags_the_pulse(tmp_path):
+    """`tune` then replay: the 0.5 s, 20 N pulse flagged, its impulse within 10 %."""
+    bound = _paper_bound()
+    rate_errors = []
+    for smooth in (False, True):
+        (pulse,), others = _run(tmp_path, 'paper_realistic', 'tuned', smooth)
+        assert others == []
+        # Measured 0.140 s (bound 0.10 s): the statistic at 0.1 s fell short of its
+        # median in this noise realisation (chi2_6 at 1e-6 is 38.3).
+        assert pulse['latency'] is not None and 0.0 <= pulse['latency'] <= 1.5 * bound
+        assert pulse['event_error'] <= 0.10       # measured 5.8 %
+        rate_errors.append(pulse['rate_error'])
+    # The integrated momentum rate: measured 9.8 % causal, 2.7 % smoothed.
+    assert rate_errors[0] <= 0.12 and rate_errors[1] <= 0.10
+
+
+def test_freeflyer_realistic_tuned_events_against_the_bound(tmp_path):
+    """The torque firing is flagged within 2x its bound; the pushes are not flagged."""
+    bounds = _freeflyer_bounds()
+    firings, others = _run(tmp_path, 'freeflyer_realistic', 'tuned', False)
+    assert others == []
+    torque = firings[2]
+    # Measured 0.217 s against a bound of 0.158 s; event impulse 2.7 %.
+    assert bounds[2] <= torque['latency'] <= 2.0 * bounds[2]
+    assert torque['event_error'] <= 0.10
+    # The pushes (bounds 0.30-0.31 s) are absorbed by the tuned random walk before the
+    # step test has the evidence: not flagged. Their impulses (integrated rate,
+    # measured 1.1-1.5 % causal) are within 10 %.
+    for push in (firings[0], firings[1], firings[3]):
+        assert push['latency'] is None
+        assert push['rate_error'] <= 0.10
+    smoothed, _ = _run(tmp_path, 'freeflyer_realistic', 'tuned', True)
+    assert all(f['rate_error'] <= 0.10 for f in smoothed)  # measured 0.7-2.4 %
+
+
+@pytest.mark.parametrize('bag', ['paper_realistic', 'freeflyer_realistic'])
+@pytest.mark.parametrize('setting', SETTINGS)
+def test_no_events_while_coasting(tmp_path, bag, setting):
+    """Every event starts within a firing, whatever the settings (causal)."""
+    _, others = _run(tmp_path, bag, setting, False)
+    assert others == []
+
+
+@pytest.mark.parametrize('params', ['defaults', 'paper_realistic.tuned',
+                                    'paper_realistic.sensors'])
+def test_no_events_on_paper_constant(tmp_path, params):
+    """A coasting bag (torques only, no wrench): no event with any of the settings."""
+    values = defaults()
+    if params != 'defaults':
+        values.update(load_params_file(str(DATA / f'{params}.yaml')))
+    summary = replay(str(DATA / 'paper_constant'), str(tmp_path / 'out'), load_robot(),
+                     ReplayOptions(params=values, smooth=False))
+    assert summary['events'] == [] and summary['filter']['steps_taken'] == 0
