@@ -24,6 +24,14 @@ message then carries:
   [0.5, 1.5] ``bunch_gap`` (two mocap packets stamped tens of microseconds apart while
   their contents are a period apart, as on the freeflyer2 testbed). A bunched message
   is never followed by another bunched one, so they come in pairs.
+- **stamped on receipt** (``poll_period`` > 0, instead of the jitter and bunching):
+  a polling client (ROS 2 ``vrpn_mocap``) receives the frame ``transport`` after
+  t_k and stamps it at its next poll; polls come every ``poll_period``, each one late
+  by U(0.5, 1.5) ``poll_late_delay`` with probability ``poll_late_fraction`` (the
+  schedule then continues from the late poll), and the frames one poll takes get
+  stamps ``POLL_SPACING`` apart. Bursts of frames stamped together, up to tens of
+  ms after their instant, as on the freeflyer2 testbed. The record time is then the
+  stamp plus the latency below.
 - a **record (receive) time** t_k + d_k, d_k = max(0, N(``latency``, ``latency_jitter``)):
   the transport delay the bag's log time shows.
 - **dropouts**: each message is lost with probability ``drop_rate`` (independently),
@@ -56,7 +64,10 @@ _STREAM_JITTER = 20
 _STREAM_BUNCH = 30
 _STREAM_LATENCY = 40
 _STREAM_OUTAGE = 50
-_STREAM_DROP = 10  # the simulator's historical drop streams, kept so old bags reproduce
+_STREAM_DROP = 10
+_STREAM_POLL = 60
+#: Stamp spacing [ns] of the frames one poll takes (the client's processing).
+POLL_SPACING = 20_000  # the simulator's historical drop streams, kept so old bags reproduce
 
 
 def quantize(values: np.ndarray, step: float) -> np.ndarray:
@@ -78,6 +89,10 @@ class TimingOptions:
     drop_rate: float = 0.0
     outage_rate: float = 0.0
     outage_duration: float = 0.04
+    poll_period: float = 0.0
+    poll_late_fraction: float = 0.0
+    poll_late_delay: float = 0.05
+    transport: float = 2e-4
 
 
 @dataclass
@@ -117,6 +132,9 @@ class TopicTiming:
         self._previous_bunched = False
         self._outage: Optional[tuple[float, float]] = None
         self._outage_clock = 0.0
+        self.poll_rng = np.random.default_rng([seed, _STREAM_POLL + index])
+        self._poll_ns: Optional[int] = None
+        self._poll_taken = 0
         if options.outage_rate > 0.0:
             self._next_outage()
 
@@ -141,6 +159,23 @@ class TopicTiming:
             self._next_outage()
         return self._outage is not None and self._outage[0] <= t
 
+    def _polled_ns(self, true_ns: int) -> int:
+        """Return the stamp of a frame taken at ``true_ns`` by a polling client."""
+        options = self.options
+        period = int(round(options.poll_period * NS_PER_S))
+        arrival = true_ns + int(round(options.transport * NS_PER_S))
+        if self._poll_ns is None:
+            # The client's schedule starts at a random phase of its period.
+            self._poll_ns = true_ns + int(self.poll_rng.integers(0, period))
+        while self._poll_ns < arrival:
+            self._poll_ns += period
+            self._poll_taken = 0
+            if self.poll_rng.random() < options.poll_late_fraction:
+                self._poll_ns += int(round(self.poll_rng.uniform(0.5, 1.5)
+                                           * options.poll_late_delay * NS_PER_S))
+        self._poll_taken += 1
+        return self._poll_ns + (self._poll_taken - 1) * POLL_SPACING
+
     def message(self, k: int, t: float) -> Optional[tuple[int, int]]:
         """Return (header stamp, record time) of sample k at t s, or None when it is lost."""
         options = self.options
@@ -157,7 +192,10 @@ class TopicTiming:
             self._previous_bunched = bunched
         else:
             bunched = False
-        record = true_ns
+        polled = options.poll_period > 0.0
+        if polled:
+            stamp = self._polled_ns(true_ns)
+        record = stamp if polled else true_ns
         if options.latency > 0.0 or options.latency_jitter > 0.0:
             delay = options.latency + options.latency_jitter * self.latency_rng.standard_normal()
             record += int(round(max(0.0, delay) * NS_PER_S))

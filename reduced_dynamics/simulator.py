@@ -217,6 +217,9 @@ class SimulationOptions:
     latency_jitter: float = 0.0
     outage_rate: float = 0.0
     outage_duration: float = 0.04
+    poll_period: float = 0.0
+    poll_late_fraction: float = 0.0
+    poll_late_delay: float = 0.05
     thruster_layout: str = ''
     thruster_units: tuple[tuple[float, ...], ...] = ()
     thruster_force: Optional[float] = None
@@ -259,11 +262,14 @@ class SimulationOptions:
                 _check_positive(name, getattr(self, name))
                 self.decimation(getattr(self, name), name)
         for name in ('noise_effort', 'stamp_jitter', 'latency', 'latency_jitter',
-                     'outage_rate'):
+                     'outage_rate', 'poll_period', 'poll_late_delay'):
             _check_nonnegative(name, getattr(self, name))
         for name in ('noise_twist', 'noise_twist_angular', 'noise_orientation'):
             if getattr(self, name) is not None:
                 _check_nonnegative(name, getattr(self, name))
+        if not 0.0 <= self.poll_late_fraction < 1.0:
+            raise ValueError('poll_late_fraction must be in [0, 1), got '
+                             f'{self.poll_late_fraction!r}')
         if not 0.0 <= self.bunch_fraction < 1.0:
             raise ValueError(f'bunch_fraction must be in [0, 1), got {self.bunch_fraction!r}')
         for name, step in self.quantize:
@@ -356,7 +362,10 @@ class SimulationOptions:
         """Return the timing effects of every measured topic."""
         return TimingOptions(self.stamp_jitter, self.bunch_fraction, self.bunch_gap,
                              self.latency, self.latency_jitter, self.drop_rate,
-                             self.outage_rate, self.outage_duration)
+                             self.outage_rate, self.outage_duration,
+                             poll_period=self.poll_period,
+                             poll_late_fraction=self.poll_late_fraction,
+                             poll_late_delay=self.poll_late_delay)
 
     def step(self, name: str) -> float:
         """Return the quantisation step of field ``name`` (0: not quantised)."""
@@ -1175,6 +1184,17 @@ def register_command(subparsers: Any) -> None:
     parser.add_argument('--bunch-gap', type=_positive, default=3e-5,
                         help='mean stamp gap of a bunched pair, s (uniform in [0.5, 1.5] '
                              'times it; default 3e-5)')
+    parser.add_argument('--stamp-on-receipt', type=_nonnegative, default=0.0,
+                        metavar='POLL_PERIOD', dest='poll_period',
+                        help='stamp sensor messages on receipt by a client polling every '
+                             'POLL_PERIOD s (vrpn_mocap: 0.01): stamps at the next poll, '
+                             'bursts after late polls (instead of --stamp-jitter and '
+                             'bunching; 0: off)')
+    parser.add_argument('--poll-late-fraction', type=_fraction, default=0.0,
+                        help='fraction of polls that run late (default 0)')
+    parser.add_argument('--poll-late-delay', type=_positive, default=0.05,
+                        help='mean delay of a late poll, s (uniform in [0.5, 1.5] times it; '
+                             'default 0.05)')
     parser.add_argument('--latency', type=_nonnegative, default=0.0,
                         help='mean delay from a sample to its record (bag log) time, s')
     parser.add_argument('--latency-jitter', type=_nonnegative, default=0.0,
@@ -1235,7 +1255,9 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         stamp_jitter=args.stamp_jitter, bunch_fraction=args.bunch_fraction,
         bunch_gap=args.bunch_gap, latency=args.latency, latency_jitter=args.latency_jitter,
         outage_rate=args.outage_rate, outage_duration=args.outage_duration,
-        thruster_layout=args.thruster_layout, thruster_units=tuple(args.thruster_unit),
+        poll_period=args.poll_period, poll_late_fraction=args.poll_late_fraction,
+        poll_late_delay=args.poll_late_delay, thruster_layout=args.thruster_layout,
+        thruster_units=tuple(args.thruster_unit),
         thruster_force=args.thruster_force, firings=tuple(args.fire),
         thrust_gain=tuple(args.thrust_gain), thrust_bias=tuple(args.thrust_bias),
         command_rate=args.command_rate, trajectory=args.trajectory or '',

@@ -145,14 +145,18 @@ def test_real_freeflyer2_bags_correlate_with_the_commanded_thrust(tmp_path, name
         assert np.all(momentum_spread(out) <= SPREAD_BOUND)
         assert summary['processed'] >= 6000
     causal, smoothed = figures[False], figures[True]
-    # Measured (README table): causal 0.81/0.68/0.74 and 0.72/0.75/0.91, smoothed
-    # 0.91/0.89/0.97 and 0.76/0.79/0.96. The PD bag's causal figures were 0.45/0.45/0.77
-    # before the pose stamp noise (its mocap client stamps on receipt, 100 Hz polling).
-    # The floors (0.7 causal, 0.8 smoothed) hold on 9 of 12 figures.
+    # Measured (README table): causal 0.830/0.696/0.753 and 0.729/0.759/0.914, smoothed
+    # 0.914/0.888/0.969 and 0.764/0.788/0.956 with the poses re-timed to their frames
+    # (pose_retiming auto; off: causal 0.81/0.68/0.74 and 0.72/0.75/0.91). The PD bag's
+    # causal figures were 0.45/0.45/0.77 before the pose stamp noise (its mocap client
+    # stamps on receipt, 100 Hz polling). The floors (0.7 causal, 0.8 smoothed)
+    # hold on 9 of 12 figures.
+    summary_filter = summary['filter']
+    assert summary_filter['poses_retimed'] > 0.95 * summary['processed']
     if name == REAL_BAGS[0]:
         assert min(smoothed[:3]) >= 0.8
-        assert causal.fx >= 0.8 and causal.fy >= 0.65 and causal.mz >= 0.7
+        assert causal.fx >= 0.82 and causal.fy >= 0.69 and causal.mz >= 0.745
     else:
-        assert min(smoothed.fx, smoothed.fy) >= 0.75 and smoothed.mz >= 0.95
-        assert min(causal[:3]) >= 0.7 and causal.mz >= 0.9
+        assert min(smoothed.fx, smoothed.fy) >= 0.76 and smoothed.mz >= 0.95
+        assert causal.fx >= 0.72 and causal.fy >= 0.75 and causal.mz >= 0.91
     assert os.path.isdir(out)

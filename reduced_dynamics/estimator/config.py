@@ -56,6 +56,17 @@ PARAMETERS: dict[str, ParameterSpec] = {
         'standard deviation [s] of a base pose header stamp about the instant the pose was '
         'measured (a mocap client stamping on receipt in a 100 Hz polling loop: 10 ms / '
         'sqrt(12)); the pose noise grows by the body twist times it'),
+    'pose_retiming': ParameterSpec(
+        'auto', None, None, ('auto', 'on', 'off'),
+        'causal re-timing of a periodic pose source stamped on receipt (estimator/'
+        'retiming.py): each pose gets the frame time of the lower envelope of its stamps; '
+        'auto where the stream shows the signature (consecutive frames, bursts of frames '
+        'delivered by one poll), on without the burst test, off keeps every stamp'),
+    'pose_retimed_stamp_noise': ParameterSpec(
+        5e-4, 0.0, 1.0, (),
+        'standard deviation [s] of a re-timed pose stamp about its frame time (transport '
+        'jitter of the frames against the envelope, sub-millisecond on a LAN); at most '
+        'pose_stamp_noise is used'),
     'twist_linear_noise': ParameterSpec(
         1e-2, 1e-12, 1e3, (),
         'standard deviation [m/s] of an Odometry base linear velocity'),
@@ -198,6 +209,8 @@ class EstimatorConfig:
     pose_position_noise: float = PARAMETERS['pose_position_noise'].default
     pose_angle_noise: float = PARAMETERS['pose_angle_noise'].default
     pose_stamp_noise: float = PARAMETERS['pose_stamp_noise'].default
+    pose_retiming: str = PARAMETERS['pose_retiming'].default
+    pose_retimed_stamp_noise: float = PARAMETERS['pose_retimed_stamp_noise'].default
     twist_linear_noise: float = PARAMETERS['twist_linear_noise'].default
     twist_angular_noise: float = PARAMETERS['twist_angular_noise'].default
     joint_velocity_noise: float = PARAMETERS['joint_velocity_noise'].default

@@ -185,6 +185,10 @@ class Measurement(NamedTuple):
     stamp_ns: int
     pose: pin.SE3
     twist: Optional[np.ndarray]
+    #: the stamp's standard deviation [s] when it differs from ``NoiseModel.pose_stamp``
+    #: (a re-timed frame time, estimator/retiming.py); None: ``pose_stamp`` (used only
+    #: when ``pose_stamp`` > 0)
+    stamp_sigma: Optional[float] = None
 
 
 @dataclass
@@ -696,7 +700,8 @@ class MomentumFilter:
         g_pred, x_pred, p_pred = self.g, self.x, self.p
         if measurement is not None:
             try:
-                accepted = self._update(measurement.pose, measurement.twist, lin)
+                accepted = self._update(measurement.pose, measurement.twist, lin,
+                                        measurement.stamp_sigma)
                 broken = not (np.isfinite(self.p).all() and (np.diag(self.p) >= 0.0).all())
             except np.linalg.LinAlgError:
                 accepted, broken = False, True
@@ -732,7 +737,7 @@ class MomentumFilter:
                             commands)
 
     def _update(self, pose: pin.SE3, twist: Optional[np.ndarray],
-                lin: Linearisation) -> bool:
+                lin: Linearisation, stamp_sigma: Optional[float] = None) -> bool:
         n, group = self.n, self.group
         g0, x0, p0 = self.g, self.x, self.p
         residual = group.log(g0.inverse() * pose)
@@ -741,7 +746,9 @@ class MomentumFilter:
             # Stamp error dt: the measured pose is g exp(xi dt), so R += xi xi^T sigma_t^2,
             # with xi the body twist averaged over STAMP_TWIST_TIME: the estimate's own
             # transients (after a gate reset) must not weaken the poses that correct them.
-            xi = self._stamp_twist * self.noise.pose_stamp
+            # A re-timed stamp (a frame time, estimator/retiming.py) carries its own.
+            sigma = self.noise.pose_stamp if stamp_sigma is None else stamp_sigma
+            xi = self._stamp_twist * sigma
             r_pose = r_pose + np.outer(xi, xi)
         if twist is None:
             # H = [1 0 0]: P H^T and H P H^T are blocks of P.

@@ -60,6 +60,7 @@ from reduced_dynamics.estimator.events import EventDetector, MomentumEvent
 from reduced_dynamics.estimator.filter import (Command, Linearisation, Measurement,
                                                MomentumFilter, NoiseModel, smooth)
 from reduced_dynamics.estimator.plausibility import BaseBounds, JointBounds
+from reduced_dynamics.estimator.retiming import FrameRetimer
 from reduced_dynamics.estimator.prediction import (
     FinishedPrediction, Plan, PredictionJob, PredictionMessages, Predictor, PRESCRIBED_MODES)
 from reduced_dynamics.estimator.stamps import ACCEPTED, ClockJump, StampGate, StampResult
@@ -81,6 +82,9 @@ STAMP_JUMP_SAMPLES = 3
 #: A gain off 1 by more than this (and by more than 3 sigma) makes the commanded-wrench
 #: status WARN: thrusters delivering 10 % less or more than commanded.
 COMMAND_GAIN_WARN = 0.1
+#: Re-timed stamps held until their measurement is resolved: far more than the base
+#: buffer holds (older ones are no longer measured anyway).
+RETIMED_KEEP = 4096
 
 
 @dataclass
@@ -380,6 +384,11 @@ class Estimator:
         # Commanded wrench: its own stream on the same clock, the held commands (stamps
         # ascending, values in dual coordinates) and where the next step starts.
         self._command_gate = StampGate('command', NS, 3)
+        # Re-timing of a periodic pose source stamped on receipt (estimator/retiming.py);
+        # the stamps it re-timed, until their measurement is resolved.
+        self._retimer = FrameRetimer('off')
+        self._retimed_ns: deque[tuple[int, float]] = deque(maxlen=RETIMED_KEEP)
+        self._row_stamp_sigma: Optional[float] = None
         self._command_gate.peer = self._base_gate
         self._received_commands = self._accepted_commands = 0
         self._command_stamps: list[int] = []
@@ -403,6 +412,8 @@ class Estimator:
         self._joint_gate.configure(outlier_ns, STAMP_JUMP_SAMPLES)
         self._base_gate.configure(outlier_ns, STAMP_JUMP_SAMPLES)
         self._command_gate.configure(outlier_ns, STAMP_JUMP_SAMPLES)
+        self._retimer.configure(config.pose_retiming, min(config.pose_retimed_stamp_noise,
+                                                          config.pose_stamp_noise))
         self._joint_bounds = {}
         self._base_bounds = BaseBounds(config)
         rate = config.diagnostics_rate
@@ -670,6 +681,11 @@ class Estimator:
         """Buffer a base sample whose stamp the stamp policy accepted."""
         stamp, row = item
         odometry = self.use_odometry
+        if self._retimer.mode != 'off':
+            # The filter takes the frame time of a re-timed pose (estimator/retiming.py).
+            stamp, sigma = self._retimer.retime(stamp)
+            if sigma is not None:
+                self._retimed_ns.append((stamp, sigma))
         self._last_base_ns = stamp
         self._buffer.append(stamp, row)
         pending = self._pending
@@ -844,6 +860,8 @@ class Estimator:
         self.predictor.forget_history()
         self._buffer = BaseBuffer()
         self._measured_ns = None
+        self._retimer.restart()
+        self._retimed_ns.clear()
         self._last_joint_ns = self._last_base_ns = None
         self._last_prediction_ns = self._last_diagnostics_ns = None
         # The filter restarts from the next sample (its recorded steps stay, the
@@ -901,7 +919,17 @@ class Estimator:
         row has arrived, whatever the order in which the two streams came in.
         """
         after, self._measured_ns = self._measured_ns, stamp_ns
-        return self._buffer.between(after, stamp_ns)
+        samples = self._buffer.between(after, stamp_ns)
+        queue = self._retimed_ns
+        if not queue or queue[0][0] > stamp_ns:
+            return samples
+        # Re-timed samples carry their stamp sigma as a third entry (resolved per sample
+        # in arrival order: the same in the streaming and batched paths).
+        sigmas = {}
+        while queue and queue[0][0] <= stamp_ns:
+            retimed, sigma = queue.popleft()
+            sigmas[retimed] = sigma
+        return tuple((s, row, sigmas[s]) if s in sigmas else (s, row) for s, row in samples)
 
     def _resolve(self, row: tuple) -> None:
         """Queue a synchronised sample for the update (processing it where it must be)."""
@@ -912,8 +940,8 @@ class Estimator:
             # filter step of the row (to each base measurement before it, then to it).
             stamp = row[0]
             command_input = self._command_input
-            chunk.commands.append([command_input(sample_ns) for sample_ns, _ in row[5]
-                                   if sample_ns < stamp] + [command_input(stamp)])
+            chunk.commands.append([command_input(sample[0]) for sample in row[5]
+                                   if sample[0] < stamp] + [command_input(stamp)])
         period = self._diagnostics_period_ns
         if period is not None:
             # Diagnostics report the counters at their sample: close the chunk there.
@@ -968,7 +996,8 @@ class Estimator:
             if at_row or flt.g is None:
                 # The base state at the row's stamp (a measurement there, or the start).
                 prior = Measurement(stamp, pin.SE3(rotation[k], translation[k]),
-                                    None if twists is None else twists[k])
+                                    None if twists is None else twists[k],
+                                    self._row_stamp_sigma if at_row else None)
                 if at_row:
                     measurements[-1] = prior
             for gated, nis in flt.row(stamp, lins[k], prior, measurements,
@@ -1046,8 +1075,13 @@ class Estimator:
         """
         out: list = []
         odometry, kernel = self.use_odometry, self.kernel
-        for sample_ns, row in measured:
+        self._row_stamp_sigma = None
+        for sample in measured:
+            sample_ns, row = sample[0], sample[1]
+            sigma = sample[2] if len(sample) > 2 else None
             if sample_ns == stamp:
+                # The row's own sample: its stamp sigma goes with the row's prior.
+                self._row_stamp_sigma = sigma
                 out.append(None)
                 continue
             twist = None
@@ -1055,7 +1089,8 @@ class Estimator:
                 twist = np.array(row[7:13])
                 if kernel.projects_twists:
                     twist = kernel.coordinates(twist[None])[0]
-            out.append(Measurement(sample_ns, pin.XYZQUATToSE3(np.array(row[:7])), twist))
+            out.append(Measurement(sample_ns, pin.XYZQUATToSE3(np.array(row[:7])), twist,
+                                   sigma))
         return out
 
     def _accumulate_statistics(self, mu: np.ndarray) -> None:
@@ -1200,13 +1235,16 @@ class Estimator:
         ``nis_per_dof``: mean normalised innovation squared per measured
         coordinate (1 when the noise parameters fit the data); ``innovation_gated``;
         ``filter_restarts``: re-initialisations after the covariance broke down;
-        ``steps_taken``: wrench steps the GLR test detected and the filter took.
+        ``steps_taken``: wrench steps the GLR test detected and the filter took;
+        ``poses_retimed``, ``retiming_restarts``: base samples given their frame time,
+        restarts of the frame-clock estimate (estimator/retiming.py).
         """
         flt = self.filter
         return {'log_likelihood': flt.log_likelihood,
                 'nis_per_dof': flt.nis_sum / flt.nis_dof if flt.nis_dof else None,
                 'innovation_gated': flt.gated, 'filter_restarts': flt.diverged,
-                'steps_taken': flt.steps_taken}
+                'steps_taken': flt.steps_taken, 'poses_retimed': self._retimer.retimed,
+                'retiming_restarts': self._retimer.restarts}
 
     # --- smoothing (replay) -----------------------------------------------------------
     def enable_smoothing(self) -> None:
