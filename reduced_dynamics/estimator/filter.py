@@ -608,7 +608,7 @@ class MomentumFilter:
         self.p = p
         self._stamp_twist = np.zeros(n) if twist is None else np.array(twist, dtype=float)
         self._stamp_twist_ns = stamp_ns
-        self.step_test.reset()
+        self.step_test.reset(settle_from_ns=stamp_ns)
         if self.record:
             self.steps.append(FilterStep(stamp_ns, None, g, self.x, p, g, self.x, p,
                                          lin.locked_inverse, output, self._held_command()))
