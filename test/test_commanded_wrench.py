@@ -43,6 +43,8 @@ from reduced_dynamics.resources import config_path
 from reduced_dynamics.robot.model import load_robot
 from reduced_dynamics.topics import active_topics, resolved_name
 
+from filter_helpers import minus, plus
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DATA = os.path.join(REPO, 'test', 'data')
 FREEFLYER_BAG = os.path.join(DATA, 'freeflyer_realistic')
@@ -76,15 +78,6 @@ def _command_filter(name: str):
     return group, flt, lin, g, x, rng.normal(size=n)
 
 
-def _plus(group, g, x, d):
-    n = group.dim
-    return g * group.exp(d[:n]), x + d[n:]
-
-
-def _minus(group, g, x, g0, x0):
-    return np.concatenate((group.log(g0.inverse() * g), x - x0))
-
-
 @pytest.mark.parametrize('name', ['SE(3)', 'SE(2)'])
 def test_commanded_transition_matches_finite_differences(name):
     group, flt, lin, g, x, u = _command_filter(name)
@@ -97,9 +90,9 @@ def test_commanded_transition_matches_finite_differences(name):
     for j in range(dim):
         d = np.zeros(dim)
         d[j] = eps
-        gp, xp = flt.propagate_mean(*_plus(group, g, x, d), lin, dt, u)
-        gm, xm = flt.propagate_mean(*_plus(group, g, x, -d), lin, dt, u)
-        numeric[:, j] = (_minus(group, gp, xp, g1, x1) - _minus(group, gm, xm, g1, x1)) \
+        gp, xp = flt.propagate_mean(*plus(group, g, x, d), lin, dt, u)
+        gm, xm = flt.propagate_mean(*plus(group, g, x, -d), lin, dt, u)
+        numeric[:, j] = (minus(group, gp, xp, g1, x1) - minus(group, gm, xm, g1, x1)) \
             / (2 * eps)
     # exp(F dt) at the step's start against the discrete map: O(dt^2).
     assert np.abs(phi - numeric).max() < 1e-5
@@ -121,9 +114,9 @@ def test_total_wrench_jacobian_matches_finite_differences(name):
     for j in range(dim):
         d = np.zeros(dim)
         d[j] = eps
-        plus, _ = flt._total(*_plus(group, g, x, d), p, u)
-        minus, _ = flt._total(*_plus(group, g, x, -d), p, u)
-        jac[:, j] = (plus - minus) / (2 * eps)
+        forward, _ = flt._total(*plus(group, g, x, d), p, u)
+        backward, _ = flt._total(*plus(group, g, x, -d), p, u)
+        jac[:, j] = (forward - backward) / (2 * eps)
     # P = identity: the covariance is J J^T.
     assert np.allclose(cov, jac @ jac.T, atol=1e-7)
 

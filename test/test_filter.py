@@ -21,6 +21,8 @@ from reduced_dynamics.estimator.filter import (Linearisation, Measurement, Momen
                                                NoiseModel, smooth)
 from reduced_dynamics.geometry.lie_group import SUBGROUPS
 
+from filter_helpers import minus, plus
+
 
 def _linearisation(n: int, seed: int) -> Linearisation:
     rng = np.random.default_rng(seed)
@@ -29,15 +31,6 @@ def _linearisation(n: int, seed: int) -> Linearisation:
     joint = rng.normal(size=(n, 2)) * 0.1
     return Linearisation(locked, np.linalg.inv(locked), rng.normal(size=n) * 0.3,
                          joint @ joint.T)
-
-
-def _plus(group, g, x, d):
-    n = group.dim
-    return g * group.exp(d[:n]), x + d[n:]
-
-
-def _minus(group, g, x, g0, x0):
-    return np.concatenate((group.log(g0.inverse() * g), x - x0))
 
 
 @pytest.mark.parametrize('name', ['SE(3)', 'SE(2)'])
@@ -57,9 +50,9 @@ def test_transition_matches_finite_differences(name: str) -> None:
     for j in range(3 * n):
         d = np.zeros(3 * n)
         d[j] = eps
-        gp, xp = flt.propagate_mean(*_plus(group, g, x, d), lin, dt)
-        gm, xm = flt.propagate_mean(*_plus(group, g, x, -d), lin, dt)
-        numeric[:, j] = (_minus(group, gp, xp, g1, x1) - _minus(group, gm, xm, g1, x1)) \
+        gp, xp = flt.propagate_mean(*plus(group, g, x, d), lin, dt)
+        gm, xm = flt.propagate_mean(*plus(group, g, x, -d), lin, dt)
+        numeric[:, j] = (minus(group, gp, xp, g1, x1) - minus(group, gm, xm, g1, x1)) \
             / (2 * eps)
     # Phi is exp(F dt) at the midpoint: it agrees with the discrete map to O(dt^2).
     assert np.abs(phi - numeric).max() < 1e-5
@@ -81,8 +74,8 @@ def test_twist_jacobian_matches_finite_differences(name: str) -> None:
     for j in range(2 * n):
         d = np.zeros(3 * n)
         d[j] = eps
-        gp, xp = _plus(group, g, np.r_[mu, np.zeros(n)], d)
-        gm, xm = _plus(group, g, np.r_[mu, np.zeros(n)], -d)
+        gp, xp = plus(group, g, np.r_[mu, np.zeros(n)], d)
+        gm, xm = plus(group, g, np.r_[mu, np.zeros(n)], -d)
         numeric = (flt.twist(gp, xp[:n], lin) - flt.twist(gm, xm[:n], lin)) / (2 * eps)
         assert np.abs(analytic[:, j] - numeric).max() < 1e-7
     # Continuous F against the derivative of the twist along the flow.

@@ -22,13 +22,14 @@ import struct
 import numpy as np
 import pytest
 
-from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.params import defaults, load_params_file
 from reduced_dynamics.replay import replay, ReplayOptions
 from reduced_dynamics.resources import config_path
 from reduced_dynamics.robot.model import load_robot
 from reduced_dynamics.thrust_correlation import (decode_thruster_command, momentum_spread,
                                                  thrust_correlation)
+
+from filter_helpers import wrench_series
 
 DATA = Path(__file__).parent / 'data'
 REAL = Path(__file__).resolve().parent.parent.parent / 'shared' / 'data' / 'freeflyer2'
@@ -38,20 +39,9 @@ REAL_BAGS = ('rosbag2_2024_03_15-15_45_20', 'rosbag2_2024_03_14-14_17_23')
 SPREAD_BOUND = 16.0 * 0.5
 
 
-def _wrenches(path, topic):
-    rows = []
-    with open_bag(path) as reader:
-        for message in reader.messages([topic]):
-            msg = message.msg
-            w = msg.wrench
-            rows.append((msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec,
-                         w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y, w.torque.z))
-    return np.array(rows)
-
-
 def _firing_impulses(out, summary):
     """Integrate the published wrench over each firing (0.5 s before to 1 s after)."""
-    rate = _wrenches(out, '/reduced_dynamics/drift/momentum_rate')
+    rate = wrench_series(out, '/reduced_dynamics/drift/momentum_rate')
     seconds = (rate[:, 0] - summary['start_time_ns']) * 1e-9
     for firing in summary['firings'] or summary['pulses']:
         start, end = firing['start'], firing['start'] + firing['duration']
@@ -90,13 +80,13 @@ def test_paper_realistic_pulse_impulse(tmp_path, smooth, bound):
 
 def test_smoothing_beats_the_causal_filter_on_momentum(tmp_path):
     robot = load_robot(str(config_path('robots/freeflyer.urdf')))
-    truth = _wrenches(DATA / 'freeflyer_realistic', '/ground_truth/momentum')
+    truth = wrench_series(DATA / 'freeflyer_realistic', '/ground_truth/momentum')
     errors = []
     for smooth in (False, True):
         out = tmp_path / f'out{smooth}'
         replay(str(DATA / 'freeflyer_realistic'), str(out), robot,
                ReplayOptions(base_pose_topic='/base_pose', smooth=smooth))
-        mu = _wrenches(out, '/reduced_dynamics/momentum')
+        mu = wrench_series(out, '/reduced_dynamics/momentum')
         index = np.searchsorted(truth[:, 0], mu[:, 0])
         keep = (index < len(truth)) & (mu[:, 0] - mu[0, 0] > 1e9)  # after 1 s
         matched = truth[np.minimum(index, len(truth) - 1)]

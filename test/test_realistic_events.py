@@ -37,6 +37,8 @@ from reduced_dynamics.replay import replay, ReplayOptions
 from reduced_dynamics.resources import config_path
 from reduced_dynamics.robot.model import load_robot
 
+from filter_helpers import wrench_series
+
 DATA = Path(__file__).parent / 'data'
 SETTINGS = ('defaults', 'sensors', 'tuned')
 #: The free-flyer's pose noise: 0.5 mm plus the 0.1 mm quantisation (step^2 / 12), 2 mrad.
@@ -60,17 +62,6 @@ def _robot(bag: str):
     return load_robot(), {}
 
 
-def _series(path, topic: str) -> np.ndarray:
-    rows = []
-    with open_bag(path) as reader:
-        for message in reader.messages([topic]):
-            msg = message.msg
-            w = msg.wrench
-            rows.append((msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec,
-                         w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y, w.torque.z))
-    return np.array(rows)
-
-
 def _relative_error(robot, estimate, truth) -> float:
     """Planar: the linear impulse of a push, the angular one of a pure torque firing."""
     estimate, truth = np.asarray(estimate, float), np.asarray(truth, float)
@@ -90,7 +81,7 @@ def _run(tmp_path, bag: str, setting: str, smooth: bool) -> tuple[list[dict], li
     summary = replay(str(DATA / bag), str(out), robot,
                      ReplayOptions(params=_params(bag, setting), smooth=smooth, **topics))
     origin = truth['start_time_ns']
-    rate = _series(out, '/reduced_dynamics/drift/momentum_rate')
+    rate = wrench_series(out, '/reduced_dynamics/drift/momentum_rate')
     seconds = (rate[:, 0] - origin) * 1e-9
     events = list(summary['events'])
     firings = []

@@ -1,0 +1,42 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""Helpers shared by the filter tests: wrench series from a bag, group error-state arithmetic."""
+
+import numpy as np
+
+from reduced_dynamics.bag.reader import open_bag
+
+
+def wrench_series(path, topic: str) -> np.ndarray:
+    """Return rows (stamp_ns, fx, fy, fz, tx, ty, tz) of a WrenchStamped topic."""
+    rows = []
+    with open_bag(path) as reader:
+        for message in reader.messages([topic]):
+            msg = message.msg
+            w = msg.wrench
+            rows.append((msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec,
+                         w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y, w.torque.z))
+    return np.array(rows)
+
+
+def plus(group, g, x, d):
+    """Return the state (g, x) moved by the error d: g exp(d_g), x + d_x."""
+    n = group.dim
+    return g * group.exp(d[:n]), x + d[n:]
+
+
+def minus(group, g, x, g0, x0):
+    """Return the error of (g, x) from (g0, x0): log(g0^-1 g), x - x0."""
+    return np.concatenate((group.log(g0.inverse() * g), x - x0))
