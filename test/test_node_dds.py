@@ -58,12 +58,14 @@ RELIABLE_INPUTS = [
     for topic in ('joint_states', 'odom', 'base_pose')
     for policy, value in (('reliability', 'reliable'), ('history', 'keep_all'))]
 #: The shipped bags and the node parameters they need (replay gets the same): the
-#: paper robot with Odometry (defaults), the planar testbed with joints and poses only
+#: paper robot with Odometry (defaults; paper_spacecraft too: bit-equality does not need
+#: the settings it was made for), the planar testbed with joints and poses only
 #: (gravity in the plane's normal), the jointless free-flyer with mocap poses only.
 BAGS = {
     'paper_constant': {},
     'paper_realistic': {},
     'paper_thruster': {},
+    'paper_spacecraft': {},
     'planar_pose_only': {'urdf': 'robots/planar_testbed.urdf', 'base_joint': 'planar',
                          'gravity': [0.0, 0.0, -9.81], 'base_input': 'pose'},
     'freeflyer_realistic': {'urdf': 'robots/freeflyer.urdf', 'base_input': 'pose'},
