@@ -603,6 +603,21 @@ def test_main_reports_invalid_parameters_in_one_line(ros, monkeypatch, capsys):
     assert not ros.rclpy.ok()
 
 
+def _assert_published_as_replayed(ros, node, out, command=False):
+    """Every output topic the node published equals the replay's messages, byte for byte."""
+    from reduced_dynamics.bag.reader import open_bag
+    from reduced_dynamics.topics import active_topics, resolved_name
+    with open_bag(out) as reader:
+        for topic in active_topics(False, command):
+            replayed = [bytes(m.data) for m in reader.raw_messages([resolved_name(topic)])]
+            published = ros.published_raw(_resolved(node, topic))
+            # Default mode (planned, held_velocity without a plan): no shape predictions.
+            least = 0 if topic.name == 'prediction/shape' else 1
+            assert len(published) == len(replayed) >= least, topic.name
+            for i, (mine, theirs) in enumerate(zip(published, replayed)):
+                assert mine == theirs, f'{topic.name}[{i}]'
+
+
 def _run_python(code, **kwargs):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         [str(REPO_ROOT), os.environ.get('PYTHONPATH', '')]))
@@ -642,7 +657,6 @@ def test_node_and_replay_publish_the_same_bytes_for_the_same_bag(ros, node_facto
     """Every output topic, every message, bit for bit: the CDR bytes the replay writes."""
     from reduced_dynamics.bag.reader import open_bag
     from reduced_dynamics.replay import replay, ReplayOptions
-    from reduced_dynamics.topics import active_topics, resolved_name
     path = REPO_ROOT / 'test' / 'data' / bag
     replay(str(path), str(tmp_path / 'out'), load_robot(), ReplayOptions(smooth=False))  # causal
     node = node_factory(urdf_path=str(paper_robot_urdf()))
@@ -651,15 +665,7 @@ def test_node_and_replay_publish_the_same_bytes_for_the_same_bag(ros, node_facto
             # The record time is the receive time, as the replay takes it.
             ros.deliver(node, message.topic, bytes(message.data), message.timestamp_ns)
     node.wait_for_predictions()
-    with open_bag(tmp_path / 'out') as reader:
-        for topic in active_topics(False):
-            replayed = [bytes(m.data) for m in reader.raw_messages([resolved_name(topic)])]
-            published = ros.published_raw(_resolved(node, topic))
-            # Default mode (planned, held_velocity without a plan): no shape predictions.
-            least = 0 if topic.name == 'prediction/shape' else 1
-            assert len(published) == len(replayed) >= least, topic.name
-            for i, (mine, theirs) in enumerate(zip(published, replayed)):
-                assert mine == theirs, f'{topic.name}[{i}]'
+    _assert_published_as_replayed(ros, node, tmp_path / 'out')
 
 
 @pytest.mark.parametrize('robot', ['freeflyer', 'paper'])
@@ -668,7 +674,6 @@ def test_node_with_a_commanded_wrench_publishes_what_replay_writes(ros, node_fac
     """commanded_wrench_topic: the same bytes as replay --commanded-wrench-topic."""
     from reduced_dynamics.bag.reader import open_bag
     from reduced_dynamics.replay import replay, ReplayOptions
-    from reduced_dynamics.topics import active_topics, resolved_name
     if robot == 'freeflyer':  # base-driven, poses only
         path = REPO_ROOT / 'test' / 'data' / 'freeflyer_realistic'
         urdf = str(config_path('robots/freeflyer.urdf'))
@@ -696,14 +701,7 @@ def test_node_with_a_commanded_wrench_publishes_what_replay_writes(ros, node_fac
     assert node.received['command'] == commands > 50
     assert node.estimator.command_estimate() == {
         k: v for k, v in summary['commanded_wrench'].items() if k != 'topic'}
-    with open_bag(tmp_path / 'out') as reader:
-        for topic in active_topics(False, True):
-            replayed = [bytes(m.data) for m in reader.raw_messages([resolved_name(topic)])]
-            published = ros.published_raw(_resolved(node, topic))
-            least = 0 if topic.name == 'prediction/shape' else 1
-            assert len(published) == len(replayed) >= least, topic.name
-            for i, (mine, theirs) in enumerate(zip(published, replayed)):
-                assert mine == theirs, f'{topic.name}[{i}]'
+    _assert_published_as_replayed(ros, node, tmp_path / 'out', command=True)
     status = node.node_status().values_dict()
     assert status['received_command'] == str(commands)
     assert 'missing_command' not in status
