@@ -27,6 +27,13 @@ The commands are ``ff_msgs/msg/ThrusterCommand`` (``std_msgs/Header header``,
 read directly (:func:`decode_thruster_command`). :func:`write_command_bag`
 turns them into the body-frame geometry_msgs/WrenchStamped the estimator's
 commanded-wrench input takes (README "Commanded wrench").
+
+:func:`write_command_twin` writes a recording's **command twin**: the same pose
+stamps (receive times and all), the recording's own measured mocap noise
+(:func:`mocap_noise`), but a body whose only force is the command. The estimator's
+correlation on the twin is what the sensors allow; on the recording it is also
+bounded by how well the command describes the force the body felt (README
+"freeflyer2 correlations").
 """
 
 from __future__ import annotations
@@ -40,8 +47,11 @@ from scipy.signal import savgol_filter
 
 from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.bag.writer import BagWriter
+from reduced_dynamics.estimator.retiming import FrameRetimer
 from reduced_dynamics.messages.cdr import encode_wrench_stamped
 from reduced_dynamics.messages.samples import WrenchSample
+from reduced_dynamics.resources import config_path
+from reduced_dynamics.robot.model import load_robot
 from reduced_dynamics.thrusters import FREEFLYER_FORCE, LAYOUTS
 
 COMMAND_TOPIC = '/robot/commands/binary_thrust'
@@ -51,6 +61,11 @@ POSE_TOPIC = '/vrpn_mocap/robot/pose'
 RATE_TOPIC = '/reduced_dynamics/drift/momentum_rate'
 WINDOW = 61
 ORDER = 3
+#: Delivered / nominal thrust of the twin: the freeflyer2 thrusters deliver about half
+#: their nominal 0.2 N (torque gain 0.58 and 0.66 with the commanded-wrench input).
+TWIN_GAIN = 0.5
+#: Integration step [s] of the twin's motion under the held command.
+TWIN_STEP = 1e-3
 
 
 class Correlation(NamedTuple):
@@ -85,17 +100,21 @@ def _commands(bag: str) -> tuple[np.ndarray, np.ndarray]:
     return np.array(stamps)[order], np.array(wrenches)[order]
 
 
+def _planar(pose) -> tuple[float, float, float]:
+    """Return (x, y, yaw) of a geometry_msgs/Pose."""
+    q = pose.orientation
+    yaw = np.arctan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+    return pose.position.x, pose.position.y, float(yaw)
+
+
 def _poses(bag: str, topic: str) -> tuple[list[int], np.ndarray]:
     """Return pose stamps and (x, y, yaw) rows, in stamp order."""
     rows = []
     with open_bag(bag) as reader:
         for message in reader.messages([topic]):
-            pose = message.msg.pose
-            q = pose.orientation
-            yaw = np.arctan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
             stamp = message.msg.header.stamp.sec * 1_000_000_000 \
                 + message.msg.header.stamp.nanosec
-            rows.append((stamp, pose.position.x, pose.position.y, yaw))
+            rows.append((stamp, *_planar(message.msg.pose)))
     rows.sort(key=lambda row: row[0])
     return [row[0] for row in rows], np.array([row[1:] for row in rows])
 
@@ -119,11 +138,17 @@ def _held(stamps: list[int], source_stamps, values: np.ndarray) -> np.ndarray:
 
 
 def thrust_correlation(bag: str, out_bag: str, pose_topic: str = POSE_TOPIC,
-                       window: int = WINDOW, order: int = ORDER) -> Correlation:
-    """Return the README's correlation of ``out_bag``'s wrench estimate with ``bag``'s commands."""
+                       window: int = WINDOW, order: int = ORDER,
+                       poses_bag: Optional[str] = None) -> Correlation:
+    """
+    Return the README's correlation of ``out_bag``'s wrench estimate with ``bag``'s commands.
+
+    ``poses_bag``: the bag whose poses turn the command into the world frame (default
+    ``bag``; a command twin's own, :func:`write_command_twin`).
+    """
     stamps, estimate = _estimates(out_bag)
     command_stamps, commands = _commands(bag)
-    pose_stamps, poses = _poses(bag, pose_topic)
+    pose_stamps, poses = _poses(poses_bag or bag, pose_topic)
     state = _held(stamps, pose_stamps, poses)
     x, y, yaw = state[:, 0], state[:, 1], state[:, 2]
     body = _held(stamps, command_stamps, commands)
@@ -178,3 +203,92 @@ def write_command_bag(bag: str, out: str, pose_topic: str = POSE_TOPIC,
                              encode_wrench_stamped(sample))
             count += 1
     return count
+
+
+class CommandTwin(NamedTuple):
+    """What :func:`write_command_twin` wrote: poses and the noise it measured and used."""
+
+    poses: int
+    position_noise: float
+    angle_noise: float
+
+
+def _frame_times(stamps_ns: list[int]) -> np.ndarray:
+    """Return the frame times [ns] of receive-stamped poses (arrival order; retiming.py)."""
+    retimer = FrameRetimer('on')
+    return np.array([retimer.retime(stamp)[0] for stamp in stamps_ns], dtype=np.int64)
+
+
+def mocap_noise(frame_ns: np.ndarray, poses: np.ndarray) -> tuple[float, float]:
+    """
+    Return the frame-to-frame noise (position [m], yaw [rad]) of (x, y, yaw) poses.
+
+    Over every run of five consecutive frames (steps within half a period of the
+    median) the 4th difference of a smooth motion is negligible at 120 Hz and that
+    of white noise has variance 70 sigma^2. x and y are pooled.
+    """
+    steps = np.diff(frame_ns)
+    period = np.median(steps)
+    regular = np.abs(steps - period) < 0.5 * period
+    runs = np.flatnonzero(np.convolve(regular, np.ones(4, dtype=int), 'valid') == 4)
+
+    def sigma(values: np.ndarray) -> float:
+        fourth = values[4:] - 4 * values[3:-1] + 6 * values[2:-2] - 4 * values[1:-3] \
+            + values[:-4]
+        return float(np.sqrt(np.mean(fourth[runs] ** 2) / 70.0))
+
+    position = float(np.hypot(sigma(poses[:, 0]), sigma(poses[:, 1])) / np.sqrt(2.0))
+    return position, sigma(np.unwrap(poses[:, 2]))
+
+
+def write_command_twin(bag: str, out: str, pose_topic: str = POSE_TOPIC,
+                       gain: float = TWIN_GAIN, seed: int = 0) -> CommandTwin:
+    """
+    Write the command twin of the freeflyer2 recording ``bag`` to ``out``; return its figures.
+
+    Every pose message of ``bag`` is copied with its record time and header stamp;
+    its pose is replaced by that of a body (the data README's 16 kg, 0.18 kg m^2;
+    config/robots/freeflyer.urdf) pushed by ``gain`` times the commanded wrench
+    alone, taken at the message's frame time (the lower envelope of the stamps,
+    estimator/retiming.py), plus Gaussian noise of the recording's own
+    :func:`mocap_noise`. The twin starts at rest at the first measured pose; the
+    command's mean world force and torque are taken out (a tilted table), so that
+    it stays on the table as the closed-loop robot did.
+    """
+    messages = []
+    with open_bag(bag) as reader:
+        for message in reader.messages([pose_topic]):
+            stamp = message.msg.header.stamp
+            messages.append((message.timestamp_ns, stamp.sec * 1_000_000_000 + stamp.nanosec,
+                             message.msg))
+    frames = _frame_times([header for _, header, _ in messages])
+    measured = np.array([_planar(msg.pose) for _, _, msg in messages])
+    position_noise, angle_noise = mocap_noise(np.sort(frames), measured[np.argsort(frames)])
+    inertia = load_robot(str(config_path('robots/freeflyer.urdf'))) \
+        .metric_blocks(np.zeros(0)).locked_inertia
+    mass, yaw_inertia = inertia[0, 0], inertia[2, 2]
+    grid = np.arange(frames.min(), frames.max() + 1, int(TWIN_STEP * 1e9), dtype=np.int64)
+    command_stamps, commands = _commands(bag)
+    body = _held(list(grid), command_stamps, commands) * gain
+    first = measured[np.argmin(frames)]
+    angular = body[:, 2] / yaw_inertia
+    yaw = first[2] + np.cumsum(np.cumsum(angular - angular.mean()) * TWIN_STEP) * TWIN_STEP
+    c, s = np.cos(yaw), np.sin(yaw)
+    linear = np.column_stack((c * body[:, 0] - s * body[:, 1],
+                              s * body[:, 0] + c * body[:, 1])) / mass
+    linear -= linear.mean(axis=0)
+    path = first[:2] + np.cumsum(np.cumsum(linear, axis=0) * TWIN_STEP, axis=0) * TWIN_STEP
+    rng = np.random.default_rng(seed)
+    count = len(messages)
+    x = np.interp(frames, grid, path[:, 0]) + rng.normal(0.0, position_noise, count)
+    y = np.interp(frames, grid, path[:, 1]) + rng.normal(0.0, position_noise, count)
+    heading = np.interp(frames, grid, yaw) + rng.normal(0.0, angle_noise, count)
+    with BagWriter(out, {pose_topic: 'geometry_msgs/msg/PoseStamped'},
+                   overwrite=True) as writer:
+        for k, (record_ns, _, msg) in enumerate(messages):
+            msg.pose.position.x, msg.pose.position.y = float(x[k]), float(y[k])
+            q = msg.pose.orientation
+            q.x, q.y, q.z, q.w = 0.0, 0.0, float(np.sin(0.5 * heading[k])), \
+                float(np.cos(0.5 * heading[k]))
+            writer.write(pose_topic, record_ns, msg)
+    return CommandTwin(count, position_noise, angle_noise)

@@ -38,6 +38,7 @@ from reduced_dynamics.estimator.filter import Linearisation, MomentumFilter, Noi
 from reduced_dynamics.geometry.lie_group import SUBGROUPS
 from reduced_dynamics.messages import cdr
 from reduced_dynamics.messages.samples import CommandSample, with_receive_time
+from reduced_dynamics.params import defaults
 from reduced_dynamics.replay import replay, ReplayOptions
 from reduced_dynamics.resources import config_path
 from reduced_dynamics.robot.model import load_robot
@@ -331,7 +332,10 @@ def test_paper_robot_gains_with_joint_states_and_odometry(tmp_path):
     """SE(3), the joint-state-driven path: six gains against the simulator's."""
     bag = tmp_path / 'paper'
     simulate_paper_thrusters(bag)
-    options = ReplayOptions(smooth=False, commanded_wrench_topic='/commanded_wrench')
+    # The simulated 1 mm position noise (the default is a motion capture's 0.5 mm).
+    params = {**defaults(), 'pose_position_noise': 1e-3}
+    options = ReplayOptions(params=params, smooth=False,
+                            commanded_wrench_topic='/commanded_wrench')
     summary = replay(str(bag), str(tmp_path / 'out'), load_robot(), options)
     command = summary['commanded_wrench']
     assert command['axes'] == ['fx', 'fy', 'fz', 'tx', 'ty', 'tz']

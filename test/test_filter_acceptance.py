@@ -27,7 +27,7 @@ from reduced_dynamics.replay import replay, ReplayOptions
 from reduced_dynamics.resources import config_path
 from reduced_dynamics.robot.model import load_robot
 from reduced_dynamics.thrust_correlation import (decode_thruster_command, momentum_spread,
-                                                 thrust_correlation)
+                                                 thrust_correlation, write_command_twin)
 
 from filter_helpers import wrench_series
 
@@ -99,10 +99,14 @@ def test_tune_recovers_the_simulated_pose_noise(tmp_path):
     """The realistic freeflyer bag has 0.5 mm position noise (plus 0.1 mm quantisation)."""
     from reduced_dynamics.cli import main
     out = tmp_path / 'tuned.yaml'
+    # Start 4x off (the default, 0.5 mm, is the simulated figure itself).
+    start = tmp_path / 'start.yaml'
+    start.write_text('/**/reduced_dynamics:\n  ros__parameters:\n'
+                     '    pose_position_noise: 0.002\n')
     assert main(['tune', str(DATA / 'freeflyer_realistic'), '-o', str(out), '--urdf',
                  str(config_path('robots/freeflyer.urdf')), '--base-joint', 'planar',
                  '--base-pose-topic', '/base_pose', '--parameters', 'pose_position_noise',
-                 '--max-evaluations', '12', '--quiet']) == 0
+                 '--params', str(start), '--max-evaluations', '12', '--quiet']) == 0
     params = load_params_file(str(out))
     assert 2e-4 <= params['pose_position_noise'] <= 8e-4
     header = out.read_text().splitlines()[1]
@@ -135,18 +139,53 @@ def test_real_freeflyer2_bags_correlate_with_the_commanded_thrust(tmp_path, name
         assert np.all(momentum_spread(out) <= SPREAD_BOUND)
         assert summary['processed'] >= 6000
     causal, smoothed = figures[False], figures[True]
-    # Measured (README table): causal 0.830/0.696/0.753 and 0.729/0.759/0.914, smoothed
-    # 0.914/0.888/0.969 and 0.764/0.788/0.956 with the poses re-timed to their frames
-    # (pose_retiming auto; off: causal 0.81/0.68/0.74 and 0.72/0.75/0.91). The PD bag's
-    # causal figures were 0.45/0.45/0.77 before the pose stamp noise (its mocap client
-    # stamps on receipt, 100 Hz polling). The issue's floors (0.7 causal, 0.8 smoothed)
-    # hold on 9 of 12 figures.
+    # Measured (README table): causal 0.831/0.724/0.753 and 0.733/0.755/0.913, smoothed
+    # 0.907/0.891/0.969 and 0.761/0.781/0.956 (pose_position_noise 0.5 mm; with 1 mm the
+    # trajectory bag's causal Fy was 0.696). The poses are re-timed to their frames
+    # (pose_retiming auto; off, at 1 mm: causal 0.81/0.68/0.74 and 0.72/0.75/0.91). The PD
+    # bag's causal figures were 0.45/0.45/0.77 before the pose stamp noise (its mocap
+    # client stamps on receipt, 100 Hz polling). The issue's floors (0.7 causal, 0.8
+    # smoothed) hold on 10 of 12 figures; the PD bag's smoothed Fx and Fy are bounded
+    # by the recording, not the sensors (test_command_twin_...).
     summary_filter = summary['filter']
     assert summary_filter['poses_retimed'] > 0.95 * summary['processed']
+    assert min(causal[:3]) >= 0.7
     if name == REAL_BAGS[0]:
         assert min(smoothed[:3]) >= 0.8
-        assert causal.fx >= 0.82 and causal.fy >= 0.69 and causal.mz >= 0.745
+        assert causal.fx >= 0.82 and causal.fy >= 0.715 and causal.mz >= 0.745
     else:
-        assert min(smoothed.fx, smoothed.fy) >= 0.76 and smoothed.mz >= 0.95
-        assert causal.fx >= 0.72 and causal.fy >= 0.75 and causal.mz >= 0.91
+        assert smoothed.fx >= 0.755 and smoothed.fy >= 0.775 and smoothed.mz >= 0.95
+        assert causal.fx >= 0.725 and causal.fy >= 0.745 and causal.mz >= 0.905
     assert os.path.isdir(out)
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason=f'shared real data absent ({REAL})')
+@pytest.mark.parametrize('name', REAL_BAGS)
+def test_command_twin_of_a_real_bag_correlates_near_one(tmp_path, name):
+    """
+    The recording's stamps and mocap noise, a body pushed by the command alone.
+
+    The same estimator and defaults that reach 0.76-0.91 (Fx) on the recordings reach
+    0.99 on their command twins (thrust_correlation.write_command_twin): the sensors
+    and the stamps allow near 1; what bounds the recordings' figures is how well the
+    command describes the force the body felt.
+    """
+    robot = load_robot(str(config_path('robots/freeflyer.urdf')))
+    bag, twin = str(REAL / name), str(tmp_path / 'twin')
+    figures = write_command_twin(bag, twin)
+    # Measured: 22 / 26 um and 0.22 / 0.19 mrad frame to frame (0.5 mm and 2 mrad are
+    # the defaults: re-fits of the mocap body and slow errors come on top).
+    assert 1.5e-5 <= figures.position_noise <= 3.5e-5
+    assert 1e-4 <= figures.angle_noise <= 3e-4
+    assert figures.poses >= 6000
+    correlations = {}
+    for smooth in (False, True):
+        out = str(tmp_path / f'out{smooth}')
+        summary = replay(twin, out, robot, ReplayOptions(
+            params=defaults(), base_pose_topic='/vrpn_mocap/robot/pose', smooth=smooth))
+        assert summary['events'] == [] and summary['filter']['steps_taken'] == 0
+        correlations[smooth] = thrust_correlation(bag, out, poses_bag=twin)
+    # Measured smoothed 0.995/0.994/0.993 and 0.998/0.998/0.997; causal 0.922/0.916/0.826
+    # and 0.991/0.985/0.975 (the trajectory bag's 8 Hz commands switch whole thrusters).
+    assert min(correlations[True][:3]) >= 0.99
+    assert min(correlations[False][:3]) >= 0.8

@@ -45,8 +45,9 @@ PARAMETERS: dict[str, ParameterSpec] = {
     # Kalman filter (estimator/filter.py); README "The filter". Sensor noise as
     # standard deviations, process noise as densities, all in physical units.
     'pose_position_noise': ParameterSpec(
-        1e-3, 1e-12, 1e3, (),
-        'standard deviation [m] of a measured base position (motion capture: ~1 mm)'),
+        5e-4, 1e-12, 1e3, (),
+        'standard deviation [m] of a measured base position (motion capture: 0.5 mm, '
+        'sub-millimetre class)'),
     'pose_angle_noise': ParameterSpec(
         2e-3, 1e-12, 3.2, (),
         'standard deviation [rad] of a measured base orientation, per axis (motion '

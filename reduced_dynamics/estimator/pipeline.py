@@ -426,8 +426,8 @@ class Estimator:
         if old_filter is not None:
             # New noise and gate; the estimate and the recorded steps stay.
             for name in ('g', 'x', 'p', 'stamp_ns', 'steps', 'gated', 'log_likelihood',
-                         'nis_sum', 'nis_dof', '_lin', '_gated_run', '_stamp_twist',
-                         '_stamp_twist_ns', 'diverged'):
+                         'nis_sum', 'nis_dof', '_lin', '_gated_run', '_gated_residuals',
+                         'pose_offsets', '_stamp_twist', '_stamp_twist_ns', 'diverged'):
                 setattr(self.filter, name, getattr(old_filter, name))
             if self.commanded_wrench:
                 self.filter._command = old_filter._command
@@ -1234,6 +1234,8 @@ class Estimator:
         ``log_likelihood``: sum over the updates of log N(nu; 0, S);
         ``nis_per_dof``: mean normalised innovation squared per measured
         coordinate (1 when the noise parameters fit the data); ``innovation_gated``;
+        ``pose_offsets``: runs of gated poses taken as a step of the pose sensor (a
+        motion-capture body re-fitted), not as a momentum jump;
         ``filter_restarts``: re-initialisations after the covariance broke down;
         ``steps_taken``: wrench steps the GLR test detected and the filter took;
         ``poses_retimed``, ``retiming_restarts``: base samples given their frame time,
@@ -1242,8 +1244,9 @@ class Estimator:
         flt = self.filter
         return {'log_likelihood': flt.log_likelihood,
                 'nis_per_dof': flt.nis_sum / flt.nis_dof if flt.nis_dof else None,
-                'innovation_gated': flt.gated, 'filter_restarts': flt.diverged,
-                'steps_taken': flt.steps_taken, 'poses_retimed': self._retimer.retimed,
+                'innovation_gated': flt.gated, 'pose_offsets': flt.pose_offsets,
+                'filter_restarts': flt.diverged, 'steps_taken': flt.steps_taken,
+                'poses_retimed': self._retimer.retimed,
                 'retiming_restarts': self._retimer.restarts}
 
     # --- smoothing (replay) -----------------------------------------------------------
