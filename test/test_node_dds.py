@@ -69,6 +69,7 @@ BAGS = {
     'planar_pose_only': {'urdf': 'robots/planar_testbed.urdf', 'base_joint': 'planar',
                          'gravity': [0.0, 0.0, -9.81], 'base_input': 'pose'},
     'freeflyer_realistic': {'urdf': 'robots/freeflyer.urdf', 'base_input': 'pose'},
+    'freeflyer_testbed': {'urdf': 'robots/freeflyer.urdf', 'base_input': 'pose'},
 }
 #: Input topics and their types as the bags and the node's defaults name them.
 INPUT_TYPES = {'/joint_states': 'sensor_msgs/msg/JointState',

@@ -84,7 +84,8 @@ def nominal_index(stamp: int, rate: float) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- shipped bags
-@pytest.mark.parametrize('name', ['paper_realistic', 'freeflyer_realistic', 'paper_spacecraft'])
+@pytest.mark.parametrize('name', ['paper_realistic', 'freeflyer_realistic', 'paper_spacecraft',
+                                  'freeflyer_testbed'])
 def test_shipped_realistic_bags_read_back(name: str) -> None:
     path = DATA / name
     summary = json.loads((DATA / f'{name}.summary.json').read_text())

@@ -49,7 +49,7 @@ SCRIPT = REPO_ROOT / 'scripts' / 'make_test_bags.sh'
 SHIPPED = ('paper_thruster', 'planar_pose_only', 'paper_constant')
 #: Bags with realistic sensors (jitter, latency, bunching: stamps off the grid); see
 #: test_simulated_sensors.py for their contents.
-REALISTIC = ('paper_realistic', 'freeflyer_realistic', 'paper_spacecraft')
+REALISTIC = ('paper_realistic', 'freeflyer_realistic', 'paper_spacecraft', 'freeflyer_testbed')
 
 
 # --------------------------------------------------------------------------- helpers
