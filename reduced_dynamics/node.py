@@ -497,6 +497,7 @@ class _Shell:
 
     def _deactivate(self) -> None:
         """Stop taking input and publishing (outputs of running predictions are dropped)."""
+        self._flush_pending()
         self._shell_active = False
         if self._watchdog is not None:
             self.destroy_timer(self._watchdog)
@@ -644,6 +645,26 @@ class _Shell:
                     return
         finally:
             self._draining = False
+
+    def _flush_pending(self) -> None:
+        """
+        Process what is still waiting when the input ends (deactivation, shutdown).
+
+        Joint states newer than the last base sample wait for the next one, and the
+        stamp policy holds its candidate outliers: as replay does at a bag's end, they
+        are processed or counted as rejected now instead of being lost silently.
+        """
+        estimator = self._estimator
+        if estimator is None:
+            return
+        self._drain_inputs()
+        try:
+            outputs = estimator.flush()
+        except (ArithmeticError, RuntimeError, ValueError) as error:
+            self._reject('estimator_error', f'{type(error).__name__}: {error}', error=True)
+            return
+        for output in outputs:
+            self._publish(output)
 
     def _decode(self, data: bytes, fast: Callable[[bytes], Any], msgtype: str,
                 convert: Callable[[Any], Any]) -> Any:

@@ -668,6 +668,41 @@ def test_node_and_replay_publish_the_same_bytes_for_the_same_bag(ros, node_facto
     _assert_published_as_replayed(ros, node, tmp_path / 'out')
 
 
+def test_node_processes_waiting_joint_states_when_it_stops(ros, tmp_path):
+    """Joint states newer than the last odometry: published at shutdown, as replay's end."""
+    from rclpy.parameter import Parameter
+    from reduced_dynamics.bag.reader import open_bag
+    from reduced_dynamics.bag.writer import BagWriter
+    from reduced_dynamics.node import ReducedDynamicsNode
+    from reduced_dynamics.replay import replay, ReplayOptions
+    from reduced_dynamics.topics import active_topics, resolved_name
+    with open_bag(REPO_ROOT / 'test' / 'data' / 'paper_constant') as reader:
+        messages = list(reader.raw_messages(['/joint_states', '/odom']))
+    # The bag's last 15 ms of odometry cut: its last joint states wait for a base sample.
+    end = max(m.timestamp_ns for m in messages) - 15_000_000
+    kept = [m for m in messages if m.topic == '/joint_states' or m.timestamp_ns <= end]
+    cut = tmp_path / 'cut'
+    with BagWriter(cut, {'/joint_states': 'sensor_msgs/msg/JointState',
+                         '/odom': 'nav_msgs/msg/Odometry'}) as writer:
+        for message in kept:
+            writer.write_raw(message.topic, message.timestamp_ns, bytes(message.data))
+    replay(str(cut), str(tmp_path / 'out'), load_robot(), ReplayOptions(smooth=False))
+    node = ReducedDynamicsNode(
+        parameter_overrides=[Parameter('urdf_path', value=str(paper_robot_urdf()))])
+    for message in kept:
+        ros.deliver(node, message.topic, bytes(message.data), message.timestamp_ns)
+    node.wait_for_predictions()
+    names = {topic.name: _resolved(node, topic) for topic in active_topics(False, False)}
+    waiting = len(ros.published_raw(names['shape_state']))
+    node.destroy_node()
+    with open_bag(tmp_path / 'out') as reader:
+        for topic in active_topics(False, False):
+            replayed = [bytes(m.data) for m in reader.raw_messages([resolved_name(topic)])]
+            assert ros.published_raw(names[topic.name]) == replayed, topic.name
+    published = len(ros.published_raw(names['shape_state']))
+    assert published > waiting, (waiting, published)   # the flush published them
+
+
 @pytest.mark.parametrize('robot', ['freeflyer', 'paper'])
 def test_node_with_a_commanded_wrench_publishes_what_replay_writes(ros, node_factory,
                                                                    tmp_path, robot):
