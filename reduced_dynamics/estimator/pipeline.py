@@ -1350,6 +1350,7 @@ class Estimator:
                  'wrench_significance': f'{flt.wrench_significance():.4g}',
                  'event_threshold': f'{self.detector.start_threshold:.4g}',
                  'innovation_gated': str(flt.gated),
+                 'pose_offsets': str(flt.pose_offsets),
                  'events': str(len(self.detector.events)),
 
                  'kinetic_plus_potential_energy': f'{self._last_energy:.9g}',
