@@ -88,9 +88,12 @@ RELATIVE = 1e-6
 #: Cases per family (the budget: >= 1000 in all within about a minute of CI).
 EXAMPLES = {'values': 130, 'joints': 130, 'stamps_outliers': 130, 'clock_jumps': 130,
             'implausible': 130, 'quaternions': 130, 'mixed': 130}
+#: Rejections of base samples (the rest are of joint states). innovation_gate: a base
+#: measurement the filter found improbable (a garbled but plausible pose); counting it as a
+#: joint state's once made the accounting fail by two on a garbled bag.
 BASE_REASONS = {'non_finite_base', 'invalid_quaternion', 'missing_twist', 'quaternion_norm',
                 'base_position_bound', 'base_twist_bound', 'base_stamp_backwards',
-                'base_stamp_outlier'}
+                'base_stamp_outlier', 'innovation_gate'}
 STATS: dict = {}
 
 
@@ -716,6 +719,21 @@ def _definitions():
 DEFINITIONS = _definitions()
 BAG_STAMPS = sorted({stamp for topic, stamp, _ in BAG_ITEMS if topic == '/joint_states'})
 EXAMPLES.update({'bag_messages': 60, 'bag_files': 90})
+
+
+def test_a_gated_base_measurement_is_a_base_rejection(tmp_path):
+    """A plausible but wrong odometry pose (0.2 m off) is gated: the joint states all count."""
+    from rosbags.typesys import get_typestore, Stores
+    store = get_typestore(Stores.ROS2_JAZZY)
+    items = list(BAG_ITEMS)
+    index = [i for i, (topic, _, _) in enumerate(items) if topic == '/odom'][len(items) // 4]
+    topic, stamp, data = items[index]
+    odometry = store.deserialize_cdr(data, 'nav_msgs/msg/Odometry')
+    odometry.pose.pose.position.x += 0.2
+    items[index] = (topic, stamp, bytes(store.serialize_cdr(odometry, 'nav_msgs/msg/Odometry')))
+    _write_bag(tmp_path / 'bag', items)
+    summary = _replay_checked(tmp_path / 'bag', tmp_path / 'out', 'bag_messages')
+    assert summary['rejected'].get('innovation_gate', 0) >= 1
 
 
 @_fuzz_settings('bag_messages')
