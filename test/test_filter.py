@@ -324,3 +324,25 @@ def test_a_momentum_jump_is_still_taken_as_one() -> None:
     flt, _, momentum = _glitch_run(np.zeros(3), 1.6)
     assert flt.gated >= 3 and flt.pose_offsets == 0
     assert np.allclose(flt.mu[:2], momentum, atol=0.05)
+
+
+def test_a_pose_step_under_the_gate_is_not_taken_as_a_wrench_step(monkeypatch) -> None:
+    """
+    A re-fit too small for the gate (0.2 / -0.4 mm, 2.5 mrad at 0.1 mm / 0.5 mrad noise).
+
+    The step test's detections are isolated: a step of the measured pose explains the
+    innovations better, so no wrench step is taken (the 1.6 N s impulse of
+    test_a_momentum_jump_is_still_taken_as_one is still a jump, and the steps of
+    test_wrench_step_is_detected_and_taken_at_once are still taken).
+    """
+    from reduced_dynamics.estimator.events import WrenchStepTest
+    offset = np.array([2e-4, -4e-4, 2.5e-3])
+    flt, peak, _ = _glitch_run(offset, 0.0)
+    clean, clean_peak, _ = _glitch_run(np.zeros(3), 0.0)
+    assert flt.gated == 0 and flt.steps_taken == 0 and flt.step_test.pose_steps >= 1
+    assert peak < 3 * clean_peak          # measured 0.89 N against 0.42 N
+    assert np.allclose(flt.mu, clean.mu, atol=0.02)
+    # Without the isolation the same offset is taken as a wrench step.
+    monkeypatch.setattr(WrenchStepTest, '_pose_statistic', lambda self: -np.inf)
+    taken, taken_peak, _ = _glitch_run(offset, 0.0)
+    assert taken.steps_taken >= 1 and taken_peak > peak, (peak, taken_peak)  # 1.45 N

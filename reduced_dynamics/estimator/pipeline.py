@@ -1238,6 +1238,8 @@ class Estimator:
         motion-capture body re-fitted), not as a momentum jump;
         ``filter_restarts``: re-initialisations after the covariance broke down;
         ``steps_taken``: wrench steps the GLR test detected and the filter took;
+        ``pose_steps``: detections not taken, a step of the measured pose explaining the
+        innovations better (events.py);
         ``poses_retimed``, ``retiming_restarts``: base samples given their frame time,
         restarts of the frame-clock estimate (estimator/retiming.py).
         """
@@ -1246,6 +1248,7 @@ class Estimator:
                 'nis_per_dof': flt.nis_sum / flt.nis_dof if flt.nis_dof else None,
                 'innovation_gated': flt.gated, 'pose_offsets': flt.pose_offsets,
                 'filter_restarts': flt.diverged, 'steps_taken': flt.steps_taken,
+                'pose_steps': flt.step_test.pose_steps,
                 'poses_retimed': self._retimer.retimed,
                 'retiming_restarts': self._retimer.restarts}
 
