@@ -52,8 +52,9 @@ its rigid body when a marker drops out or returns, and the measured pose then
 steps by a constant body-frame offset beta (``g_meas = g delta``: the residual
 carries log delta). Its signature has a direct term, ``F_k = H_k E^-_k + B`` with
 ``B = [I; 0]`` (the pose rows), ``E_k = E^-_k - K_k F_k``, ``E^-_{k+1} = Phi_k E_k``,
-``E^-_theta = 0``, and its statistic ``T_pose = b_F^T J_F^-1 b_F`` is kept for an
-onset at each of the last ``POSE_STEP_HYPOTHESES`` measurements. A wrench step
+``E^-_theta = 0``, and its statistic ``T_pose = b_F^T J_F^-1 b_F`` is computed, when
+a step is detected, for an onset at each of the last ``POSE_STEP_HYPOTHESES``
+measurements (kept with the transitions between them: no cost until then). A wrench step
 is taken only if it explains the innovations better than the best pose step
 (``T > T_pose``); otherwise it is counted as vetoed (``pose_steps``). Without it a
 re-fit too small for the innovation gate (4 mrad at 9.5 s of the freeflyer2 PD
@@ -62,6 +63,7 @@ recording, replayed with 1 mrad pose noise) was taken as an 11 N wrench step.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 import math
 from typing import NamedTuple, Optional
@@ -133,11 +135,10 @@ class WrenchStepTest:
         self._settle_until: Optional[int] = None
         #: NIS above which a single innovation is left out of the evidence (chi2_m 1e-3)
         self._outlier = {m: float(chi2.isf(OUTLIER, m)) for m in (n, 2 * n)}
-        #: pose-step hypotheses (one per measurement): signatures E (dim x n each),
-        #: information (K x n x n) and score (K x n)
-        self._e = np.zeros((self.dim, 0))
-        self._je = np.zeros((0, n, n))
-        self._be = np.zeros((0, n))
+        #: the last measurements (Phi since the previous one, H, S, K, innovation), for
+        #: the pose-step hypotheses, and the transition accumulated since the last one
+        self._recent: deque = deque(maxlen=POSE_STEP_HYPOTHESES)
+        self._since = np.eye(self.dim)
         #: detections not taken because a step of the pose measurement explained more
         self.pose_steps = 0
 
@@ -156,9 +157,8 @@ class WrenchStepTest:
         self._d = np.zeros((self.dim, 0))
         self._j = np.zeros((0, self.n, self.n))
         self._b = np.zeros((0, self.n))
-        self._e = np.zeros((self.dim, 0))
-        self._je = np.zeros((0, self.n, self.n))
-        self._be = np.zeros((0, self.n))
+        self._recent.clear()
+        self._since = np.eye(self.dim)
         # nis_scale stays: it describes the sensors, not the hypotheses.
 
     def propagate(self, stamp_ns: int, transition: np.ndarray) -> None:
@@ -170,8 +170,8 @@ class WrenchStepTest:
         self._stamp = stamp_ns
         if self._onsets:
             self._d = transition @ self._d
-        if self._e.shape[1]:
-            self._e = transition @ self._e
+        if self._recent:
+            self._since = transition @ self._since
         # Expire hypotheses older than the window; open one every GLR_SPACING s.
         window = int(GLR_WINDOW * 1e9)
         expired = 0
@@ -199,22 +199,15 @@ class WrenchStepTest:
         n = self.n
         g = h @ self._d                        # signatures in the innovation, m x (n M)
         self._d = self._d - gain @ g
-        # A pose step at this measurement, and the older ones: F = H E + B.
-        self._open_pose_step()
-        f = h @ self._e
-        f.reshape(len(nu), -1, n)[:n] += np.eye(n)[:, None, :]
-        self._e = self._e - gain @ f
-        # One solve for the innovation and every signature: S^-1 [nu, G, F].
-        solved = np.linalg.solve(s, np.column_stack((nu, g, f)))
+        # Kept for the pose-step hypotheses (a single large innovation included: a
+        # re-fit is one).
+        self._recent.append((self._since, h, s, gain, nu))
+        self._since = np.eye(self.dim)
+        # One solve for the innovation and every signature: S^-1 [nu, G].
+        solved = np.linalg.solve(s, np.column_stack((nu, g)))
         nis_total = float(nu @ solved[:, 0])
         nis = nis_total / len(nu)
         m = len(nu)
-        # The pose steps' evidence, a single large innovation included: a re-fit is one.
-        poses = self._e.shape[1] // n
-        f_stack = f.reshape(m, poses, n).transpose(1, 0, 2)
-        s_inv_f = solved[:, 1 + g.shape[1]:].reshape(m, poses, n).transpose(1, 0, 2)
-        self._je = self._je + np.matmul(f_stack.transpose(0, 2, 1), s_inv_f)
-        self._be = self._be + np.matmul(nu, s_inv_f)
         if nis_total > self._outlier.get(len(nu), math.inf):
             # One improbable innovation is an outlier (a pose stamped tens of ms off),
             # not the growing drift a step makes: it carries no evidence here.
@@ -231,7 +224,7 @@ class WrenchStepTest:
         count = len(self._onsets)
         # Per hypothesis i: G_i (m x n) and S^-1 G_i, stacked as (M, m, n).
         g_stack = g.reshape(m, count, n).transpose(1, 0, 2)
-        s_inv_g = solved[:, 1:1 + g.shape[1]].reshape(m, count, n).transpose(1, 0, 2)
+        s_inv_g = solved[:, 1:].reshape(m, count, n).transpose(1, 0, 2)
         self._j = self._j + np.matmul(g_stack.transpose(0, 2, 1), s_inv_g)
         self._b = self._b + np.matmul(nu, s_inv_g)
         steps = _fit(self._j, self._b)
@@ -251,19 +244,31 @@ class WrenchStepTest:
         return StepDetection(statistic, step, d @ step, d @ np.linalg.solve(j, d.T))
 
     def _pose_statistic(self) -> float:
-        """Return the largest GLR statistic b_F^T J_F^-1 b_F of the pose-step hypotheses."""
-        statistics = np.einsum('ij,ij->i', self._be, _fit(self._je, self._be))
+        """
+        Return the largest statistic b_F^T J_F^-1 b_F of a pose step at a recent measurement.
+
+        The recursion of the module docstring, run over the kept measurements with an
+        onset opened at each (E = 0 there, so its step enters through B alone).
+        """
+        n = self.n
+        e = np.zeros((self.dim, 0))
+        j, b = np.zeros((0, n, n)), np.zeros((0, n))
+        for transition, h, s, gain, nu in self._recent:
+            e = np.hstack((transition @ e, np.zeros((self.dim, n))))
+            j = np.concatenate((j, np.zeros((1, n, n))))
+            b = np.concatenate((b, np.zeros((1, n))))
+            f = h @ e
+            f.reshape(len(nu), -1, n)[:n] += np.eye(n)[:, None, :]
+            e = e - gain @ f
+            solved = np.linalg.solve(s, np.column_stack((nu, f)))
+            count = e.shape[1] // n
+            f_stack = f.reshape(len(nu), count, n).transpose(1, 0, 2)
+            s_inv_f = solved[:, 1:].reshape(len(nu), count, n).transpose(1, 0, 2)
+            j = j + np.matmul(f_stack.transpose(0, 2, 1), s_inv_f)
+            b = b + np.matmul(nu, s_inv_f)
+        statistics = np.einsum('ij,ij->i', b, _fit(j, b))
         finite = statistics[np.isfinite(statistics)]
         return float(finite.max()) if len(finite) else -math.inf
-
-    def _open_pose_step(self) -> None:
-        """Hypothesise a pose step at this measurement; forget the oldest beyond the bank."""
-        n = self.n
-        self._e = np.hstack((self._e, np.zeros((self.dim, n))))
-        self._je = np.concatenate((self._je, np.zeros((1, n, n))))
-        self._be = np.concatenate((self._be, np.zeros((1, n))))
-        if len(self._je) > POSE_STEP_HYPOTHESES:
-            self._e, self._je, self._be = self._e[:, n:], self._je[1:], self._be[1:]
 
 
 def _fit(j: np.ndarray, b: np.ndarray) -> np.ndarray:
