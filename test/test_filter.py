@@ -159,14 +159,19 @@ def test_nees_within_chi_square_bounds(name: str, twist: bool) -> None:
         assert low <= mean <= high, (mean, low, high)
 
 
+def _planar_body(mass: float = 16.0, noise=None, **options):
+    """Return (Linearisation, MomentumFilter) of a planar body, inertia 0.18 kg m^2 per 16 kg."""
+    locked = np.diag([mass, mass, mass * 0.18 / 16.0])
+    lin = Linearisation(locked, np.linalg.inv(locked), np.zeros(3), np.zeros((3, 3)))
+    return lin, MomentumFilter(SUBGROUPS['SE(2)'], noise or NoiseModel(), 1e-6,
+                               step_significance=1e-6, **options)
+
+
 def _step_run(mass: float, force: float, seconds: float, seed: int,
               onset: float = 1.0) -> tuple[MomentumFilter, list[float]]:
     """Run a planar body of ``mass`` (inertia scaled alike), pose-only at 120 Hz, 1 mm / 2 mrad."""
     import pinocchio as pin
-    group = SUBGROUPS['SE(2)']
-    locked = np.diag([mass, mass, mass * 0.18 / 16.0])
-    lin = Linearisation(locked, np.linalg.inv(locked), np.zeros(3), np.zeros((3, 3)))
-    flt = MomentumFilter(group, NoiseModel(), 1e-6, step_significance=1e-6)
+    lin, flt = _planar_body(mass)
     rng = np.random.default_rng(seed)
     position, velocity, detections = np.zeros(2), np.zeros(2), []
     for k in range(int(seconds * 120)):
@@ -222,10 +227,7 @@ def test_spacecraft_params_file_loads_and_configures_the_filter() -> None:
 def test_a_broken_covariance_restarts_the_filter() -> None:
     """A covariance that lost positive definiteness restarts from the measurement."""
     import pinocchio as pin
-    group = SUBGROUPS['SE(2)']
-    locked = np.diag([16.0, 16.0, 0.18])
-    lin = Linearisation(locked, np.linalg.inv(locked), np.zeros(3), np.zeros((3, 3)))
-    flt = MomentumFilter(group, NoiseModel(), 1e-6, record=True, step_significance=1e-6)
+    lin, flt = _planar_body(record=True)
     flt.step(0, lin, pin.SE3.Identity(), None)
     broken = flt.p.copy()
     broken[4, 4] = -1e24  # what rounding leaves of a filter driven far outside its model
@@ -269,12 +271,8 @@ def _glitch_run(offset: np.ndarray, impulse: float, disable_offsets: bool = Fals
     after the first second.
     """
     import pinocchio as pin
-    group = SUBGROUPS['SE(2)']
-    mass, inertia = 16.0, 0.18
-    locked = np.diag([mass, mass, inertia])
-    lin = Linearisation(locked, np.linalg.inv(locked), np.zeros(3), np.zeros((3, 3)))
-    noise = NoiseModel(pose_position=1e-4, pose_angle=5e-4)
-    flt = MomentumFilter(group, noise, 1e-6, step_significance=1e-6)
+    mass = 16.0
+    lin, flt = _planar_body(mass, NoiseModel(pose_position=1e-4, pose_angle=5e-4))
     if disable_offsets:
         flt._pose_offset = lambda: None
     rng = np.random.default_rng(7)
