@@ -603,14 +603,21 @@ def test_main_reports_invalid_parameters_in_one_line(ros, monkeypatch, capsys):
     assert not ros.rclpy.ok()
 
 
-def _assert_published_as_replayed(ros, node, out, command=False):
+def _output_names(node, command=False):
+    """Return the node's resolved name of each output topic (resolve before destroying it)."""
+    from reduced_dynamics.topics import active_topics
+    return {topic.name: _resolved(node, topic) for topic in active_topics(False, command)}
+
+
+def _assert_published_as_replayed(ros, node, out, command=False, names=None):
     """Every output topic the node published equals the replay's messages, byte for byte."""
     from reduced_dynamics.bag.reader import open_bag
     from reduced_dynamics.topics import active_topics, resolved_name
+    names = names or _output_names(node, command)
     with open_bag(out) as reader:
         for topic in active_topics(False, command):
             replayed = [bytes(m.data) for m in reader.raw_messages([resolved_name(topic)])]
-            published = ros.published_raw(_resolved(node, topic))
+            published = ros.published_raw(names[topic.name])
             # Default mode (planned, held_velocity without a plan): no shape predictions.
             least = 0 if topic.name == 'prediction/shape' else 1
             assert len(published) == len(replayed) >= least, topic.name
@@ -675,7 +682,6 @@ def test_node_processes_waiting_joint_states_when_it_stops(ros, tmp_path):
     from reduced_dynamics.bag.writer import BagWriter
     from reduced_dynamics.node import ReducedDynamicsNode
     from reduced_dynamics.replay import replay, ReplayOptions
-    from reduced_dynamics.topics import active_topics, resolved_name
     with open_bag(REPO_ROOT / 'test' / 'data' / 'paper_constant') as reader:
         messages = list(reader.raw_messages(['/joint_states', '/odom']))
     # The bag's last 15 ms of odometry cut: its last joint states wait for a base sample.
@@ -692,13 +698,10 @@ def test_node_processes_waiting_joint_states_when_it_stops(ros, tmp_path):
     for message in kept:
         ros.deliver(node, message.topic, bytes(message.data), message.timestamp_ns)
     node.wait_for_predictions()
-    names = {topic.name: _resolved(node, topic) for topic in active_topics(False, False)}
+    names = _output_names(node)
     waiting = len(ros.published_raw(names['shape_state']))
     node.destroy_node()
-    with open_bag(tmp_path / 'out') as reader:
-        for topic in active_topics(False, False):
-            replayed = [bytes(m.data) for m in reader.raw_messages([resolved_name(topic)])]
-            assert ros.published_raw(names[topic.name]) == replayed, topic.name
+    _assert_published_as_replayed(ros, None, tmp_path / 'out', names=names)
     published = len(ros.published_raw(names['shape_state']))
     assert published > waiting, (waiting, published)   # the flush published them
 
