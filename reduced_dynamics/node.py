@@ -658,13 +658,21 @@ class _Shell:
         if estimator is None:
             return
         self._drain_inputs()
+        for output in self._estimate(estimator.flush) or []:
+            self._publish(output)
+
+    def _estimate(self, call: Callable[[], list]) -> Optional[list]:
+        """
+        Return ``call()``'s outputs; on a numerical failure count it and return None.
+
+        The estimator rejects bad input itself; anything it raises is a numerical
+        failure. One sample is lost; a crashed node would lose them all.
+        """
         try:
-            outputs = estimator.flush()
+            return call()
         except (ArithmeticError, RuntimeError, ValueError) as error:
             self._reject('estimator_error', f'{type(error).__name__}: {error}', error=True)
-            return
-        for output in outputs:
-            self._publish(output)
+            return None
 
     def _decode(self, data: bytes, fast: Callable[[bytes], Any], msgtype: str,
                 convert: Callable[[Any], Any]) -> Any:
@@ -693,12 +701,8 @@ class _Shell:
             self._reject('no_robot_model', self._model_error or 'no robot model')
             return
         rejected_before = sum(estimator.rejected.values())
-        try:
-            outputs = getattr(estimator, method)(sample)
-        except (ArithmeticError, RuntimeError, ValueError) as error:
-            # The estimator rejects bad input itself; anything it raises is a numerical
-            # failure. One sample is lost; a crashed node would lose them all.
-            self._reject('estimator_error', f'{type(error).__name__}: {error}', error=True)
+        outputs = self._estimate(lambda: getattr(estimator, method)(sample))
+        if outputs is None:
             return
         if sum(estimator.rejected.values()) != rejected_before and estimator.last_rejection:
             reason = estimator.last_rejection.partition(':')[0]
