@@ -138,7 +138,8 @@ class WrenchStepTest:
         #: the last measurements (Phi since the previous one, H, S, K, innovation), for
         #: the pose-step hypotheses, and the transition accumulated since the last one
         self._recent: deque = deque(maxlen=POSE_STEP_HYPOTHESES)
-        self._since = np.eye(self.dim)
+        self._identity = np.eye(self.dim)  # shared: _since is replaced, never modified
+        self._since = self._identity
         #: detections not taken because a step of the pose measurement explained more
         self.pose_steps = 0
 
@@ -158,7 +159,7 @@ class WrenchStepTest:
         self._j = np.zeros((0, self.n, self.n))
         self._b = np.zeros((0, self.n))
         self._recent.clear()
-        self._since = np.eye(self.dim)
+        self._since = self._identity
         # nis_scale stays: it describes the sensors, not the hypotheses.
 
     def propagate(self, stamp_ns: int, transition: np.ndarray) -> None:
@@ -202,7 +203,7 @@ class WrenchStepTest:
         # Kept for the pose-step hypotheses (a single large innovation included: a
         # re-fit is one).
         self._recent.append((self._since, h, s, gain, nu))
-        self._since = np.eye(self.dim)
+        self._since = self._identity
         # One solve for the innovation and every signature: S^-1 [nu, G].
         solved = np.linalg.solve(s, np.column_stack((nu, g)))
         nis_total = float(nu @ solved[:, 0])
