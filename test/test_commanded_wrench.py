@@ -458,12 +458,11 @@ def test_fuzz_bad_commands_are_counted_and_ignored(damage, batched):
     assert _bytes(outputs) == _bytes(expected)
 
 
-# --- real data (stretch): the freeflyer2 bags' ThrusterCommand as a body wrench ---------
-REAL = os.path.join(os.path.dirname(REPO), 'shared', 'data', 'freeflyer2')
-PD_BAG = os.path.join(REAL, 'rosbag2_2024_03_14-14_17_23')
+# --- real data: the freeflyer2 PD recording's ThrusterCommand as a body wrench ----------
+#: Shipped with the tests (test/data/freeflyer2, MIT): runs from a clone with nothing beside it.
+PD_BAG = os.path.join(DATA, 'freeflyer2', 'rosbag2_2024_03_14-14_17_23')
 
 
-@pytest.mark.skipif(not os.path.isdir(PD_BAG), reason=f'shared real data absent ({REAL})')
 def test_real_freeflyer2_thruster_switches_as_commanded_wrench(tmp_path):
     """Measured figures, not a fit: the defaults are not tuned to these bags."""
     from reduced_dynamics.thrust_correlation import (decode_thruster_command,
@@ -487,7 +486,7 @@ def test_real_freeflyer2_thruster_switches_as_commanded_wrench(tmp_path):
                             commanded_wrench_topic=WRENCH_COMMAND_TOPIC)
     summary = replay(str(converted), str(tmp_path / 'out'), FREEFLYER, options)
     command = summary['commanded_wrench']
-    # Measured (README "Commanded wrench"): gain 0.565 +- 0.023, 0.637 +- 0.025,
+    # Measured (docs/commanded_wrench.md): gain 0.565 +- 0.023, 0.637 +- 0.025,
     # 0.657 +- 0.011; the Mz gain is the stable figure (0.68 and 0.64 on the two
     # halves of this bag, 0.53 and 0.59 on the other bag's), the force gains are not
     # (the table's position-dependent tilt enters them).

@@ -33,8 +33,16 @@ from reduced_dynamics.thrust_correlation import (decode_thruster_command, moment
 from filter_helpers import wrench_series
 
 DATA = Path(__file__).parent / 'data'
-REAL = Path(__file__).resolve().parent.parent.parent / 'shared' / 'data' / 'freeflyer2'
-REAL_BAGS = ('rosbag2_2024_03_15-15_45_20', 'rosbag2_2024_03_14-14_17_23')
+#: The real freeflyer2 recordings: the PD one is shipped (test/data/freeflyer2, MIT), the
+#: longer trajectory-optimisation one only in the shared data set beside the clone.
+SHARED = Path(__file__).resolve().parent.parent.parent / 'shared' / 'data' / 'freeflyer2'
+TRAJECTORY_BAG = SHARED / 'rosbag2_2024_03_15-15_45_20'
+PD_BAG = DATA / 'freeflyer2' / 'rosbag2_2024_03_14-14_17_23'
+REAL_BAGS = [
+    pytest.param(TRAJECTORY_BAG, id=TRAJECTORY_BAG.name, marks=pytest.mark.skipif(
+        not TRAJECTORY_BAG.is_dir(), reason=f'shared real data absent ({SHARED})')),
+    pytest.param(PD_BAG, id=PD_BAG.name),
+]
 #: A 16 kg body pushed by at most two 0.2 N thrusters per axis (0.025 m/s^2) over a
 #: table a few metres wide cannot exceed ~0.5 m/s: 8 N s bounds the momentum's spread.
 SPREAD_BOUND = 16.0 * 0.5
@@ -125,12 +133,11 @@ def test_thruster_command_cdr_decoding():
     assert switches == (True, False, True, False, False, True, False, False)
 
 
-@pytest.mark.skipif(not REAL.is_dir(), reason=f'shared real data absent ({REAL})')
-@pytest.mark.parametrize('name', REAL_BAGS)
-def test_real_freeflyer2_bags_correlate_with_the_commanded_thrust(tmp_path, name):
-    """The README's judging procedure, replay defaults, no command input."""
+@pytest.mark.parametrize('path', REAL_BAGS)
+def test_real_freeflyer2_bags_correlate_with_the_commanded_thrust(tmp_path, path):
+    """The data README's judging procedure, replay defaults, no command input."""
     robot = load_robot(str(config_path('robots/freeflyer.urdf')))
-    bag = str(REAL / name)
+    bag = str(path)
     figures = {}
     for smooth in (False, True):
         out = str(tmp_path / f'out{smooth}')
@@ -151,7 +158,7 @@ def test_real_freeflyer2_bags_correlate_with_the_commanded_thrust(tmp_path, name
     summary_filter = summary['filter']
     assert summary_filter['poses_retimed'] > 0.95 * summary['processed']
     assert min(causal[:3]) >= 0.7
-    if name == REAL_BAGS[0]:
+    if path == TRAJECTORY_BAG:
         assert min(smoothed[:3]) >= 0.8
         assert causal.fx >= 0.82 and causal.fy >= 0.715 and causal.mz >= 0.745
     else:
@@ -160,9 +167,8 @@ def test_real_freeflyer2_bags_correlate_with_the_commanded_thrust(tmp_path, name
     assert os.path.isdir(out)
 
 
-@pytest.mark.skipif(not REAL.is_dir(), reason=f'shared real data absent ({REAL})')
-@pytest.mark.parametrize('name', REAL_BAGS)
-def test_command_twin_of_a_real_bag_correlates_near_one(tmp_path, name):
+@pytest.mark.parametrize('path', REAL_BAGS)
+def test_command_twin_of_a_real_bag_correlates_near_one(tmp_path, path):
     """
     The recording's stamps and mocap noise, a body pushed by the command alone.
 
@@ -172,7 +178,7 @@ def test_command_twin_of_a_real_bag_correlates_near_one(tmp_path, name):
     command describes the force the body felt.
     """
     robot = load_robot(str(config_path('robots/freeflyer.urdf')))
-    bag, twin = str(REAL / name), str(tmp_path / 'twin')
+    bag, twin = str(path), str(tmp_path / 'twin')
     figures = write_command_twin(bag, twin)
     # Measured: 22 / 26 um and 0.22 / 0.19 mrad frame to frame (0.5 mm and 2 mrad are
     # the defaults: re-fits of the mocap body and slow errors come on top).
