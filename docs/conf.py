@@ -1,0 +1,114 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Sphinx configuration of the user documentation (MyST Markdown) and the API reference.
+
+Build: ``sphinx-build -W --keep-going docs docs/_build`` (``pip install ".[docs]"``).
+rosdoc2 finds this folder through ``rosdoc2.yaml`` (``sphinx_sourcedir: docs``); it runs
+this file inside its own wrapper, which adds its theme, intersphinx and sphinx-apidoc.
+"""
+
+import importlib
+import os
+import pkgutil
+import re
+import sys
+
+ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), '..'))
+# The checkout's sources, not an installed copy, are what the API reference documents.
+sys.path.insert(0, ROOT)
+
+project = 'reduced_dynamics'
+author = 'reduced_dynamics developers'
+copyright = '2026, reduced_dynamics developers'  # noqa: A001 (Sphinx's name)
+release = '0.1.0'
+
+extensions = [
+    'myst_parser',
+    'sphinx.ext.autodoc',
+    'sphinx.ext.napoleon',
+]
+source_suffix = {'.md': 'markdown', '.rst': 'restructuredtext'}
+root_doc = 'index'
+# COPYRIGHT_HEADER.txt is the header template of the source files, not a page.
+exclude_patterns = ['_build', 'Thumbs.db', '.DS_Store']
+myst_enable_extensions = ['colon_fence']
+# Headings become link targets (`[text](filter.md#re-timing)`) down to level 3.
+myst_heading_anchors = 3
+
+autodoc_member_order = 'bysource'
+autodoc_default_options = {'members': True, 'show-inheritance': True}
+# Type hints go into the description, where long numpy types stay readable.
+autodoc_typehints = 'description'
+napoleon_google_docstring = True
+napoleon_numpy_docstring = True
+# The node shell and the bench's node processes import rclpy: without it (a docs-only
+# environment) they are documented from mocks.
+autodoc_mock_imports = []
+try:
+    importlib.import_module('rclpy')
+except ImportError:
+    autodoc_mock_imports = ['rclpy', 'rosidl_runtime_py', 'diagnostic_msgs', 'geometry_msgs',
+                            'lifecycle_msgs', 'nav_msgs', 'sensor_msgs', 'std_msgs',
+                            'trajectory_msgs', 'rcl_interfaces', 'builtin_interfaces']
+
+try:
+    import sphinx_rtd_theme  # noqa: F401
+    html_theme = 'sphinx_rtd_theme'
+except ImportError:
+    html_theme = 'alabaster'
+html_title = 'reduced_dynamics'
+
+
+def _modules() -> list[str]:
+    """Return every module of the package, sorted (new modules are listed without edits)."""
+    package = importlib.import_module('reduced_dynamics')
+    names = ['reduced_dynamics']
+    for info in pkgutil.walk_packages(package.__path__, 'reduced_dynamics.'):
+        if not info.name.rsplit('.', 1)[-1].startswith('_'):
+            names.append(info.name)
+    return sorted(names)
+
+
+def _api_page(app, docname: str, source: list[str]) -> None:
+    """Append one automodule directive per module to the page ``api``."""
+    if docname != 'api':
+        return
+    # :ignore-module-all: documents each object where it is defined, once: a package's
+    # __all__ re-exports would otherwise be a second target for every cross-reference.
+    blocks = [f'\n## `{name}`\n\n```{{eval-rst}}\n.. automodule:: {name}\n'
+              f'   :ignore-module-all:\n```\n' for name in _modules()]
+    source[0] += ''.join(blocks)
+
+
+#: Inline literals (left alone) and |x| outside them: the docstrings write norms as in
+#: plain text (|w|, |velocity|), which reStructuredText would read as substitutions.
+_LITERAL = re.compile(r'(``.+?``)')
+_NORM = re.compile(r'(?<![\\|\w])\|(?=[^\s|])([^|\n]*?)(?<=[^\s|])\|(?![|\w])')
+
+
+def _escape_norms(app, what, name, obj, options, lines: list[str]) -> None:
+    """Escape the bars of plain-text norms in a docstring (outside inline literals)."""
+    for i, line in enumerate(lines):
+        parts = _LITERAL.split(line)
+        parts[::2] = [_NORM.sub(r'\\|\1\\|', part) for part in parts[::2]]
+        lines[i] = ''.join(parts)
+
+
+def setup(app) -> dict:
+    """Register the generated API page and the docstring filter."""
+    app.connect('source-read', _api_page)
+    app.connect('autodoc-process-docstring', _escape_norms)
+    return {'parallel_read_safe': True}
