@@ -78,6 +78,9 @@ setup(
     ],
     extras_require={
         'test': ['pytest', 'hypothesis'],
+        # The user documentation and API reference in docs/ (Sphinx + MyST Markdown; the
+        # theme is rosdoc2's). scripts/test.sh installs it: test/test_docs.py builds them.
+        'docs': ['sphinx', 'myst-parser', 'sphinx-rtd-theme'],
         # Real ROS 2 Jazzy rclpy (Fast DDS) and the message packages the node uses, as PyPI
         # wheels, for machines without a ROS 2 install (the rosdep keys of package.xml
         # are the same dependencies for a ROS 2 install). lifecycle_msgs comes with rclpy.

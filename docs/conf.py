@@ -107,8 +107,23 @@ def _escape_norms(app, what, name, obj, options, lines: list[str]) -> None:
         lines[i] = ''.join(parts)
 
 
+def _index_glob(app, docname: str, source: list[str]) -> None:
+    """
+    Drop the index's catch-all ``*`` while every page is listed by name.
+
+    The toctree lists the pages in reading order, then ``*`` for every other page of
+    docs/; Sphinx warns when a glob matches nothing, which is no fault here.
+    """
+    if docname != 'index':
+        return
+    listed = set(re.findall(r'^([\w/]+)$', source[0], re.M))
+    if not set(app.env.found_docs) - listed - {'index'}:
+        source[0] = re.sub(r'^\*\n', '', source[0], flags=re.M)
+
+
 def setup(app) -> dict:
-    """Register the generated API page and the docstring filter."""
+    """Register the generated API page, the index's glob and the docstring filter."""
     app.connect('source-read', _api_page)
+    app.connect('source-read', _index_glob)
     app.connect('autodoc-process-docstring', _escape_norms)
     return {'parallel_read_safe': True}
