@@ -66,7 +66,7 @@ simulate -o "$OUT/freeflyer_realistic" --summary "$OUT/freeflyer_realistic.summa
 # quantisation), stamps and outages as freeflyer_realistic.
 simulate -o "$OUT/freeflyer_testbed" --summary "$OUT/freeflyer_testbed.summary.json" --overwrite --urdf config/robots/freeflyer.urdf --duration 15 --rate 120 --seed 5 --torque zero --base-pose-only --noise-pose 2.5e-5 --noise-orientation 2e-4 --stamp-jitter 0.0005 --bunch-fraction 0.01 --latency 0.003 --latency-jitter 0.001 --outage-rate 0.2 --outage-duration 0.04 --thruster-layout freeflyer --fire 2,1,2,5 --fire 5,1.5,4,7 --fire 9,0.8,1,3,5,7 --fire 12,1,6,1 --thrust-gain 0.9 0.85 1 1 1 0.95 --command-rate 8
 
-# The filter settings of the realistic bags as a user gets them (README "Events on the
+# The filter settings of the realistic bags as a user gets them (docs/events.md "Events on the
 # realistic simulated bags"): `tune` with its defaults on each bag. The sensor figures the
 # simulation used are written by hand in test/data/*_realistic.sensors.yaml.
 "$PYTHON" -m reduced_dynamics.cli tune "$OUT/paper_realistic" -o "$OUT/paper_realistic.tuned.yaml" --quiet > /dev/null

@@ -299,7 +299,7 @@ def test_a_body_force_bias_is_recovered(tmp_path):
     # A body-fixed force is told from a world-fixed disturbance as the base turns
     # (measured: 0.0198 +- 0.0098 N). A body torque on a planar base is not: it
     # equals a world torque, so the Mz bias stays at its prior (sigma 0.0045 N m)
-    # and the disturbance carries it (README "Commanded wrench").
+    # and the disturbance carries it (docs/commanded_wrench.md).
     assert abs(bias[0] - 0.02) < 0.005 and sigma[0] < 0.5 * 0.005 * 16.0
     assert sigma[2] > 0.9 * 0.025 * 0.18  # the prior: 0.025 rad/s^2 on 0.18 kg m^2
     gain = np.array(command['gain'])

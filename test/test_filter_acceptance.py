@@ -147,7 +147,7 @@ def test_real_freeflyer2_bags_correlate_with_the_commanded_thrust(tmp_path, path
         assert np.all(momentum_spread(out) <= SPREAD_BOUND)
         assert summary['processed'] >= 6000
     causal, smoothed = figures[False], figures[True]
-    # Measured (README table): causal 0.831/0.724/0.753 and 0.733/0.755/0.913, smoothed
+    # Measured (docs/real_data.md): causal 0.831/0.724/0.753 and 0.733/0.755/0.913, smoothed
     # 0.907/0.891/0.969 and 0.761/0.781/0.956 (pose_position_noise 0.5 mm; with 1 mm the
     # trajectory bag's causal Fy was 0.696). The poses are re-timed to their frames
     # (pose_retiming auto; off, at 1 mm: causal 0.81/0.68/0.74 and 0.72/0.75/0.91). The PD

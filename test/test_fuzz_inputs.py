@@ -40,7 +40,7 @@ input, runs the estimator (batched or streaming, drawn) and asserts:
 
 Settings: ``max_examples`` per family, ``derandomize=True`` (reproducible),
 no example database, ``deadline=None``. ``RD_FUZZ_STATS=file`` writes the
-measured totals as JSON (the README's table).
+measured totals as JSON (the table of docs/fuzz.md).
 """
 
 from collections import Counter

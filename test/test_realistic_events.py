@@ -19,7 +19,7 @@ Settings per bag: the replay defaults, the sensor figures the simulation used
 (``test/data/*_realistic.sensors.yaml``) and ``reduced-dynamics tune BAG`` with its
 defaults (``test/data/*_realistic.tuned.yaml``, scripts/make_test_bags.sh). Event
 latencies are compared with the information bound of the bag's own sensor figures
-(``estimator/detectability.py``). Measured values are in README "Events on the
+(``estimator/detectability.py``). Measured values are in docs/events.md "Events on the
 realistic simulated bags".
 """
 
