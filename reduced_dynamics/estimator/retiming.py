@@ -56,8 +56,9 @@ Hardware-stamped navigation, a simulator's jittered Odometry, and a polling clie
 faster than its source (no bursts) keep their stamps. ``on`` skips the burst test
 (a stream known to be stamped on receipt); ``off`` never re-times.
 
-The re-timer sees the samples the stamp policy (:mod:`reduced_dynamics.estimator.stamps`) accepted, one at a
-time, in arrival order: streaming and batched paths give the same stamps.
+The re-timer sees the samples the stamp policy
+(:mod:`reduced_dynamics.estimator.stamps`) accepted, one at a time, in arrival order:
+streaming and batched paths give the same stamps.
 """
 
 from __future__ import annotations
