@@ -27,8 +27,10 @@ import re
 import sys
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), '..'))
-# The checkout's sources, not an installed copy, are what the API reference documents.
-sys.path.insert(0, ROOT)
+# The checkout's sources, not an installed copy, are what the API reference documents
+# (under rosdoc2, __file__ is its wrapper's: the package is found as rosdoc2 sets it up).
+if os.path.isfile(os.path.join(ROOT, 'reduced_dynamics', '__init__.py')):
+    sys.path.insert(0, ROOT)
 
 project = 'reduced_dynamics'
 author = 'reduced_dynamics developers'
