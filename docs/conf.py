@@ -35,7 +35,7 @@ if os.path.isfile(os.path.join(ROOT, 'reduced_dynamics', '__init__.py')):
 project = 'reduced_dynamics'
 author = 'reduced_dynamics developers'
 copyright = '2026, reduced_dynamics developers'  # noqa: A001 (Sphinx's name)
-release = '0.1.0'
+release = importlib.import_module('reduced_dynamics').__version__
 
 extensions = [
     'myst_parser',
