@@ -1,0 +1,117 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""The replay seams of issue 21 (CLI and bags): each test fails before its fix."""
+
+import json
+from pathlib import Path
+import shutil
+import struct
+
+import pytest
+
+from reduced_dynamics.bag import BagWriter, open_bag
+from reduced_dynamics.cli import main
+from reduced_dynamics.estimator.stamps import ACCEPTED, StampGate
+
+DATA = Path(__file__).resolve().parent / 'data'
+THRUSTER = DATA / 'paper_thruster'
+
+
+def _convert(source: Path, path: Path, storage: str = 'sqlite3', edit=None) -> Path:
+    """Write ``source`` as a ``storage`` bag at ``path``, ``edit(topic, data)`` per message."""
+    with open_bag(source) as bag:
+        topics = bag.topics()
+        with BagWriter(path, topics, storage=storage) as writer:
+            for message in bag.raw_messages(list(topics)):
+                data = bytes(message.data) if edit is None else edit(message.topic,
+                                                                     bytes(message.data))
+                writer.write_raw(message.topic, message.timestamp_ns, data)
+    return path
+
+
+def _messages(path: Path) -> list[tuple[str, int, bytes]]:
+    with open_bag(path) as bag:
+        return [(m.topic, m.timestamp_ns, bytes(m.data))
+                for m in bag.raw_messages(list(bag.topics()))]
+
+
+@pytest.fixture(scope='module')
+def thruster_sqlite(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Return paper_thruster converted to a sqlite3 bag."""
+    return _convert(THRUSTER, tmp_path_factory.mktemp('sqlite') / 'bag')
+
+
+def _summary(tmp_path: Path, *args: str) -> tuple[int, dict]:
+    out = tmp_path / 'summary.json'
+    code = main(['replay', *args, '--quiet', '--summary-json', str(out)])
+    return code, json.loads(out.read_text()) if out.exists() else {}
+
+
+# --------------------------------------------------------------------- 13: truncated sqlite3
+def test_truncated_sqlite_delivers_no_invented_bytes(thruster_sqlite: Path,
+                                                     tmp_path: Path) -> None:
+    """Item 13: a row whose payload runs past the cut is dropped and counted, not zero-filled."""
+    bag = tmp_path / 'bag'
+    shutil.copytree(thruster_sqlite, bag)
+    db = next(bag.glob('*.db3'))
+    data = db.read_bytes()
+    db.write_bytes(data[:int(len(data) * 0.27)])
+    clean = set(_messages(THRUSTER))
+    with open_bag(bag) as reader:
+        got = [(m.topic, m.timestamp_ns, bytes(m.data))
+               for m in reader.raw_messages(list(reader.topics()))]
+        damage = reader.damage
+    assert got and set(got) <= clean
+    past_end = [d for d in damage if 'past the readable end' in d.detail]
+    assert past_end and all(d.messages_lost for d in past_end)
+
+
+# ------------------------------------------------------------- 14: stamps decreasing throughout
+def _reverse_stamps(start: int, end: int):
+    def edit(topic: str, data: bytes) -> bytes:
+        out = bytearray(data)
+        sec, nsec = struct.unpack_from('<iI', out, 4)  # header.stamp after the CDR header
+        stamp = start + end - (sec * 10**9 + nsec)
+        struct.pack_into('<iI', out, 4, stamp // 10**9, stamp % 10**9)
+        return bytes(out)
+    return edit
+
+
+def test_stamp_gate_accounts_for_every_sample() -> None:
+    """Item 14: every offered sample is accepted or dropped with a reason, none vanishes."""
+    for receive in (True, False):
+        gate = StampGate('joint states', 10**9, 3)
+        settled, offered = 0, 400
+        for k in range(offered):
+            stamp = 10**12 - k * 5_000_000  # 200 Hz, backwards throughout
+            result = gate.offer(stamp, 10**12 + k * 5_000_000 if receive else None, k)
+            settled += 1 if result is ACCEPTED else len(result.accepted) + len(result.dropped)
+        settled += len(gate.finish())
+        assert settled == offered, receive
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_replay_counts_every_joint_state_of_a_bag_with_decreasing_stamps(
+        storage: str, tmp_path: Path) -> None:
+    """Item 14: processed + rejected joint states = received, on a reversed-stamp bag."""
+    with open_bag(THRUSTER) as bag:
+        edit = _reverse_stamps(bag.start_ns, bag.end_ns)
+    bag = _convert(THRUSTER, tmp_path / 'bag', storage, edit)
+    code, summary = _summary(tmp_path, str(bag), '-o', str(tmp_path / 'out'))
+    assert code == 0
+    joint_rejected = sum(n for reason, n in summary['rejected'].items()
+                         if not reason.startswith(('base_', 'command')))
+    assert summary['received']['joint_states'] == 801
+    assert summary['processed'] + joint_rejected == 801
