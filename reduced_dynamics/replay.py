@@ -375,19 +375,26 @@ def damage_report(reader: BagReader, topics: list[str], read: Counter,
     """
     Return what the damaged parts of the bag cost: regions, messages and bytes lost.
 
-    ``missing_vs_index`` compares the messages read per input topic (decoded or not)
-    with the counts of metadata.yaml or of an intact storage index.
+    ``missing_vs_index`` / ``extra_vs_index`` compare the messages read per input
+    topic (decoded or not) with the counts of metadata.yaml or of an intact storage
+    index, on every whole read: damaged or not, a bag whose file holds other counts
+    than its metadata states is reported. Missing messages are damage; extra ones
+    (stale metadata) are reported only.
     """
     regions = reader.damage
     undecodable = sum(reader.skipped.values())
     missing: dict[str, int] = {}
-    if whole and reader.counts_trusted and (regions or undecodable):
+    extra: dict[str, int] = {}
+    if whole and reader.counts_trusted:
         for topic in topics:
             got = read[topic] + sum(n for reason, n in reader.skipped.items()
                                     if reason.split(': ', 1)[-1].startswith(topic + ' ('))
             expected = reader.message_count(topic)
             if expected > got:
                 missing[topic] = expected - got
+            elif got > expected and not regions:
+                # (Not past damage: a record walk may salvage what no index counted.)
+                extra[topic] = got - expected
     known = [r.messages_lost for r in regions if r.messages_lost is not None]
     return {
         'damaged': bool(regions or undecodable or missing),
@@ -398,6 +405,7 @@ def damage_report(reader: BagReader, topics: list[str], read: Counter,
         'bytes_lost': sum(r.length for r in regions),
         'undecodable': undecodable,
         'missing_vs_index': missing,
+        'extra_vs_index': extra,
     }
 
 
@@ -552,6 +560,10 @@ def format_summary(summary: dict[str, Any]) -> str:
         if damage['missing_vs_index']:
             lines.append('  missing against the bag\'s own counts: ' + ', '.join(
                 f'{t} {n}' for t, n in sorted(damage['missing_vs_index'].items())))
+    if damage.get('extra_vs_index'):
+        lines.append('more messages than the bag\'s own counts (metadata.yaml stale?): '
+                     + ', '.join(f'{t} {n}'
+                                 for t, n in sorted(damage['extra_vs_index'].items())))
     return '\n'.join(lines)
 
 

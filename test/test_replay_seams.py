@@ -115,3 +115,28 @@ def test_replay_counts_every_joint_state_of_a_bag_with_decreasing_stamps(
                          if not reason.startswith(('base_', 'command')))
     assert summary['received']['joint_states'] == 801
     assert summary['processed'] + joint_rejected == 801
+
+
+# ------------------------------------------------------------ 15: metadata.yaml counts differ
+def test_undamaged_sqlite_bag_with_other_metadata_counts_is_reported(
+        thruster_sqlite: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Item 15: the counts comparison runs on undamaged bags too."""
+    bag = tmp_path / 'bag'
+    shutil.copytree(thruster_sqlite, bag)
+    meta = bag / 'metadata.yaml'
+    text = meta.read_text()
+    joint = text.index('name: /joint_states')
+    odom = text.index('name: /odom')
+    head = text[:joint].rsplit('message_count: 801', 1)
+    middle = text[joint:odom].rsplit('message_count: 801', 1)
+    meta.write_text('message_count: 850'.join(head) + 'message_count: 780'.join(middle)
+                    + text[odom:])
+    code, summary = _summary(tmp_path, str(bag), '-o', str(tmp_path / 'out'))
+    damage = summary['damage']
+    assert damage['regions'] == [] and damage['undecodable'] == 0
+    assert damage['missing_vs_index'] == {'/joint_states': 49}
+    assert damage['extra_vs_index'] == {'/odom': 21}
+    assert code == 3
+    out = capsys.readouterr().out
+    assert "missing against the bag's own counts: /joint_states 49" in out
+    assert "more messages than the bag's own counts" in out and '/odom 21' in out
