@@ -23,6 +23,7 @@ One subcommand per task; ``--help`` on each lists its options.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from typing import Optional, Sequence
 
@@ -133,6 +134,20 @@ def _extra_commands() -> list:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Entry point of ``reduced-dynamics``."""
+    try:
+        code = _main(argv)
+        sys.stdout.flush()  # inside the try: a closed pipe must surface here
+        return code
+    except BrokenPipeError:
+        # The reader went away (``... | head -2``): the Python documentation's recipe
+        # (signal module, "Note on SIGPIPE"): point stdout at devnull so the flush at
+        # exit does not raise again, and exit 1 without a traceback.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 1
+
+
+def _main(argv: Optional[Sequence[str]]) -> int:
     from reduced_dynamics.robot.model import ModelError
     parser = build_parser()
     args = parser.parse_args(argv)

@@ -583,6 +583,11 @@ def _run(args: argparse.Namespace) -> int:
                             smooth=not args.no_smooth,
                             progress=None if args.quiet else sys.stderr)
     existed = os.path.exists(args.output)
+    if existed and not args.overwrite:
+        # Before reading the bag; the library's own message names its Python argument.
+        print(f'reduced-dynamics replay: error: output {args.output} exists already '
+              '(pass --overwrite to replace it)', file=sys.stderr)
+        return 2
     try:
         summary = replay(args.bag, args.output, robot, options)
     except BagError as error:

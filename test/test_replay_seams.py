@@ -15,9 +15,12 @@
 """The replay seams of issue 21 (CLI and bags): each test fails before its fix."""
 
 import json
+import os
 from pathlib import Path
 import shutil
 import struct
+import subprocess
+import sys
 
 import pytest
 
@@ -25,7 +28,8 @@ from reduced_dynamics.bag import BagWriter, open_bag
 from reduced_dynamics.cli import main
 from reduced_dynamics.estimator.stamps import ACCEPTED, StampGate
 
-DATA = Path(__file__).resolve().parent / 'data'
+REPO = Path(__file__).resolve().parent.parent
+DATA = REPO / 'test' / 'data'
 THRUSTER = DATA / 'paper_thruster'
 
 
@@ -140,3 +144,27 @@ def test_undamaged_sqlite_bag_with_other_metadata_counts_is_reported(
     out = capsys.readouterr().out
     assert "missing against the bag's own counts: /joint_states 49" in out
     assert "more messages than the bag's own counts" in out and '/odom 21' in out
+
+
+# --------------------------------------------------------------- 16: CLI wording, closed pipes
+def test_existing_output_error_names_the_cli_flag(tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture) -> None:
+    """Item 16: the CLI's error names --overwrite, not the Python argument."""
+    out = tmp_path / 'out'
+    out.mkdir()
+    assert main(['replay', str(THRUSTER), '-o', str(out), '--quiet']) == 2
+    err = capsys.readouterr().err
+    assert '--overwrite' in err and 'overwrite=True' not in err and len(err.splitlines()) == 1
+
+
+def test_output_into_a_closed_pipe_ends_without_a_traceback() -> None:
+    """Item 16: ``reduced-dynamics predict ... | head`` (reader gone) ends quietly."""
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'reduced_dynamics.cli', 'predict', '--trajectory',
+         str(REPO / 'config' / 'plans' / 'example_plan.yaml')],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    proc.stdout.close()  # the reader is gone before the first line is printed
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=300) == 1
+    assert 'Traceback' not in err and 'BrokenPipeError' not in err, err
