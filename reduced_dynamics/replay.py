@@ -89,6 +89,11 @@ class ReplayOptions:
     #: fixed-interval (RTS) smoothing of the filter's estimates; False: exactly the
     #: causal outputs the node publishes (memory then stays flat in the bag's length)
     smooth: bool = True
+    #: rows at the base samples, the shape held from the latest joint state (at zero
+    #: without any): a jointed robot without a JointState topic is refused otherwise
+    base_driven: bool = False
+    #: where the robot model came from, for messages (see :func:`robot_source`)
+    robot_source: str = ''
 
 
 class _Series:
@@ -190,6 +195,75 @@ def _wrong_type(topic: str, msgtype: str, expected: str) -> Decoder:
     return reject
 
 
+def robot_source(params: dict, urdf: str = '') -> str:
+    """Return where :func:`load_robot_from_params` takes the robot from, for messages."""
+    if urdf:
+        return f'--urdf {urdf}'
+    if params.get('robot_description'):
+        return 'the robot_description parameter'
+    if params.get('urdf_path'):
+        return f'urdf_path {params["urdf_path"]}'
+    return 'the built-in paper robot, no --urdf given'
+
+
+def check_shape_input(reader: BagReader, joint_topic: Optional[str], robot: RobotModel,
+                      options: ReplayOptions) -> None:
+    """
+    Refuse a replay whose joint states cannot drive ``robot``'s shape (BagError).
+
+    A jointed robot without its JointState topic would run with the shape frozen
+    at zero, and joint states naming other joints than the robot's would all be
+    rejected: both give a wrong momentum without a word. ``--base-driven`` asks
+    for the frozen shape explicitly.
+    """
+    source = options.robot_source or 'the given robot model'
+    if joint_topic is None:
+        if robot.m == 0 or options.base_driven:
+            return
+        topics = reader.topics()
+        wanted = _topic(options.joint_states_topic
+                        or options.params['joint_states_topic'])
+        found = sorted(t for t, msgtype in topics.items() if msgtype == JOINT_STATE_TYPE)
+        other = f' (it is {topics[wanted]})' if wanted in topics else ''
+        raise BagError(
+            f'robot {robot.model.name} ({source}) has {robot.m} shape joints but the bag '
+            f'has no {JOINT_STATE_TYPE} topic {wanted}{other}; its JointState topics: '
+            f'{", ".join(found) if found else "none"}. Pass --joint-states-topic NAME, or '
+            '--base-driven to replay with the shape held at zero')
+    names = _first_joint_names(reader, joint_topic)
+    if names is None or set(names) == set(robot.shape_joint_names) \
+            and len(set(names)) == len(names):
+        return
+    raise BagError(
+        f'the joint states on {joint_topic} name {_listing(names)} but robot '
+        f'{robot.model.name} ({source}) has the shape joints '
+        f'{_listing(robot.shape_joint_names)}: give this robot\'s description with --urdf')
+
+
+def _listing(names: tuple, limit: int = 8) -> str:
+    shown = ', '.join(names[:limit]) or 'no joints'
+    return shown + (f' (+{len(names) - limit} more)' if len(names) > limit else '')
+
+
+def _first_joint_names(reader: BagReader, topic: str, look: int = 50) -> Optional[tuple]:
+    """Return the joint names of the first decodable joint state (None: none found)."""
+    # A second reader: the replay's own reader counts damage once, in its one pass.
+    with open_bag(reader.path) as peek:
+        decode = input_decoder(peek, topic, JOINT_STATE_TYPE, '')
+        for count, message in enumerate(peek.raw_messages([topic])):
+            if count >= look:
+                break
+            if message.msgtype != JOINT_STATE_TYPE:
+                continue
+            try:
+                sample = decode(message.data)
+            except (ValueError, TypeError, BagError):
+                continue
+            if sample is not None:
+                return tuple(sample.names)
+    return None
+
+
 def load_robot_from_params(params: dict, urdf: str = '',
                            base_joint: Optional[str] = None,
                            gravity: Optional[list] = None) -> RobotModel:
@@ -212,7 +286,8 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
             reader.verify()  # refuse before writing anything
         topics = reader.topics()
         joint_topic, base_topic, is_odom = choose_inputs(topics, options)
-        base_driven = joint_topic is None or robot.m == 0
+        check_shape_input(reader, joint_topic, robot, options)
+        base_driven = joint_topic is None or robot.m == 0 or options.base_driven
         command_topic = options.commanded_wrench_topic \
             or options.params.get('commanded_wrench_topic', '')
         if command_topic:
@@ -341,7 +416,8 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
     summary = estimator.summary()
     summary.update({'input_bag': str(bag_path), 'output_bag': str(out_path),
                     'smoothed': options.smooth,
-                    'robot': robot.model.name, 'joint_states_topic': joint_topic,
+                    'robot': robot.model.name, 'robot_source': options.robot_source,
+                    'joint_states_topic': joint_topic,
                     'base_topic': base_topic, 'trajectory_topic': trajectory_topic,
                     'base_driven': base_driven,
                     **({'commanded_wrench': {'topic': command_topic,
@@ -498,7 +574,9 @@ def write_plots(directory: str, series: dict, robot: RobotModel,
 def format_summary(summary: dict[str, Any]) -> str:
     """Return a human-readable summary of a replay."""
     lines = [f'replayed {summary["input_bag"]} -> {summary["output_bag"]} '
-             f'(robot {summary["robot"]}, {summary["seconds"]:.2f} s, '
+             f'(robot {summary["robot"]}'
+             + (f' from {summary["robot_source"]}' if summary.get('robot_source') else '')
+             + f', {summary["seconds"]:.2f} s, '
              f'{summary["samples_per_second"] or 0:.0f} samples/s)']
     lines.append(f'inputs: joint states {summary["joint_states_topic"]}, base '
                  f'{summary["base_topic"]}' + (' (base-driven)' if summary['base_driven']
@@ -580,7 +658,8 @@ def _run(args: argparse.Namespace) -> int:
                             commanded_wrench_topic=args.commanded_wrench_topic,
                             start=args.start, end=args.end, plots_dir=args.plots,
                             overwrite=args.overwrite, strict=args.strict,
-                            smooth=not args.no_smooth,
+                            smooth=not args.no_smooth, base_driven=args.base_driven,
+                            robot_source=robot_source(params, args.urdf),
                             progress=None if args.quiet else sys.stderr)
     existed = os.path.exists(args.output)
     if existed and not args.overwrite:
@@ -639,6 +718,10 @@ def register_command(commands: Any) -> None:
                              'that do not deserialize) instead of replaying what is intact '
                              f'and exiting {EXIT_DAMAGED}')
     parser.add_argument('--quiet', action='store_true', help='no progress display')
+    parser.add_argument('--base-driven', action='store_true',
+                        help='one estimate per base sample, the shape held from the latest '
+                             'joint state (at zero when the bag has none); without it a '
+                             'jointed robot needs the bag\'s JointState topic')
     parser.add_argument('--no-smooth', action='store_true',
                         help='write the causal filter\'s estimates, exactly what the node '
                              'publishes (default: fixed-interval RTS smoothing over the bag)')

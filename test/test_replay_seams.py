@@ -168,3 +168,66 @@ def test_output_into_a_closed_pipe_ends_without_a_traceback() -> None:
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=300) == 1
     assert 'Traceback' not in err and 'BrokenPipeError' not in err, err
+
+
+# --------------------------------------------------- 11: no joint states for a jointed robot
+def _retopic(mapping: dict[str, tuple[str, str]], path: Path) -> Path:
+    """Write paper_thruster with topics renamed/retyped: {old: (new name, new type)}."""
+    with open_bag(THRUSTER) as bag:
+        topics = bag.topics()
+        messages = list(bag.raw_messages(list(topics)))
+    renamed = {mapping.get(t, (t, m))[0]: mapping.get(t, (t, m))[1] for t, m in topics.items()
+               if mapping.get(t, (t,))[0]}
+    with BagWriter(path, renamed) as writer:
+        for message in messages:
+            name = mapping.get(message.topic, (message.topic,))[0]
+            if name:
+                writer.write_raw(name, message.timestamp_ns, bytes(message.data))
+    return path
+
+
+@pytest.mark.parametrize('case', ['renamed', 'absent', 'other_type'])
+def test_jointed_robot_without_joint_states_is_refused(case: str, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture) -> None:
+    """Item 11: exit 2 naming the bag's JointState topics; --base-driven runs it."""
+    joint = 'sensor_msgs/msg/JointState'
+    mapping = {'renamed': {'/joint_states': ('/arm/joint_states', joint)},
+               'absent': {'/joint_states': ('', joint)},
+               'other_type': {'/joint_states': ('/joint_states',
+                                                'geometry_msgs/msg/WrenchStamped')}}[case]
+    bag = _retopic(mapping, tmp_path / 'bag')
+    out = tmp_path / 'out'
+    assert main(['replay', str(bag), '-o', str(out), '--quiet']) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and '--base-driven' in err
+    assert ('JointState topics: /arm/joint_states' if case == 'renamed'
+            else 'JointState topics: none') in err
+    if case == 'other_type':
+        assert 'it is geometry_msgs/msg/WrenchStamped' in err
+    assert not out.exists()
+    code, summary = _summary(tmp_path, str(bag), '-o', str(out), '--base-driven')
+    assert code == 0 and summary['base_driven'] and summary['processed'] > 0
+
+
+# ------------------------------------------------------- 12: joints of another robot, no --urdf
+def test_joint_states_of_another_robot_are_refused_naming_the_robot(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Item 12: the built-in robot is named, and joint names that do not match refuse."""
+    from rosbags.typesys import get_typestore, Stores
+    store = get_typestore(Stores.ROS2_JAZZY)
+    joint = 'sensor_msgs/msg/JointState'
+
+    def rename(topic: str, data: bytes) -> bytes:
+        if topic != '/joint_states':
+            return data
+        msg = store.deserialize_cdr(data, joint)
+        msg.name = [f'arm_{k}' for k in range(len(msg.name))]
+        return bytes(store.serialize_cdr(msg, joint))
+    bag = _convert(THRUSTER, tmp_path / 'bag', 'mcap', rename)
+    assert main(['replay', str(bag), '-o', str(tmp_path / 'out'), '--quiet']) == 2
+    err = capsys.readouterr().err
+    assert 'built-in paper robot' in err and 'arm_0' in err and '--urdf' in err
+    assert len(err.splitlines()) == 1
+    # A matching bag runs, and its summary says which robot was used.
+    assert main(['replay', str(THRUSTER), '-o', str(tmp_path / 'good'), '--quiet']) == 0
+    assert 'robot paper_robot from the built-in paper robot' in capsys.readouterr().out
