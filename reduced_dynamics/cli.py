@@ -33,7 +33,10 @@ import numpy as np
 def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
     """--urdf, --base-joint and --gravity, shared by every subcommand."""
     parser.add_argument('--urdf', default='',
-                        help='robot URDF file (default: the paper robot, section 6)')
+                        help='robot URDF file, or a .xacro file expanded with xacro '
+                             '(default: the paper robot, section 6)')
+    parser.add_argument('--xacro-arg', action='append', default=[], metavar='NAME:=VALUE',
+                        help='argument of a .xacro --urdf (repeat for several)')
     parser.add_argument('--base-joint', choices=('floating', 'planar'), default=None,
                         help='free base joint when the URDF has no world joint '
                              '(default: floating)')
@@ -45,8 +48,10 @@ def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
 def load_robot_from_args(args: argparse.Namespace):
     """Return the robot model the arguments describe."""
     from reduced_dynamics.robot.model import load_robot
+    from reduced_dynamics.robot.xacro_file import parse_xacro_args
     gravity = None if args.gravity is None else np.array(args.gravity)
-    return load_robot(args.urdf, args.base_joint, gravity)
+    return load_robot(args.urdf, args.base_joint, gravity,
+                      parse_xacro_args(getattr(args, 'xacro_arg', None)))
 
 
 def _validate(args: argparse.Namespace) -> int:

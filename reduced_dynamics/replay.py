@@ -266,12 +266,19 @@ def _first_joint_names(reader: BagReader, topic: str, look: int = 50) -> Optiona
 
 def load_robot_from_params(params: dict, urdf: str = '',
                            base_joint: Optional[str] = None,
-                           gravity: Optional[list] = None) -> RobotModel:
-    """Return the robot of the options or the parameter file (default: the paper robot)."""
+                           gravity: Optional[list] = None,
+                           xacro_args: Optional[list] = None) -> RobotModel:
+    """
+    Return the robot of the options or the parameter file (default: the paper robot).
+
+    ``xacro_args``: ``name:=value`` items for a ``.xacro`` description.
+    """
+    from reduced_dynamics.robot.xacro_file import parse_xacro_args
     source = urdf or params.get('robot_description') or params.get('urdf_path') or ''
     joint = base_joint or params.get('base_joint')
     g = gravity if gravity is not None else params.get('gravity')
-    return load_robot(source, joint, None if g is None else np.asarray(g, dtype=float))
+    return load_robot(source, joint, None if g is None else np.asarray(g, dtype=float),
+                      parse_xacro_args(xacro_args))
 
 
 def replay(bag_path: str, out_path: str, robot: RobotModel,
@@ -651,7 +658,8 @@ def _run(args: argparse.Namespace) -> int:
         params['cyclic_joints'] = args.cyclic_joints
     if args.prediction_mode is not None:
         params['prediction_mode'] = args.prediction_mode
-    robot = load_robot_from_params(params, args.urdf, args.base_joint, args.gravity)
+    robot = load_robot_from_params(params, args.urdf, args.base_joint, args.gravity,
+                                   args.xacro_arg)
     options = ReplayOptions(params=params, joint_states_topic=args.joint_states_topic,
                             odom_topic=args.odom_topic, base_pose_topic=args.base_pose_topic,
                             trajectory_topic=args.trajectory_topic,

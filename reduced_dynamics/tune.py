@@ -163,7 +163,8 @@ def params_yaml(values: dict[str, float], comment: str) -> str:
 
 def _run(args: argparse.Namespace) -> int:
     params = load_params_file(args.params) if args.params else defaults()
-    robot = load_robot_from_params(params, args.urdf, args.base_joint, args.gravity)
+    robot = load_robot_from_params(params, args.urdf, args.base_joint, args.gravity,
+                                   args.xacro_arg)
     options = ReplayOptions(params=params, joint_states_topic=args.joint_states_topic,
                             odom_topic=args.odom_topic, base_pose_topic=args.base_pose_topic,
                             start=args.start, end=args.end, base_driven=args.base_driven,
