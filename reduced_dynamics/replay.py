@@ -285,7 +285,9 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
            options: Optional[ReplayOptions] = None) -> dict[str, Any]:
     """Replay ``bag_path`` through the estimator into ``out_path``; return the summary."""
     options = options or ReplayOptions()
-    config = EstimatorConfig.from_mapping(options.params)
+    # Offline, a prediction's budget is its evaluations alone: a wall-time budget would
+    # make the output depend on the machine's load (the node keeps its own).
+    config = EstimatorConfig.from_mapping(options.params).replaced(prediction_max_wall_time=0.0)
     types = RosbagsTypes()
     started = time.perf_counter()
     with open_bag(bag_path, strict=options.strict) as reader:
