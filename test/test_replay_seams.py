@@ -316,3 +316,21 @@ def test_innovation_gate_rejections_and_the_filter_count_are_one_count(
     assert code == 0
     assert summary['rejected']['innovation_gate'] > 0
     assert summary['rejected']['innovation_gate'] == summary['filter']['innovation_gated']
+
+
+def test_node_urdf_path_takes_a_xacro_file() -> None:
+    """Item 17: the node's urdf_path expands a .xacro (its defaults), on real rclpy."""
+    try:
+        from ros_harness import real_ros
+    except ImportError:  # test/ imported as a package
+        from test.ros_harness import real_ros
+    with real_ros():
+        from rclpy.parameter import Parameter
+        from reduced_dynamics.node import ReducedDynamicsNode
+        node = ReducedDynamicsNode(parameter_overrides=[Parameter('urdf_path',
+                                                                  value=str(XACRO))])
+        try:
+            assert node.model_error is None
+            assert node.estimator.robot.shape_joint_names == ('upper_joint', 'fore_joint')
+        finally:
+            node.destroy_node()
