@@ -230,9 +230,8 @@ def check_shape_input(reader: BagReader, joint_topic: Optional[str], robot: Robo
             f'has no {JOINT_STATE_TYPE} topic {wanted}{other}; its JointState topics: '
             f'{", ".join(found) if found else "none"}. Pass --joint-states-topic NAME, or '
             '--base-driven to replay with the shape held at zero')
-    names = _first_joint_names(reader, joint_topic)
-    if names is None or set(names) == set(robot.shape_joint_names) \
-            and len(set(names)) == len(names):
+    names = _first_joint_names(reader, joint_topic, set(robot.shape_joint_names))
+    if names is None:
         return
     raise BagError(
         f'the joint states on {joint_topic} name {_listing(names)} but robot '
@@ -245,8 +244,16 @@ def _listing(names: tuple, limit: int = 8) -> str:
     return shown + (f' (+{len(names) - limit} more)' if len(names) > limit else '')
 
 
-def _first_joint_names(reader: BagReader, topic: str, look: int = 50) -> Optional[tuple]:
-    """Return the joint names of the first decodable joint state (None: none found)."""
+def _first_joint_names(reader: BagReader, topic: str, wanted: set,
+                       look: int = 50) -> Optional[tuple]:
+    """
+    Return the names of the first joint state when none of the first ``look`` match.
+
+    None: one names exactly the ``wanted`` joints (a garbled message or two at the
+    start are rejections of their own, not a reason to refuse the bag), or none
+    decodes.
+    """
+    first = None
     # A second reader: the replay's own reader counts damage once, in its one pass.
     with open_bag(reader.path) as peek:
         decode = input_decoder(peek, topic, JOINT_STATE_TYPE, '')
@@ -259,9 +266,13 @@ def _first_joint_names(reader: BagReader, topic: str, look: int = 50) -> Optiona
                 sample = decode(message.data)
             except (ValueError, TypeError, BagError):
                 continue
-            if sample is not None:
-                return tuple(sample.names)
-    return None
+            if sample is None:
+                continue
+            names = tuple(sample.names)
+            if set(names) == wanted and len(names) == len(wanted):
+                return None
+            first = names if first is None else first
+    return first
 
 
 def load_robot_from_params(params: dict, urdf: str = '',
