@@ -75,6 +75,8 @@ setup(
         'mcap',
         'pyyaml',
         'matplotlib',
+        # .xacro robot descriptions (robot/xacro_file.py)
+        'xacro',
     ],
     extras_require={
         'test': ['pytest', 'hypothesis'],

@@ -23,6 +23,7 @@ One subcommand per task; ``--help`` on each lists its options.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from typing import Optional, Sequence
 
@@ -32,7 +33,10 @@ import numpy as np
 def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
     """--urdf, --base-joint and --gravity, shared by every subcommand."""
     parser.add_argument('--urdf', default='',
-                        help='robot URDF file (default: the paper robot, section 6)')
+                        help='robot URDF file, or a .xacro file expanded with xacro '
+                             '(default: the paper robot, section 6)')
+    parser.add_argument('--xacro-arg', action='append', default=[], metavar='NAME:=VALUE',
+                        help='argument of a .xacro --urdf (repeat for several)')
     parser.add_argument('--base-joint', choices=('floating', 'planar'), default=None,
                         help='free base joint when the URDF has no world joint '
                              '(default: floating)')
@@ -44,8 +48,10 @@ def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
 def load_robot_from_args(args: argparse.Namespace):
     """Return the robot model the arguments describe."""
     from reduced_dynamics.robot.model import load_robot
+    from reduced_dynamics.robot.xacro_file import parse_xacro_args
     gravity = None if args.gravity is None else np.array(args.gravity)
-    return load_robot(args.urdf, args.base_joint, gravity)
+    return load_robot(args.urdf, args.base_joint, gravity,
+                      parse_xacro_args(getattr(args, 'xacro_arg', None)))
 
 
 def _validate(args: argparse.Namespace) -> int:
@@ -133,6 +139,20 @@ def _extra_commands() -> list:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Entry point of ``reduced-dynamics``."""
+    try:
+        code = _main(argv)
+        sys.stdout.flush()  # inside the try: a closed pipe must surface here
+        return code
+    except BrokenPipeError:
+        # The reader went away (``... | head -2``): the Python documentation's recipe
+        # (signal module, "Note on SIGPIPE"): point stdout at devnull so the flush at
+        # exit does not raise again, and exit 1 without a traceback.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 1
+
+
+def _main(argv: Optional[Sequence[str]]) -> int:
     from reduced_dynamics.robot.model import ModelError
     parser = build_parser()
     args = parser.parse_args(argv)

@@ -89,6 +89,11 @@ class ReplayOptions:
     #: fixed-interval (RTS) smoothing of the filter's estimates; False: exactly the
     #: causal outputs the node publishes (memory then stays flat in the bag's length)
     smooth: bool = True
+    #: rows at the base samples, the shape held from the latest joint state (at zero
+    #: without any): a jointed robot without a JointState topic is refused otherwise
+    base_driven: bool = False
+    #: where the robot model came from, for messages (see :func:`robot_source`)
+    robot_source: str = ''
 
 
 class _Series:
@@ -190,21 +195,110 @@ def _wrong_type(topic: str, msgtype: str, expected: str) -> Decoder:
     return reject
 
 
+def robot_source(params: dict, urdf: str = '') -> str:
+    """Return where :func:`load_robot_from_params` takes the robot from, for messages."""
+    if urdf:
+        return f'--urdf {urdf}'
+    if params.get('robot_description'):
+        return 'the robot_description parameter'
+    if params.get('urdf_path'):
+        return f'urdf_path {params["urdf_path"]}'
+    return 'the built-in paper robot, no --urdf given'
+
+
+def check_shape_input(reader: BagReader, joint_topic: Optional[str], robot: RobotModel,
+                      options: ReplayOptions) -> None:
+    """
+    Refuse a replay whose joint states cannot drive ``robot``'s shape (BagError).
+
+    A jointed robot without its JointState topic would run with the shape frozen
+    at zero, and joint states naming other joints than the robot's would all be
+    rejected: both give a wrong momentum without a word. ``--base-driven`` asks
+    for the frozen shape explicitly.
+    """
+    source = options.robot_source or 'the given robot model'
+    if joint_topic is None:
+        if robot.m == 0 or options.base_driven:
+            return
+        topics = reader.topics()
+        wanted = _topic(options.joint_states_topic
+                        or options.params['joint_states_topic'])
+        found = sorted(t for t, msgtype in topics.items() if msgtype == JOINT_STATE_TYPE)
+        other = f' (it is {topics[wanted]})' if wanted in topics else ''
+        raise BagError(
+            f'robot {robot.model.name} ({source}) has {robot.m} shape joints but the bag '
+            f'has no {JOINT_STATE_TYPE} topic {wanted}{other}; its JointState topics: '
+            f'{", ".join(found) if found else "none"}. Pass --joint-states-topic NAME, or '
+            '--base-driven to replay with the shape held at zero')
+    names = _first_joint_names(reader, joint_topic, set(robot.shape_joint_names))
+    if names is None:
+        return
+    raise BagError(
+        f'the joint states on {joint_topic} name {_listing(names)} but robot '
+        f'{robot.model.name} ({source}) has the shape joints '
+        f'{_listing(robot.shape_joint_names)}: give this robot\'s description with --urdf')
+
+
+def _listing(names: tuple, limit: int = 8) -> str:
+    shown = ', '.join(names[:limit]) or 'no joints'
+    return shown + (f' (+{len(names) - limit} more)' if len(names) > limit else '')
+
+
+def _first_joint_names(reader: BagReader, topic: str, wanted: set,
+                       look: int = 50) -> Optional[tuple]:
+    """
+    Return the names of the first joint state when none of the first ``look`` match.
+
+    None: one names exactly the ``wanted`` joints (a garbled message or two at the
+    start are rejections of their own, not a reason to refuse the bag), or none
+    decodes.
+    """
+    first = None
+    # A second reader: the replay's own reader counts damage once, in its one pass.
+    with open_bag(reader.path) as peek:
+        decode = input_decoder(peek, topic, JOINT_STATE_TYPE, '')
+        for count, message in enumerate(peek.raw_messages([topic])):
+            if count >= look:
+                break
+            if message.msgtype != JOINT_STATE_TYPE:
+                continue
+            try:
+                sample = decode(message.data)
+            except (ValueError, TypeError, BagError):
+                continue
+            if sample is None:
+                continue
+            names = tuple(sample.names)
+            if set(names) == wanted and len(names) == len(wanted):
+                return None
+            first = names if first is None else first
+    return first
+
+
 def load_robot_from_params(params: dict, urdf: str = '',
                            base_joint: Optional[str] = None,
-                           gravity: Optional[list] = None) -> RobotModel:
-    """Return the robot of the options or the parameter file (default: the paper robot)."""
+                           gravity: Optional[list] = None,
+                           xacro_args: Optional[list] = None) -> RobotModel:
+    """
+    Return the robot of the options or the parameter file (default: the paper robot).
+
+    ``xacro_args``: ``name:=value`` items for a ``.xacro`` description.
+    """
+    from reduced_dynamics.robot.xacro_file import parse_xacro_args
     source = urdf or params.get('robot_description') or params.get('urdf_path') or ''
     joint = base_joint or params.get('base_joint')
     g = gravity if gravity is not None else params.get('gravity')
-    return load_robot(source, joint, None if g is None else np.asarray(g, dtype=float))
+    return load_robot(source, joint, None if g is None else np.asarray(g, dtype=float),
+                      parse_xacro_args(xacro_args))
 
 
 def replay(bag_path: str, out_path: str, robot: RobotModel,
            options: Optional[ReplayOptions] = None) -> dict[str, Any]:
     """Replay ``bag_path`` through the estimator into ``out_path``; return the summary."""
     options = options or ReplayOptions()
-    config = EstimatorConfig.from_mapping(options.params)
+    # Offline, a prediction's budget is its evaluations alone: a wall-time budget would
+    # make the output depend on the machine's load (the node keeps its own).
+    config = EstimatorConfig.from_mapping(options.params).replaced(prediction_max_wall_time=0.0)
     types = RosbagsTypes()
     started = time.perf_counter()
     with open_bag(bag_path, strict=options.strict) as reader:
@@ -212,7 +306,8 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
             reader.verify()  # refuse before writing anything
         topics = reader.topics()
         joint_topic, base_topic, is_odom = choose_inputs(topics, options)
-        base_driven = joint_topic is None or robot.m == 0
+        check_shape_input(reader, joint_topic, robot, options)
+        base_driven = joint_topic is None or robot.m == 0 or options.base_driven
         command_topic = options.commanded_wrench_topic \
             or options.params.get('commanded_wrench_topic', '')
         if command_topic:
@@ -341,7 +436,8 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
     summary = estimator.summary()
     summary.update({'input_bag': str(bag_path), 'output_bag': str(out_path),
                     'smoothed': options.smooth,
-                    'robot': robot.model.name, 'joint_states_topic': joint_topic,
+                    'robot': robot.model.name, 'robot_source': options.robot_source,
+                    'joint_states_topic': joint_topic,
                     'base_topic': base_topic, 'trajectory_topic': trajectory_topic,
                     'base_driven': base_driven,
                     **({'commanded_wrench': {'topic': command_topic,
@@ -375,19 +471,26 @@ def damage_report(reader: BagReader, topics: list[str], read: Counter,
     """
     Return what the damaged parts of the bag cost: regions, messages and bytes lost.
 
-    ``missing_vs_index`` compares the messages read per input topic (decoded or not)
-    with the counts of metadata.yaml or of an intact storage index.
+    ``missing_vs_index`` / ``extra_vs_index`` compare the messages read per input
+    topic (decoded or not) with the counts of metadata.yaml or of an intact storage
+    index, on every whole read: damaged or not, a bag whose file holds other counts
+    than its metadata states is reported. Missing messages are damage; extra ones
+    (stale metadata) are reported only.
     """
     regions = reader.damage
     undecodable = sum(reader.skipped.values())
     missing: dict[str, int] = {}
-    if whole and reader.counts_trusted and (regions or undecodable):
+    extra: dict[str, int] = {}
+    if whole and reader.counts_trusted:
         for topic in topics:
             got = read[topic] + sum(n for reason, n in reader.skipped.items()
                                     if reason.split(': ', 1)[-1].startswith(topic + ' ('))
             expected = reader.message_count(topic)
             if expected > got:
                 missing[topic] = expected - got
+            elif got > expected and not regions:
+                # (Not past damage: a record walk may salvage what no index counted.)
+                extra[topic] = got - expected
     known = [r.messages_lost for r in regions if r.messages_lost is not None]
     return {
         'damaged': bool(regions or undecodable or missing),
@@ -398,6 +501,7 @@ def damage_report(reader: BagReader, topics: list[str], read: Counter,
         'bytes_lost': sum(r.length for r in regions),
         'undecodable': undecodable,
         'missing_vs_index': missing,
+        'extra_vs_index': extra,
     }
 
 
@@ -490,7 +594,9 @@ def write_plots(directory: str, series: dict, robot: RobotModel,
 def format_summary(summary: dict[str, Any]) -> str:
     """Return a human-readable summary of a replay."""
     lines = [f'replayed {summary["input_bag"]} -> {summary["output_bag"]} '
-             f'(robot {summary["robot"]}, {summary["seconds"]:.2f} s, '
+             f'(robot {summary["robot"]}'
+             + (f' from {summary["robot_source"]}' if summary.get('robot_source') else '')
+             + f', {summary["seconds"]:.2f} s, '
              f'{summary["samples_per_second"] or 0:.0f} samples/s)']
     lines.append(f'inputs: joint states {summary["joint_states_topic"]}, base '
                  f'{summary["base_topic"]}' + (' (base-driven)' if summary['base_driven']
@@ -552,6 +658,10 @@ def format_summary(summary: dict[str, Any]) -> str:
         if damage['missing_vs_index']:
             lines.append('  missing against the bag\'s own counts: ' + ', '.join(
                 f'{t} {n}' for t, n in sorted(damage['missing_vs_index'].items())))
+    if damage.get('extra_vs_index'):
+        lines.append('more messages than the bag\'s own counts (metadata.yaml stale?): '
+                     + ', '.join(f'{t} {n}'
+                                 for t, n in sorted(damage['extra_vs_index'].items())))
     return '\n'.join(lines)
 
 
@@ -561,16 +671,23 @@ def _run(args: argparse.Namespace) -> int:
         params['cyclic_joints'] = args.cyclic_joints
     if args.prediction_mode is not None:
         params['prediction_mode'] = args.prediction_mode
-    robot = load_robot_from_params(params, args.urdf, args.base_joint, args.gravity)
+    robot = load_robot_from_params(params, args.urdf, args.base_joint, args.gravity,
+                                   args.xacro_arg)
     options = ReplayOptions(params=params, joint_states_topic=args.joint_states_topic,
                             odom_topic=args.odom_topic, base_pose_topic=args.base_pose_topic,
                             trajectory_topic=args.trajectory_topic,
                             commanded_wrench_topic=args.commanded_wrench_topic,
                             start=args.start, end=args.end, plots_dir=args.plots,
                             overwrite=args.overwrite, strict=args.strict,
-                            smooth=not args.no_smooth,
+                            smooth=not args.no_smooth, base_driven=args.base_driven,
+                            robot_source=robot_source(params, args.urdf),
                             progress=None if args.quiet else sys.stderr)
     existed = os.path.exists(args.output)
+    if existed and not args.overwrite:
+        # Before reading the bag; the library's own message names its Python argument.
+        print(f'reduced-dynamics replay: error: output {args.output} exists already '
+              '(pass --overwrite to replace it)', file=sys.stderr)
+        return 2
     try:
         summary = replay(args.bag, args.output, robot, options)
     except BagError as error:
@@ -622,6 +739,10 @@ def register_command(commands: Any) -> None:
                              'that do not deserialize) instead of replaying what is intact '
                              f'and exiting {EXIT_DAMAGED}')
     parser.add_argument('--quiet', action='store_true', help='no progress display')
+    parser.add_argument('--base-driven', action='store_true',
+                        help='one estimate per base sample, the shape held from the latest '
+                             'joint state (at zero when the bag has none); without it a '
+                             'jointed robot needs the bag\'s JointState topic')
     parser.add_argument('--no-smooth', action='store_true',
                         help='write the causal filter\'s estimates, exactly what the node '
                              'publishes (default: fixed-interval RTS smoothing over the bag)')

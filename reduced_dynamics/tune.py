@@ -42,9 +42,9 @@ from reduced_dynamics.estimator.config import EstimatorConfig, PARAMETERS
 from reduced_dynamics.estimator.pipeline import Estimator
 from reduced_dynamics.messages.samples import JointTrajectorySample, with_receive_time
 from reduced_dynamics.params import defaults, load_params_file
-from reduced_dynamics.replay import (choose_inputs, input_decoder, JOINT_STATE_TYPE,
-                                     load_robot_from_params, ODOMETRY_TYPE, POSE_TYPE,
-                                     ReplayOptions)
+from reduced_dynamics.replay import (check_shape_input, choose_inputs, input_decoder,
+                                     JOINT_STATE_TYPE, load_robot_from_params, ODOMETRY_TYPE,
+                                     POSE_TYPE, ReplayOptions, robot_source)
 from reduced_dynamics.robot.model import RobotModel
 
 #: What is tuned: the pose noise and the wrench random walk always, the twist noise
@@ -66,6 +66,7 @@ def load_inputs(bag: str, robot: RobotModel, options: ReplayOptions
     samples = []
     with open_bag(bag) as reader:
         joint_topic, base_topic, is_odom = choose_inputs(reader.topics(), options)
+        check_shape_input(reader, joint_topic, robot, options)
         base_type = ODOMETRY_TYPE if is_odom else POSE_TYPE
         decoders = {}
         for topic, msgtype in reader.connection_types([t for t in (joint_topic, base_topic)
@@ -83,7 +84,7 @@ def load_inputs(bag: str, robot: RobotModel, options: ReplayOptions
                 continue  # replay counts these; they carry no likelihood
             if sample is not None and sample.__class__ is not JointTrajectorySample:
                 samples.append(with_receive_time(sample, message.timestamp_ns))
-    return samples, is_odom, joint_topic is None or robot.m == 0
+    return samples, is_odom, joint_topic is None or robot.m == 0 or options.base_driven
 
 
 def evaluate(robot: RobotModel, samples: Sequence, params: dict, is_odom: bool,
@@ -162,10 +163,12 @@ def params_yaml(values: dict[str, float], comment: str) -> str:
 
 def _run(args: argparse.Namespace) -> int:
     params = load_params_file(args.params) if args.params else defaults()
-    robot = load_robot_from_params(params, args.urdf, args.base_joint, args.gravity)
+    robot = load_robot_from_params(params, args.urdf, args.base_joint, args.gravity,
+                                   args.xacro_arg)
     options = ReplayOptions(params=params, joint_states_topic=args.joint_states_topic,
                             odom_topic=args.odom_topic, base_pose_topic=args.base_pose_topic,
-                            start=args.start, end=args.end)
+                            start=args.start, end=args.end, base_driven=args.base_driven,
+                            robot_source=robot_source(params, args.urdf))
     samples, is_odom, base_driven = load_inputs(args.bag, robot, options)
     if not samples:
         print('reduced-dynamics tune: error: no input samples in the bag', file=sys.stderr)
@@ -212,5 +215,8 @@ def register_command(commands: Any) -> None:
                              'wrench random walk, and twist/joint noise with Odometry)')
     parser.add_argument('--max-evaluations', type=int, default=60,
                         help='filter runs the optimiser may make (default 60)')
+    parser.add_argument('--base-driven', action='store_true',
+                        help='as replay --base-driven: the shape held from the latest joint '
+                             'state (at zero when the bag has none)')
     parser.add_argument('--quiet', action='store_true', help='no progress lines')
     parser.set_defaults(func=_run)

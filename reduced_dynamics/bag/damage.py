@@ -47,6 +47,11 @@ sqlite3
     by row-id ranges, bisecting around the ranges sqlite refuses, so every row
     sqlite can still return is returned (in log-time order within windows of
     rows, which rosbag2 inserts in time order).
+  - A file cut short is read from two copies padded to its full page count, one
+    with 0x00 bytes and one with 0xFF bytes; a row is delivered only when both
+    copies return it identically, so a row whose payload (or the b-tree cell or
+    overflow chain holding it) extends past the readable end is counted as lost,
+    never delivered with fabricated bytes.
 
 Every damaged region becomes a :class:`Damage` with its kind, file, byte offset,
 length, chunk index and the messages lost (per topic when known).
@@ -642,7 +647,9 @@ class TolerantSqlite3Reader(Sqlite3Reader):
         self._damaged = False
         self._ranges: list[tuple[int, int]] = []
         self._reported: set[tuple[int, int]] = set()
-        self._temporary: Optional[str] = None
+        self._temporary: list[str] = []
+        #: the 0xFF-padded copy of a file cut short (see _padded)
+        self._shadow: Optional[apsw.Connection] = None
 
     def _record(self, damage: Damage) -> None:
         self.damage.append(damage)
@@ -674,12 +681,15 @@ class TolerantSqlite3Reader(Sqlite3Reader):
         self._record(Damage(self._name, 'sqlite_rows', None, 0, detail,
                             messages_lost=last - first + 1, rows=(first, last)))
 
-    def _padded(self) -> str:
+    def _padded(self) -> tuple[str, Optional[str]]:
         """
-        Return the file to open: a zero-padded temporary copy if the file is cut short.
+        Return the file to open and, if the file is cut short, its 0xFF-padded twin.
 
         sqlite refuses a database shorter than its header's page count outright (even
         its schema on page 1); padded, only the rows on the missing pages are refused.
+        Padding invents bytes, though: a row whose payload runs into the padding reads
+        as valid with the padding's bytes. Every such byte differs between a 0x00 and
+        a 0xFF padding, so a row both copies return identically needs none of them.
         """
         with open(self.path, 'rb') as stream:
             data = stream.read()
@@ -687,29 +697,38 @@ class TolerantSqlite3Reader(Sqlite3Reader):
         page = 65536 if page == 1 else page
         pages = int.from_bytes(data[28:32], 'big') if len(data) >= 100 else 0
         if not page or len(data) >= page * pages and len(data) % page == 0:
-            return str(self.path)
+            return str(self.path), None
         size = max(page * pages, -(-len(data) // page) * page)
-        handle, name = tempfile.mkstemp(suffix='.db3')
-        with os.fdopen(handle, 'wb') as out:
-            out.write(data + bytes(size - len(data)))
-        self._temporary = name
+        names = []
+        for fill in (b'\x00', b'\xff'):
+            handle, name = tempfile.mkstemp(suffix='.db3')
+            self._temporary.append(name)
+            with os.fdopen(handle, 'wb') as out:
+                out.write(data + fill * (size - len(data)))
+            names.append(name)
         self._record(Damage(self._name, 'truncated', len(data), size - len(data),
                             f'file cut at {len(data)} of {size} bytes'))
-        return name
+        return names[0], names[1]
 
     def close(self) -> None:
         """Close the database and remove a padded copy."""
         try:
+            if self._shadow is not None:
+                self._shadow.close()
+                self._shadow = None
             super().close()
         finally:
-            if self._temporary:
-                os.unlink(self._temporary)
-                self._temporary = None
+            for name in self._temporary:
+                os.unlink(name)
+            self._temporary = []
 
     def _open_damaged(self, reason: str) -> None:
+        flags = apsw.SQLITE_OPEN_READONLY | apsw.SQLITE_OPEN_URI
         try:
-            self.dbconn = apsw.Connection(f'file:{self._padded()}?immutable=1',
-                                          flags=apsw.SQLITE_OPEN_READONLY | apsw.SQLITE_OPEN_URI)
+            path, shadow = self._padded()
+            self.dbconn = apsw.Connection(f'file:{path}?immutable=1', flags=flags)
+            if shadow is not None:
+                self._shadow = apsw.Connection(f'file:{shadow}?immutable=1', flags=flags)
             self._open_topics()
         except apsw.Error as exc:
             raise ReaderError(f'Cannot open database {self.path}: {_describe(exc)}') from exc
@@ -770,17 +789,46 @@ class TolerantSqlite3Reader(Sqlite3Reader):
             (lo, hi) + args))
 
     def _bisect(self, lo: int, hi: int, columns: str, extra: str, args: tuple,
-                bad: list[int]) -> list[tuple]:
+                bad: list[int], conn: Optional[apsw.Connection] = None) -> list[tuple]:
         """Return the rows of [lo, hi] sqlite can read; collect the unreadable row ids."""
         try:
-            return self._query(lo, hi, columns, extra, args)
+            if conn is None:
+                return self._query(lo, hi, columns, extra, args)
+            return list(conn.execute(
+                f'SELECT {columns} FROM messages WHERE id BETWEEN ? AND ? {extra}',
+                (lo, hi) + args))
         except apsw.Error:
             if lo == hi:
                 bad.append(lo)
                 return []
             mid = (lo + hi) // 2
-            return self._bisect(lo, mid, columns, extra, args, bad) \
-                + self._bisect(mid + 1, hi, columns, extra, args, bad)
+            return self._bisect(lo, mid, columns, extra, args, bad, conn) \
+                + self._bisect(mid + 1, hi, columns, extra, args, bad, conn)
+
+    def _intact(self, lo: int, hi: int, columns: str, extra: str, args: tuple,
+                bad: list[int], cut: list[int]) -> list[tuple]:
+        """
+        Return the rows of [lo, hi] that need no byte past the end of a cut file.
+
+        ``columns`` starts with ``id``; ids of rows the twin copies disagree on go
+        to ``cut``, ids sqlite refuses to ``bad``.
+        """
+        rows = self._bisect(lo, hi, columns, extra, args, bad)
+        if self._shadow is None:
+            return rows
+        twin = {row[0]: row for row in self._bisect(lo, hi, columns, extra, args, [],
+                                                    self._shadow)}
+        kept = []
+        for row in rows:
+            if twin.get(row[0]) == row:
+                kept.append(row)
+            elif type(row[0]) is int:
+                cut.append(row[0])
+        return kept
+
+    def _rows_cut(self, cut: list[int]) -> None:
+        for first, last in _runs(cut):
+            self._rows_lost(first, last, 'rows that extend past the readable end of the file')
 
     def _id_bounds(self) -> tuple[int, Optional[int]]:
         low = 1
@@ -802,8 +850,10 @@ class TolerantSqlite3Reader(Sqlite3Reader):
         lo, empty_run = low, 0
         while high is None or lo <= high:
             window_bad: list[int] = []
-            got = self._bisect(lo, lo + _SQLITE_WINDOW - 1, 'id, topic_id, timestamp', '', (),
-                               window_bad)
+            cut: list[int] = []
+            got = self._intact(lo, lo + _SQLITE_WINDOW - 1, 'id, topic_id, timestamp', '',
+                               (), window_bad, cut)
+            self._rows_cut(cut)
             rows.extend(got)
             bad.extend(window_bad)
             if high is None:
@@ -855,16 +905,18 @@ class TolerantSqlite3Reader(Sqlite3Reader):
         for lo, hi in self._ranges:
             for window in range(lo, hi + 1, _SQLITE_WINDOW):
                 bad: list[int] = []
-                rows = self._bisect(window, min(hi, window + _SQLITE_WINDOW - 1),
-                                    'timestamp, id, topic_id, data', where, args, bad)
+                cut: list[int] = []
+                rows = self._intact(window, min(hi, window + _SQLITE_WINDOW - 1),
+                                    'id, timestamp, topic_id, data', where, args, bad, cut)
                 for first, end in _runs(bad):
                     self._rows_lost(first, end, 'sqlite cannot read these rows')
+                self._rows_cut(cut)
                 good = []
-                for row in rows:
-                    if type(row[0]) is int and row[2] in connmap and type(row[3]) is bytes:
-                        good.append(row)
-                    elif type(row[1]) is int:
-                        self._rows_lost(row[1], row[1], 'a row with a garbled timestamp or blob')
+                for rowid, timestamp, cid, data in rows:
+                    if type(timestamp) is int and cid in connmap and type(data) is bytes:
+                        good.append((timestamp, rowid, cid, data))
+                    elif type(rowid) is int:
+                        self._rows_lost(rowid, rowid, 'a row with a garbled timestamp or blob')
                 for timestamp, rowid, cid, data in sorted(good):
                     if (timestamp, rowid) > last:
                         yield connmap[cid], timestamp, data

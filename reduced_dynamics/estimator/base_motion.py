@@ -102,7 +102,7 @@ def predict_base_motion(robot: RobotModel, trajectory: JointTrajectorySample, g0
     times = np.append(np.arange(0.0, horizon, step), horizon)
     if times.size > 1 and times[-1] - times[-2] < 1e-9:
         times = np.delete(times, -2)
-    budget = Budget(max_evaluations, max_wall_time)
+    budget = Budget(max_evaluations, max_wall_time or None)  # 0: no wall-time budget
     system = PrescribedReconstruction(robot, mu, g0, path)
     try:
         trajectory_out = system.propagate(times, tolerance, tolerance, path.breakpoints, budget)

@@ -157,9 +157,11 @@ PARAMETERS: dict[str, ParameterSpec] = {
         'tolerance 1e-10 takes 100-600); a prediction that exceeds it stops with the reason '
         'in diagnostics'),
     'prediction_max_wall_time': ParameterSpec(
-        0.5, 1e-3, 600.0, (),
+        0.5, 0.0, 600.0, (),
         'budget of wall time [s] of one prediction (half the default prediction period); '
-        'a prediction that exceeds it stops with the reason in diagnostics'),
+        'a prediction that exceeds it stops with the reason in diagnostics (0: none, only '
+        'the evaluation budget; replay always runs so, its outputs must not depend on the '
+        'machine\'s load)'),
     'diagnostics_rate': ParameterSpec(1.0, 0.0, 100.0, (),
                                       'diagnostics messages per second of stamp time (0: off)'),
     # Input gates (estimator/stamps.py, estimator/plausibility.py); README "Bad input".

@@ -791,11 +791,13 @@ class MomentumFilter:
         self.nis_sum += nis
         self.nis_dof += size
         if nis > self._gates[size]:
-            self.gated += 1
             self._gated_run += 1
             if h is None:
                 self._gated_residuals.append((nu, r))
             if self._gated_run < GATE_RESET:
+                # Counted only when rejected: ``gated`` is the measurements not used (the
+                # pipeline's innovation_gate rejections), not those over the gate.
+                self.gated += 1
                 return False
             p0 = p0.copy()
             offset = self._pose_offset()

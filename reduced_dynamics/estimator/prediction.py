@@ -371,9 +371,10 @@ class Predictor:
         names = shape_names if shape_names is not None else tuple(
             robot.shape_joint_names[i] for i in (self.kept if self.kept is not None
                                                  else range(robot.m)))
+        # A wall-time budget of 0 is none (offline runs: the evaluations alone decide).
         self.settings = PredictionSettings(horizon, step, integrator, tolerance,
-                                           max_evaluations, max_wall_time, self.cyclic_joints,
-                                           world_frame, tuple(names))
+                                           max_evaluations, max_wall_time or None,
+                                           self.cyclic_joints, world_frame, tuple(names))
         self.mode = mode
         self.horizon = horizon
         self.step = step

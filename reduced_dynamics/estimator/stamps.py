@@ -268,8 +268,10 @@ class StampGate:
             relation = self._relation(ref_ns, ref_rx, stamp, receive, tolerance, mode)
             if relation != 'forward':
                 if len(held) == 1:
-                    # One candidate against another: the older one is dropped.
+                    # One candidate against another: the older one is dropped, and this
+                    # one is held in its place (in the new list: it must not vanish).
                     result.dropped = self._drop_held()
+                    held = self._held
                 else:
                     # A chain is establishing itself: this one is the odd one out.
                     result.dropped.append((item, 'outlier', self._outlier_text(stamp)))

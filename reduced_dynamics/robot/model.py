@@ -24,7 +24,7 @@ the joint-space inertia evaluated with the base at identity,
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Mapping, Optional
 
 import numpy as np
 import pinocchio as pin
@@ -289,12 +289,24 @@ AUTO_BASE_JOINT = 'auto'
 
 
 def load_robot(urdf: str = '', base_joint: Optional[str] = None,
-               gravity: Optional[np.ndarray] = None) -> RobotModel:
+               gravity: Optional[np.ndarray] = None,
+               xacro_args: Optional[Mapping[str, str]] = None) -> RobotModel:
     """
     Load a robot model; URDF problems raise :class:`ModelError` with the reason.
 
     ``base_joint`` ``'auto'`` or None: the URDF's own world joint, else floating.
+    A path ending in ``.xacro`` is expanded first, with ``xacro_args``
+    (:mod:`reduced_dynamics.robot.xacro_file`).
     """
+    from reduced_dynamics.robot.xacro_file import expand_xacro, is_xacro, XacroError
+    try:
+        if is_xacro(urdf):
+            urdf = expand_xacro(urdf, xacro_args)
+        elif xacro_args:
+            raise ModelError(f'xacro arguments {sorted(xacro_args)} given, but the robot '
+                             'description is not a .xacro file')
+    except XacroError as error:
+        raise ModelError(str(error)) from error
     try:
         return RobotModel(urdf, None if base_joint == AUTO_BASE_JOINT else base_joint, gravity)
     except UrdfError as error:
