@@ -280,7 +280,7 @@ def table(results: list[CaseResult]) -> str:
              'force / own sigma RMS, base-only / this | within 3 sigma, base-only / this | '
              'push impulse error, base-only / this | events while only the arm moves '
              '(this filter) |',
-             '|---|---|---|---|---|---|---|---|---|']
+             '|---|---|---|---|---|---|---|---|---|---|']
     for result in results:
         base, ours = figures(result, result.base_only), figures(result, result.ours)
         arm_events = sum(1 for s in result.event_starts if s < result.scenario.push[0])
@@ -289,6 +289,7 @@ def table(results: list[CaseResult]) -> str:
             f'{base.force_rms:.3g} ({base.force_peak:.3g}) | '
             f'{ours.force_rms:.3g} ({ours.force_peak:.3g}) | '
             f'{base.force_rms / ours.force_rms:.1f} | '
+            f'{base.torque_rms:.3g} / {ours.torque_rms:.3g} | '
             f'{base.force_whitened_rms:.2f} / {ours.force_whitened_rms:.2f} | '
             f'{100 * base.within_3_sigma:.0f} % / {100 * ours.within_3_sigma:.0f} % | '
             f'{100 * base.impulse_error:.0f} % / {100 * ours.impulse_error:.1f} % | '
@@ -314,6 +315,10 @@ def plot(results: list[CaseResult], path: str) -> None:
         axis.plot(result.ours.seconds, 3.0 * np.linalg.norm(result.ours.sigma[:, :3], axis=1),
                   'C0:', lw=0.8, label='this package: 3 sigma')
         axis.set_xlim(SETTLE, result.ours.seconds[-1])
+        # Scaled to what follows the settling time (the base-only prior is diffuse).
+        after = result.base_only.seconds >= SETTLE
+        axis.set_ylim(0.0, 1.15 * np.linalg.norm(result.base_only.wrench[after, :3],
+                                                 axis=1).max())
         axis.set_ylabel('|force| [N]')
         axis.set_title(f'{result.scenario.title}, PD scale {result.scale:g}', fontsize=9)
         axis.legend(fontsize=6, loc='upper left')
