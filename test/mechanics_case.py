@@ -41,12 +41,13 @@ import yaml
 from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.cli import main as cli_main
 from reduced_dynamics.params import defaults
-from reduced_dynamics.resources import config_path
 from reduced_dynamics.robot.model import load_robot
 
 sys.path.insert(0, str(Path(__file__).parent))
-from base_only_kf import base_only_filter, read_base_track  # noqa: E402
+from base_only_kf import base_only_filter, BaseTrack, read_base_track  # noqa: E402
 
+#: Random walks of the base-only filter tried against the arm's reaction (x the default).
+DETUNING = (1.0, 0.3, 0.1, 0.03)
 RATE_TOPIC = '/reduced_dynamics/drift/momentum_rate'
 #: Seconds at the start left out of every figure: both filters start from a diffuse prior.
 SETTLE = 1.0
@@ -110,7 +111,8 @@ SCENARIOS = {
         ('--base-pose-topic', '/base_pose'),
         {'pose_position_noise': 2.5e-5, 'pose_angle_noise': 2e-4, 'pose_stamp_noise': 5e-4,
          'joint_velocity_noise': 5e-3},
-        '/base_pose', (6.0, 1.0), (2.5e-5,) * 3 + (2e-4,) * 3, None, (0, 1, 5), (1.0, 3.0, 6.0, 12.0), 12.0),
+        '/base_pose', (6.0, 1.0), (2.5e-5,) * 3 + (2e-4,) * 3, None, (0, 1, 5),
+        (1.0, 3.0, 6.0, 12.0), 12.0),
 }
 
 
@@ -138,6 +140,21 @@ class CaseResult:
     world_impulse: np.ndarray
     #: events this filter flagged: start [s from the bag start]
     event_starts: list[float]
+    #: what the base-only filter ran on: base track, 6x6 inertia, jerk densities, origin [ns]
+    track: BaseTrack
+    inertia: np.ndarray
+    jerk: np.ndarray
+    origin_ns: int
+
+
+def run_base_only(scenario: Scenario, track: BaseTrack, inertia: np.ndarray,
+                  jerk: np.ndarray, origin_ns: int) -> Filtered:
+    """Return the base-only filter's estimate with the scenario's sensor figures."""
+    estimate = base_only_filter(track, inertia, np.array(scenario.pose_sigma),
+                                None if scenario.twist_sigma is None
+                                else np.array(scenario.twist_sigma), jerk,
+                                list(scenario.axes))
+    return Filtered((estimate.stamps_ns - origin_ns) * 1e-9, estimate.wrench, estimate.sigma)
 
 
 def _wrenches(bag: str, topic: str, origin: int) -> tuple[np.ndarray, np.ndarray]:
@@ -222,18 +239,14 @@ def run_case(scenario: Scenario, directory: str, scale: float) -> CaseResult:
         full[np.ix_([0, 1, 5], [0, 1, 5])] = inertia
         inertia = full
     track = read_base_track(str(bag), scenario.base_topic)
-    defaults_ = defaults()
-    jerk = np.array([defaults_['wrench_jerk_linear']] * 3 + [defaults_['wrench_jerk_angular']] * 3)
-    estimate = base_only_filter(track, inertia, np.array(scenario.pose_sigma),
-                                None if scenario.twist_sigma is None
-                                else np.array(scenario.twist_sigma), jerk,
-                                list(scenario.axes))
-    base_only = Filtered((estimate.stamps_ns - origin) * 1e-9, estimate.wrench, estimate.sigma)
+    # The same random walk as this package's filter (its defaults).
+    values = defaults()
+    jerk = np.array([values['wrench_jerk_linear']] * 3 + [values['wrench_jerk_angular']] * 3)
     impulse = np.array(truth['pulses'][0]['world_impulse'])
     return CaseResult(scenario, scale, _joint_speed(str(bag), origin, scenario.push[0]),
-                      ours, base_only,
+                      ours, run_base_only(scenario, track, inertia, jerk, origin),
                       Filtered(truth_seconds, truth_wrench, np.zeros_like(truth_wrench)),
-                      impulse, events)
+                      impulse, events, track, inertia, jerk, origin)
 
 
 @dataclass
@@ -277,7 +290,7 @@ def table(results: list[CaseResult]) -> str:
     """Return the Markdown table of docs/mechanics_case.md."""
     lines = ['| scenario | arm motion: PD scale, peak joint speed | false force RMS (peak), '
              'base-only KF [N] | false force RMS (peak), this filter [N] | ratio | '
-             'force / own sigma RMS, base-only / this | within 3 sigma, base-only / this | '
+             'false torque RMS, base-only / this [N m] | force / own sigma RMS, base-only / this | within 3 sigma, base-only / this | '
              'push impulse error, base-only / this | events while only the arm moves '
              '(this filter) |',
              '|---|---|---|---|---|---|---|---|---|---|']
@@ -294,6 +307,23 @@ def table(results: list[CaseResult]) -> str:
             f'{100 * base.within_3_sigma:.0f} % / {100 * ours.within_3_sigma:.0f} % | '
             f'{100 * base.impulse_error:.0f} % / {100 * ours.impulse_error:.1f} % | '
             f'{arm_events} |')
+    return '\n'.join(lines)
+
+
+def detuning_table(results: list[CaseResult], factors: tuple[float, ...]) -> str:
+    """Return the base-only filter's figures with its random walk scaled by ``factors``."""
+    lines = ['| scenario | PD scale | random walk / default | false force RMS [N] | '
+             'within 3 sigma | push impulse error |', '|---|---|---|---|---|---|']
+    for result in results:
+        if result.scale != result.scenario.shown:
+            continue
+        for factor in factors:
+            filtered = run_base_only(result.scenario, result.track, result.inertia,
+                                     factor * result.jerk, result.origin_ns)
+            f = figures(result, filtered)
+            lines.append(f'| {result.scenario.name} | {result.scale:g} | {factor:g} | '
+                         f'{f.force_rms:.3g} | {100 * f.within_3_sigma:.0f} % | '
+                         f'{100 * f.impulse_error:.0f} % |')
     return '\n'.join(lines)
 
 
@@ -353,6 +383,8 @@ def main(argv: Optional[list[str]] = None) -> int:
         results = [run_case(SCENARIOS[name], args.work or scratch, scale)
                    for name in names for scale in SCENARIOS[name].scales]
         print(table(results))
+        print()
+        print(detuning_table(results, DETUNING))
         if args.plot:
             plot(results, args.plot)
     return 0
