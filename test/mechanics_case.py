@@ -43,8 +43,7 @@ from reduced_dynamics.cli import main as cli_main
 from reduced_dynamics.params import defaults
 from reduced_dynamics.robot.model import load_robot
 
-sys.path.insert(0, str(Path(__file__).parent))
-from base_only_kf import base_only_filter, BaseTrack, read_base_track  # noqa: E402
+from base_only_kf import base_only_filter, BaseTrack, read_base_track
 
 #: Random walks of the base-only filter tried against the arm's reaction (x the default).
 DETUNING = (1.0, 0.3, 0.1, 0.03)
