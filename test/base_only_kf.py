@@ -102,7 +102,8 @@ def _transition(dt: float, jerk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def base_only_filter(track: BaseTrack, inertia: np.ndarray, pose_sigma: np.ndarray,
                      twist_sigma: Optional[np.ndarray], jerk: np.ndarray,
-                     axes: Optional[list[int]] = None) -> BaseOnlyEstimate:
+                     axes: Optional[list[int]] = None,
+                     smooth: bool = False) -> BaseOnlyEstimate:
     """
     Run the per-axis constant-force Kalman filter over ``track``.
 
@@ -112,7 +113,8 @@ def base_only_filter(track: BaseTrack, inertia: np.ndarray, pose_sigma: np.ndarr
     ``twist_sigma`` None: poses only. ``jerk`` (6): random-walk density of the
     acceleration [m/s^3/sqrt(Hz), rad/s^3/sqrt(Hz)], the densities this package's filter
     is given (wrench_jerk_linear, wrench_jerk_angular). ``axes``: the axes to run
-    (planar: 0, 1, 5); the others are reported as zero.
+    (planar: 0, 1, 5); the others are reported as zero. ``smooth``: the fixed-interval
+    (Rauch-Tung-Striebel) smoother's estimate instead of the causal one.
     """
     axes = list(range(6)) if axes is None else axes
     rotation = track.first_rotation.as_matrix()
@@ -131,13 +133,17 @@ def base_only_filter(track: BaseTrack, inertia: np.ndarray, pose_sigma: np.ndarr
     p[:, 1, 1], p[:, 2, 2] = 1.0, 10.0
     r_pose = np.asarray(pose_sigma, float)[axes] ** 2
     r_twist = None if twist_sigma is None else np.asarray(twist_sigma, float)[axes] ** 2
-    accel = np.zeros((count, m))
-    accel_var = np.zeros((count, m))
+    # Per step: predicted and updated state and covariance, transition into the step.
+    x_pred, p_pred = np.zeros((count, m, 3)), np.zeros((count, m, 3, 3))
+    x_post, p_post = np.zeros((count, m, 3)), np.zeros((count, m, 3, 3))
+    transitions = np.zeros((count, 3, 3))
     for k in range(count):
         if k:
             f, q = _transition((track.stamps_ns[k] - track.stamps_ns[k - 1]) * 1e-9, jerk)
             x = x @ f.T
             p = f @ p @ f.T + q
+            transitions[k] = f
+        x_pred[k], p_pred[k] = x, p
         rows = [(0, track.pose[k, axes], r_pose)]
         if r_twist is not None and not np.isnan(track.twist[k, axes]).any():
             rows.append((1, track.twist[k, axes], r_twist))
@@ -147,7 +153,15 @@ def base_only_filter(track: BaseTrack, inertia: np.ndarray, pose_sigma: np.ndarr
             gain = p[:, :, index] / s[:, None]
             x = x + gain * (z - x[:, index])[:, None]
             p = p - gain[:, :, None] * p[:, index, None, :]
-        accel[k], accel_var[k] = x[:, 2], p[:, 2, 2]
+        x_post[k], p_post[k] = x, p
+    if smooth:
+        for k in range(count - 2, -1, -1):
+            f = transitions[k + 1]
+            # C = P_k F^T P_pred(k+1)^-1, per axis (the covariances are symmetric).
+            c = np.linalg.solve(p_pred[k + 1], f @ p_post[k]).transpose(0, 2, 1)
+            x_post[k] = x_post[k] + np.einsum('aij,aj->ai', c, x_post[k + 1] - x_pred[k + 1])
+            p_post[k] = p_post[k] + c @ (p_post[k + 1] - p_pred[k + 1]) @ c.transpose(0, 2, 1)
+    accel, accel_var = x_post[:, :, 2], p_post[:, :, 2, 2]
     wrench = np.zeros((count, 6))
     sigma = np.zeros((count, 6))
     wrench[:, axes] = accel * scale

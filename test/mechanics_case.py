@@ -28,7 +28,7 @@ script to print the table and draw the plot::
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import json
 from pathlib import Path
 import sys
@@ -144,15 +144,17 @@ class CaseResult:
     inertia: np.ndarray
     jerk: np.ndarray
     origin_ns: int
+    #: replay arguments (bag, params and topics) for :func:`smoothed`
+    replay_args: tuple[str, ...]
 
 
 def run_base_only(scenario: Scenario, track: BaseTrack, inertia: np.ndarray,
-                  jerk: np.ndarray, origin_ns: int) -> Filtered:
+                  jerk: np.ndarray, origin_ns: int, smooth: bool = False) -> Filtered:
     """Return the base-only filter's estimate with the scenario's sensor figures."""
     estimate = base_only_filter(track, inertia, np.array(scenario.pose_sigma),
                                 None if scenario.twist_sigma is None
                                 else np.array(scenario.twist_sigma), jerk,
-                                list(scenario.axes))
+                                list(scenario.axes), smooth)
     return Filtered((estimate.stamps_ns - origin_ns) * 1e-9, estimate.wrench, estimate.sigma)
 
 
@@ -245,7 +247,38 @@ def run_case(scenario: Scenario, directory: str, scale: float) -> CaseResult:
     return CaseResult(scenario, scale, _joint_speed(str(bag), origin, scenario.push[0]),
                       ours, run_base_only(scenario, track, inertia, jerk, origin),
                       Filtered(truth_seconds, truth_wrench, np.zeros_like(truth_wrench)),
-                      impulse, events, track, inertia, jerk, origin)
+                      impulse, events, track, inertia, jerk, origin,
+                      (str(bag), '--params', str(params_file), *scenario.robot,
+                       *scenario.replay))
+
+
+def smoothed(result: CaseResult, directory: str) -> CaseResult:
+    """Return ``result`` with both filters' fixed-interval smoothed estimates."""
+    out = Path(directory) / f'{result.scenario.name}-{result.scale:g}-smoothed'
+    if cli_main(['replay', '-o', str(out), '--overwrite', '--quiet',
+                 *result.replay_args]) != 0:
+        raise RuntimeError(f'replay failed for {result.scenario.name}')
+    seconds, wrench = _wrenches(str(out), RATE_TOPIC, result.origin_ns)
+    # /diagnostics hold the causal filter's covariance: no sigma for the smoothed estimate.
+    ours = Filtered(seconds, wrench, np.full_like(wrench, np.nan))
+    base_only = run_base_only(result.scenario, result.track, result.inertia, result.jerk,
+                              result.origin_ns, smooth=True)
+    return replace(result, ours=ours, base_only=base_only)
+
+
+def smoothed_table(results: list[CaseResult]) -> str:
+    """Return the smoothed figures (replay's default, RTS on the base-only filter)."""
+    lines = ['| scenario | PD scale | false force RMS (peak), base-only RTS [N] | '
+             'false force RMS (peak), this filter smoothed [N] | ratio | '
+             'push impulse error, base-only / this |', '|---|---|---|---|---|---|']
+    for result in results:
+        base, ours = figures(result, result.base_only), figures(result, result.ours)
+        lines.append(f'| {result.scenario.name} | {result.scale:g} | '
+                     f'{base.force_rms:.3g} ({base.force_peak:.3g}) | '
+                     f'{ours.force_rms:.3g} ({ours.force_peak:.3g}) | '
+                     f'{base.force_rms / ours.force_rms:.1f} | '
+                     f'{100 * base.impulse_error:.0f} % / {100 * ours.impulse_error:.1f} % |')
+    return '\n'.join(lines)
 
 
 @dataclass
@@ -289,7 +322,8 @@ def table(results: list[CaseResult]) -> str:
     """Return the Markdown table of docs/mechanics_case.md."""
     lines = ['| scenario | arm motion: PD scale, peak joint speed | false force RMS (peak), '
              'base-only KF [N] | false force RMS (peak), this filter [N] | ratio | '
-             'false torque RMS, base-only / this [N m] | force / own sigma RMS, base-only / this | within 3 sigma, base-only / this | '
+             'false torque RMS, base-only / this [N m] | '
+             'force / own sigma RMS, base-only / this | within 3 sigma, base-only / this | '
              'push impulse error, base-only / this | events while only the arm moves '
              '(this filter) |',
              '|---|---|---|---|---|---|---|---|---|---|']
@@ -384,6 +418,9 @@ def main(argv: Optional[list[str]] = None) -> int:
         print(table(results))
         print()
         print(detuning_table(results, DETUNING))
+        print()
+        print(smoothed_table([smoothed(r, args.work or scratch) for r in results
+                              if r.scale == r.scenario.shown]))
         if args.plot:
             plot(results, args.plot)
     return 0

@@ -41,6 +41,15 @@ def test_base_only_filter_recovers_a_constant_force():
                                 np.full(6, 0.05), axes=[0])
     assert np.mean(estimate.wrench[-200:, 0]) == pytest.approx(2.0, abs=0.1)
     assert np.all(estimate.wrench[:, 1:] == 0.0)
+    # Its fixed-interval smoother: closer to the force over the run, and surer.
+    smoothed = base_only_filter(track, np.eye(6) * 10.0, np.full(6, 1e-3), None,
+                                np.full(6, 0.05), axes=[0], smooth=True)
+    late = slice(100, None)
+    causal_error = np.sqrt(np.mean((estimate.wrench[late, 0] - 2.0) ** 2))
+    smoothed_error = np.sqrt(np.mean((smoothed.wrench[late, 0] - 2.0) ** 2))
+    assert smoothed_error < 0.5 * causal_error
+    assert np.all(smoothed.sigma[:-1, 0] < estimate.sigma[:-1, 0])
+    assert smoothed.sigma[-1, 0] == pytest.approx(estimate.sigma[-1, 0])
 
 
 @pytest.fixture(scope='module')
