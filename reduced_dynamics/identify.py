@@ -36,6 +36,7 @@ Rackl, Lampariello and Albu-Schaeffer (IFAC 2013).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Optional
 
 import numpy as np
 import pinocchio as pin
@@ -191,6 +192,9 @@ class NormalEquations:
     noise_quadratic: np.ndarray
     noise_linear: np.ndarray
     noise_constant: float
+    #: the noise terms per sample (K x 10 x 10, K x 10), for the robust covariance
+    sample_quadratic: Optional[np.ndarray] = None
+    sample_linear: Optional[np.ndarray] = None
 
     @property
     def n(self) -> int:
@@ -213,8 +217,8 @@ def regressor_stack(regressor: MomentumRegressor, window: Window, noise: SensorN
     y = np.empty(count * n)
     eye = np.eye(n)
     sigma = regressor.velocity_sigma(noise)
-    quadratic = np.zeros((10, 10))
-    linear = np.zeros(10)
+    quadratic = np.zeros((count, 10, 10))
+    linear = np.zeros((count, 10))
     constant = 0.0
     for k in range(count):
         g, qbar = window.poses[k], window.qbar[k]
@@ -234,10 +238,11 @@ def regressor_stack(regressor: MomentumRegressor, window: Window, noise: SensorN
         white_b = np.linalg.solve(factor, (basis * sigma[:, None, None]).transpose(1, 0, 2)
                                   .reshape(n, -1)).reshape(n, len(sigma), 10)
         white_a = np.linalg.solve(factor, ad @ (top * sigma))
-        quadratic += np.einsum('ijk,ijl->kl', white_b, white_b)
-        linear += np.einsum('ijk,ij->k', white_b, white_a)
+        quadratic[k] = np.einsum('ijk,ijl->kl', white_b, white_b)
+        linear[k] = np.einsum('ijk,ij->k', white_b, white_a)
         constant += float(np.sum(white_a ** 2))
-    return NormalEquations(phi, y, quadratic, linear, constant)
+    return NormalEquations(phi, y, quadratic.sum(axis=0), linear.sum(axis=0), constant,
+                           quadratic, linear)
 
 
 def structural_null_space(regressor: MomentumRegressor, seed: int = 0,
@@ -486,12 +491,15 @@ def _solve(equations: NormalEquations, link: str, structural: np.ndarray,
                            xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500)
     theta = theta_of(result.x)
     estimate = np.concatenate([theta, result.x[10:]])
-    dof = max(len(y) - (10 - structural.shape[1]) - n, 1)
-    chi2 = float(np.sum((phi @ estimate - y) ** 2)) / dof
-    # Sandwich covariance of the compensated estimator, inflated when the fit is
-    # worse than the noise figures say.
+    # The cost the noise figures predict at theta (not the sample count: the
+    # regressor's own noise grows with the payload); 1 when the figures are right.
+    expected = float(theta @ equations.noise_quadratic @ theta
+                     + 2.0 * equations.noise_linear @ theta + equations.noise_constant)
+    chi2 = float(np.sum((phi @ estimate - y) ** 2)) / max(expected, 1e-300)
+    # Robust (sandwich) covariance F^-1 S F^-1 from the per-sample scores of the
+    # compensated cost: it carries the regressor's own noise, which H^-1 misses.
     inverse = np.linalg.inv(factor_of)
-    covariance = inverse @ information @ inverse * max(1.0, chi2)
+    covariance = inverse @ _score_covariance(equations, estimate, noise_scale) @ inverse
     theta_cov = covariance[:10, :10]
     derived = _derived(theta)
     jac = np.empty((len(derived), 10))
@@ -513,6 +521,21 @@ def _solve(equations: NormalEquations, link: str, structural: np.ndarray,
     return PayloadEstimate(payload, theta, theta_cov, result.x[10:], float(sigma[0]),
                            sigma[1:4], sigma[4:7], inertia_sigma, check, chi2,
                            len(y) // max(n, 1), check.blind_names())
+
+
+def _score_covariance(equations: NormalEquations, estimate: np.ndarray,
+                      noise_scale: float) -> np.ndarray:
+    """Sum over samples of s_k s_k^T, s_k the gradient of sample k's compensated cost."""
+    phi, y, n = equations.phi, equations.y, equations.n
+    count = len(y) // n
+    residual = (phi @ estimate - y).reshape(count, n)
+    blocks = phi.reshape(count, n, 10 + n)
+    scores = np.einsum('kij,ki->kj', blocks, residual)
+    if equations.sample_quadratic is not None:
+        theta = estimate[:10]
+        scores[:, :10] -= noise_scale * (equations.sample_quadratic @ theta
+                                         + equations.sample_linear)
+    return scores.T @ scores
 
 
 def _parameter_scale(theta: np.ndarray) -> np.ndarray:
@@ -740,4 +763,90 @@ def window_events(robot: RobotModel, window: Window, params: dict) -> list:
     estimator = Estimator(robot, EstimatorConfig.from_mapping(params), use_odometry=True)
     estimator.add_samples(window.samples)
     estimator.flush_batch()
-    return list(estimator.events())
+    return list(estimator.events)
+
+
+# --------------------------------------------------------------------------- CLI
+def identify_bag(bag_path: str, robot: RobotModel, link: str, params: dict,
+                 start: Optional[float] = None, end: Optional[float] = None,
+                 max_condition: float = MAX_CONDITION) -> PayloadEstimate:
+    """
+    Identify the payload on ``link`` over [start, end) of a bag, refusing events.
+
+    Raises :class:`IdentificationError` for a window with too few samples,
+    poor excitation, or an external-wrench event (judged by the estimator
+    with the identified payload applied).
+    """
+    from reduced_dynamics.estimator.config import EstimatorConfig
+    noise = SensorNoise.from_config(EstimatorConfig.from_mapping(params))
+    window = read_window(bag_path, robot, params, start, end)
+    estimate = identify_window(robot, link, window, noise, max_condition)
+    events = window_events(apply_payload(robot, estimate), window, params)
+    if events:
+        first = int(window.stamps_ns[0])
+        times = ', '.join(f'{(e.start_ns - first) * 1e-9:.2f} s' for e in events[:5])
+        raise IdentificationError(
+            f'the window holds {len(events)} external-wrench event(s) (at {times} into '
+            'the window, found by the estimator with the identified payload applied): '
+            'momentum is not conserved there; choose --start/--end free of thruster '
+            'firings and contacts')
+    return estimate
+
+
+def _run(args) -> int:
+    import sys
+    from reduced_dynamics.cli import load_robot_from_args
+    from reduced_dynamics.params import defaults, load_params_file
+    params = load_params_file(args.params) if args.params else defaults()
+    robot = load_robot_from_args(args)
+    try:
+        estimate = identify_bag(args.bag, robot, args.link, params, args.start, args.end,
+                                args.max_condition)
+    except IdentificationError as error:
+        print(f'reduced-dynamics identify: refused: {error}', file=sys.stderr)
+        if 'poor excitation' in str(error) or 'noise dominates' in str(error):
+            window = read_window(args.bag, robot, params, args.start, args.end)
+            qbar0 = window.qbar[-1] if len(window) else np.zeros(robot.m)
+            proposal = excitation_trajectory(robot, args.link, qbar0,
+                                             duration=args.excitation_duration)
+            path = args.propose or 'excitation.yaml'
+            import yaml
+            with open(path, 'w', encoding='utf-8') as stream:
+                yaml.safe_dump(proposal, stream, sort_keys=False)
+            print(f'proposed excitation ({args.excitation_duration:g} s, predicted condition '
+                  f'{proposal["predicted_condition"]:.3g}) written to {path}: play it '
+                  '(e.g. simulate/predict --trajectory) and identify over it',
+                  file=sys.stderr)
+        return 4
+    print(estimate.text())
+    if args.output:
+        estimate.payload.write(args.output)
+        print(f'written to {args.output}')
+    return 0
+
+
+def register_command(commands) -> None:
+    """Add the ``identify`` subcommand."""
+    from reduced_dynamics.cli import add_robot_arguments
+    parser = commands.add_parser(
+        'identify', help='identify a payload held by a link from momentum conservation',
+        description='Estimate the mass, centre of mass (link frame) and inertia about it of '
+                    'a rigid payload on LINK from a window of joint states and Odometry with '
+                    'no external wrench (docs/payload.md).')
+    parser.add_argument('bag', help='rosbag2 directory (MCAP or sqlite3) or .mcap file')
+    add_robot_arguments(parser)
+    parser.add_argument('--link', required=True, help='the URDF link holding the payload')
+    parser.add_argument('--params', help='parameters YAML (sensor noise: the node\'s format)')
+    parser.add_argument('--start', type=float, help='window start, seconds from the bag start')
+    parser.add_argument('--end', type=float, help='window end, seconds from the bag start')
+    parser.add_argument('-o', '--output', help='write the payload YAML (replay --payload, '
+                                               'the node\'s payload_file)')
+    parser.add_argument('--max-condition', type=float, default=MAX_CONDITION,
+                        help='refuse a window whose equilibrated regressor condition number '
+                             f'exceeds this (default {MAX_CONDITION:g})')
+    parser.add_argument('--propose', metavar='FILE',
+                        help='where a refused window\'s proposed excitation trajectory goes '
+                             '(default excitation.yaml)')
+    parser.add_argument('--excitation-duration', type=float, default=20.0,
+                        help='length of the proposed excitation trajectory, s (default 20)')
+    parser.set_defaults(func=_run)
