@@ -231,3 +231,22 @@ def test_cli_simulate_payload_and_identify(tmp_path, capsys):
     # Noise-free sensors: the payload comes back to the integrator's accuracy.
     assert load_payload(out).mass == pytest.approx(8.0, rel=1e-4)
     assert main(['simulate', '-o', str(tmp_path / 'x'), '--payload', 'forearm,1,2']) == 2
+
+
+def test_replay_with_payload_file(bags, tmp_path):
+    """replay --payload: the robot gains the payload (mu spread falls to the true model's)."""
+    truth = Payload.parse(CASES['paper'][3])
+    payload_file = tmp_path / 'payload.yaml'
+    truth.write(payload_file)
+    params = tmp_path / 'params.yaml'
+    params.write_text(yaml.safe_dump({'/**/reduced_dynamics': {'ros__parameters': {
+        k: v for k, v in realistic_params().items()
+        if k.endswith('_noise') and k != 'pose_retimed_stamp_noise'}}}))
+    spreads = {}
+    for label, extra in (('nominal', []), ('payload', ['--payload', str(payload_file)])):
+        summary = tmp_path / f'{label}.json'
+        assert main(['replay', str(bags['paper']), '-o', str(tmp_path / label), '--quiet',
+                     '--params', str(params), '--no-smooth', '--summary-json', str(summary)]
+                    + extra) == 0
+        spreads[label] = np.linalg.norm(yaml.safe_load(summary.read_text())['mu_spread'])
+    assert spreads['payload'] < 0.5 * spreads['nominal']
