@@ -147,7 +147,7 @@ class MomentumRegressor:
         return robot.group.Ad(g.inverse()).T @ (robot.mass_matrix(qbar)[:robot.n] @ v)
 
     def velocity_sigma(self, noise: SensorNoise) -> np.ndarray:
-        """Standard deviation of each velocity coordinate (xi in algebra coordinates, qbar_dot)."""
+        """Return the standard deviation of each velocity coordinate (xi, then qbar_dot)."""
         robot = self.robot
         angular = np.abs(robot.group.algebra_basis[3:]).sum(axis=0) > 0.0
         twist = np.where(angular, noise.twist_angular, noise.twist_linear)
@@ -234,7 +234,8 @@ def regressor_stack(regressor: MomentumRegressor, window: Window, noise: SensorN
         phi[block, :10] = np.linalg.solve(factor, rows)
         phi[block, 10:] = -np.linalg.solve(factor, eye)
         y[block] = -np.linalg.solve(factor, mu)
-        # Noise columns: delta = sigma_j e_j moves the residual by sigma_j (A M e_j + Y(e_j) theta).
+        # Noise columns: delta = sigma_j e_j moves the residual by
+        # sigma_j (A M e_j + Y(e_j) theta).
         white_b = np.linalg.solve(factor, (basis * sigma[:, None, None]).transpose(1, 0, 2)
                                   .reshape(n, -1)).reshape(n, len(sigma), 10)
         white_a = np.linalg.solve(factor, ad @ (top * sigma))
@@ -661,7 +662,6 @@ def excitation_trajectory(robot: RobotModel, link: str, qbar0: np.ndarray,
                    for t, p, qd, qdd in zip(times, positions, velocities, accelerations)],
         'predicted_condition': float(condition),
     }
-
 
 
 # --------------------------------------------------------------------------- measurements

@@ -171,7 +171,7 @@ def test_identification_accuracy(bags, name):
 
 
 def test_identified_payload_restores_momentum_conservation(bags):
-    """mu spread and the false drift wrench: wrong model >> identified <= 2 x true model."""
+    """The mu spread and false drift wrench: wrong model >> identified <= 2 x true model."""
     robot = case_robot('paper')
     truth = Payload.parse(CASES['paper'][3])
     params = realistic_params()
@@ -234,7 +234,7 @@ def test_cli_simulate_payload_and_identify(tmp_path, capsys):
 
 
 def test_replay_with_payload_file(bags, tmp_path):
-    """replay --payload: the robot gains the payload (mu spread falls to the true model's)."""
+    """Replay with --payload: the robot gains the payload (mu spread falls to the true model's)."""
     truth = Payload.parse(CASES['paper'][3])
     payload_file = tmp_path / 'payload.yaml'
     truth.write(payload_file)
