@@ -562,9 +562,11 @@ def _run(args: argparse.Namespace) -> int:
     if args.prediction_mode is not None:
         params['prediction_mode'] = args.prediction_mode
     robot = load_robot_from_params(params, args.urdf, args.base_joint, args.gravity)
-    if args.payload:
+    payload_file = args.payload or params.get('payload_file')
+    if payload_file:
         from reduced_dynamics.payload import load_payload, with_payload
-        robot = with_payload(robot, load_payload(args.payload))
+        robot = with_payload(robot, load_payload(payload_file,
+                                                 params.get('payload_link') or None))
     options = ReplayOptions(params=params, joint_states_topic=args.joint_states_topic,
                             odom_topic=args.odom_topic, base_pose_topic=args.base_pose_topic,
                             trajectory_topic=args.trajectory_topic,
@@ -597,7 +599,8 @@ def register_command(commands: Any) -> None:
     add_robot_arguments(parser)
     parser.add_argument('--params', help='parameters YAML (the node\'s format)')
     parser.add_argument('--payload', metavar='YAML',
-                        help='the robot holds this payload (reduced-dynamics identify -o)')
+                        help='the robot holds this payload (reduced-dynamics identify -o; '
+                             'default: the payload_file parameter)')
     parser.add_argument('--joint-states-topic')
     parser.add_argument('--trajectory-topic',
                         help='trajectory_msgs/JointTrajectory topic of planned arm motions '
