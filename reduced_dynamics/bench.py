@@ -45,7 +45,7 @@ same run (machines are noisy: ratios, not absolutes):
    the highest joint-state rate (of a sweep) sustained without a drop,
    against a bare rclpy relay node measured in windows of the same run
    (:mod:`reduced_dynamics.node_bench`). Skipped when rclpy is not importable.
-7. ``payload``: one payload identification (``identify``: read, fit, event check)
+7. ``payload``: one payload identification (``identify``: read, fit, step test)
    against a causal replay of the same simulated window
    (:mod:`reduced_dynamics.payload_bench`, docs/payload.md).
 """

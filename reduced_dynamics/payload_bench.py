@@ -34,7 +34,7 @@ SENSOR_PARAMETERS = dict(pose_position_noise=0.001, pose_angle_noise=0.0005,
 
 
 def bench_payload(report: Any, robot: Any, settings: Any, workdir: str) -> None:
-    """Time ``identify`` (read, fit, event check) and a causal replay of the same bag."""
+    """Time ``identify`` (read, fit, step test) and a causal replay of the same bag."""
     from reduced_dynamics.bench import make_figure
     from reduced_dynamics.identify import identify_bag
     from reduced_dynamics.params import defaults
@@ -60,7 +60,7 @@ def bench_payload(report: Any, robot: Any, settings: Any, workdir: str) -> None:
     shutil.rmtree(out, ignore_errors=True)
     error = abs(estimate.payload.mass / payload.mass - 1.0)
     report.add(make_figure(
-        'payload', 'one payload identification (read, fit, event check)', 's', identifies,
+        'payload', 'one payload identification (read, fit, step test)', 's', identifies,
         'causal replay of the same bag', replays, ratios,
         note=f'paper robot, {settings.payload_seconds:g} s at 100 Hz, realistic sensors, '
              f'{estimate.samples} samples; mass error {100 * error:.2f} %'))
