@@ -510,8 +510,10 @@ def _solve(equations: NormalEquations, link: str, structural: np.ndarray,
         return np.hstack([upper[:, :10] @ dtheta, upper[:, 10:]])
 
     start = np.concatenate([log_cholesky_from_dynamic(reference), linear[10:]])
-    result = least_squares(residual, start, jac=jacobian, method='trf', x_scale='jac',
-                           xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500)
+    # Trial steps far out overflow exp() in the parametrisation; the solver backs off.
+    with np.errstate(over='ignore', invalid='ignore'):
+        result = least_squares(residual, start, jac=jacobian, method='trf', x_scale='jac',
+                               xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=500)
     theta = theta_of(result.x)
     estimate = np.concatenate([theta, result.x[10:]])
     # The cost the noise figures predict at theta (not the sample count: the
