@@ -271,7 +271,7 @@ def structural_null_space(regressor: MomentumRegressor, seed: int = 0,
         blocks.append(np.hstack([rows, -np.eye(n)]))
     stack = np.vstack(blocks)
     stack = stack / np.maximum(np.linalg.norm(stack, axis=0), 1e-300)
-    _, singular, vt = np.linalg.svd(stack)
+    _, singular, vt = np.linalg.svd(stack, full_matrices=False)
     null = vt[singular < _STRUCTURAL_RTOL * singular[0]]
     if len(singular) < vt.shape[0]:
         null = np.vstack([null, vt[len(singular):]])
@@ -413,8 +413,8 @@ class PayloadEstimate:
         p = self.payload
         lines = [
             f'payload on {p.link} from {self.samples} samples '
-            f'(condition {self.identifiability.condition:.3g}, '
-            f'chi2/dof {self.chi2_per_dof:.3g})',
+            f'(condition {self.identifiability.condition:.3g}, residual '
+            f'{self.chi2_per_dof:.3g} x what the noise figures predict)',
             f'  mass {p.mass:.6g} +- {self.mass_sigma:.2g} kg',
             '  com  [' + ', '.join(f'{c:+.5f} +- {s:.2g}' for c, s in
                                    zip(p.com, self.com_sigma)) + '] m (link frame)',
