@@ -52,6 +52,12 @@ PARAMETER_NAMES = ('mass', 'm*cx', 'm*cy', 'm*cz', 'Ixx', 'Ixy', 'Iyy', 'Ixz', '
 #: of test/test_payload.py have 11 (paper robot), 23-32 (random tree) and 43-46
 #: (planar two-link); an arm held still, infinity.
 MAX_CONDITION = 1000.0
+#: Refusal threshold on the weakest direction's signal-to-noise information ratio
+#: (:func:`_signal_to_noise`). Measured with the realistic sensors: 162, 210 and 5.2 on
+#: the 20 s windows of the paper robot, the random tree and the planar arm, 8.9 on 5 s
+#: and 0.62 on 2 s of the paper robot; an arm held still: -0.1 (0.43 with the default
+#: noise parameters instead of the sensors' figures).
+MIN_SIGNAL_TO_NOISE = 2.0
 #: Refusal threshold of :func:`momentum_step`'s F statistic. Measured on twelve
 #: wrench-free 20 s windows with the realistic sensors (paper robot, random tree,
 #: planar two-link; test/test_payload.py's cases, seeds 1-4): at most 3.4; with a
@@ -294,6 +300,8 @@ class Identifiability:
     weakest: list[tuple[str, float]]
     #: relative singular values of the seen parameter directions, ascending
     relative_singular_values: np.ndarray
+    #: the weakest seen direction's signal over its noise information (see _signal_to_noise)
+    signal_to_noise: float = float('inf')
 
     def weak_text(self) -> str:
         """Name the parameters of the weakest direction."""
@@ -307,7 +315,8 @@ class Identifiability:
         return [name for name, s in zip(PARAMETER_NAMES, share) if s > 0.3]
 
 
-def identifiability(equations: 'NormalEquations', structural: np.ndarray) -> Identifiability:
+def identifiability(equations: 'NormalEquations', structural: np.ndarray,
+                    noise_scale: float = 1.0) -> Identifiability:
     """
     Condition number of the window's regressor on the directions the robot can see.
 
@@ -315,6 +324,7 @@ def identifiability(equations: 'NormalEquations', structural: np.ndarray) -> Ide
     by the diagonal of Phi^T Phi): the signal's own conditioning, sqrt(cond H').
     Noise excites the raw regressor even when the arm is still; H' discounts it,
     and is singular (infinite condition) when the motion does not rise above it.
+    ``noise_scale``: the noise measured by the fit, in units of the figures.
     """
     phi = equations.phi
     n = equations.n
@@ -324,7 +334,7 @@ def identifiability(equations: 'NormalEquations', structural: np.ndarray) -> Ide
     reduce[10:, seen.shape[1]:] = np.eye(n)
     information = phi.T @ phi
     compensated = information.copy()
-    compensated[:10, :10] -= equations.noise_quadratic
+    compensated[:10, :10] -= noise_scale * equations.noise_quadratic
     raw = reduce.T @ information @ reduce
     reduced = reduce.T @ compensated @ reduce
     scale = np.sqrt(np.maximum(np.diag(raw), 1e-300))
@@ -340,7 +350,32 @@ def identifiability(equations: 'NormalEquations', structural: np.ndarray) -> Ide
         weakest = [(PARAMETER_NAMES[i], float(theta[i])) for i in order[:3]
                    if abs(theta[i]) > 0.2]
     relative = np.sqrt(np.maximum(values, 0.0) / values[-1])
-    return Identifiability(condition, structural, weakest, relative)
+    return Identifiability(condition, structural, weakest, relative,
+                           _signal_to_noise(equations, seen, noise_scale))
+
+
+def _signal_to_noise(equations: 'NormalEquations', seen: np.ndarray,
+                     noise_scale: float) -> float:
+    """
+    Smallest ratio of the motion's information to the noise's, over the seen directions.
+
+    Generalised eigenvalues of the compensated information (mu_0 eliminated)
+    against the noise term C: below 1 the weakest direction moves less than the
+    sensor noise does; an arm held still gives about 0.
+    """
+    phi, n = equations.phi, equations.n
+    information = phi.T @ phi
+    theta_block = information[:10, :10] - noise_scale * equations.noise_quadratic
+    cross = information[:10, 10:]
+    schur = theta_block - cross @ np.linalg.solve(information[10:, 10:], cross.T)
+    signal = seen.T @ schur @ seen
+    noise = noise_scale * (seen.T @ equations.noise_quadratic @ seen)
+    values, vectors = np.linalg.eigh(noise)
+    if values[-1] <= 0.0:
+        return float('inf')
+    keep = values > 1e-12 * values[-1]
+    root = vectors[:, keep] / np.sqrt(values[keep])
+    return float(np.linalg.eigvalsh(root.T @ signal @ root)[0])
 
 
 def _complement(null: np.ndarray) -> np.ndarray:
@@ -439,7 +474,8 @@ def _derived(theta: np.ndarray) -> np.ndarray:
 
 
 def solve(equations: NormalEquations, link: str, structural: np.ndarray,
-          check: Identifiability, iterations: int = 5) -> PayloadEstimate:
+          check: Identifiability, iterations: int = 5,
+          first: Optional['PayloadEstimate'] = None) -> PayloadEstimate:
     """
     Identify with the noise compensation scaled to the noise the fit shows.
 
@@ -447,9 +483,10 @@ def solve(equations: NormalEquations, link: str, structural: np.ndarray,
     says the noise is s^2 times what they claim, the compensation is redone with
     s^2 (a fixed point reached in a few steps; 0 for noise-free data).
     """
-    # From no compensation up: the raw fit's cost, over the cost the figures predict,
-    # measures the noise; an over-compensated start could run away instead.
-    estimate = _solve(equations, link, structural, check, 0.0)
+    # From no compensation up (``first``, if given, is that fit): the raw fit's cost,
+    # over the cost the figures predict, measures the noise; an over-compensated
+    # start could run away instead.
+    estimate = first or _solve(equations, link, structural, check, 0.0)
     for _ in range(iterations):
         scale = estimate.chi2_per_dof
         estimate = _solve(equations, link, structural, check, scale)
@@ -485,9 +522,11 @@ def _solve(equations: NormalEquations, link: str, structural: np.ndarray,
     reduced = reduce.T @ compensated @ reduce
     if np.linalg.eigvalsh(reduced)[0] <= 0.0:
         raise IdentificationError(
-            'the sensor noise dominates the arm\'s motion in this window (the noise-'
-            'compensated normal equations are not positive definite): move the arm faster '
-            'or longer')
+            f'poor excitation: the payload on {link} is not identifiable from this window: '
+            'the sensor noise dominates the arm\'s motion (the noise-compensated normal '
+            'equations are not positive definite). Move the arm (the joints that carry the '
+            'link) faster or longer, e.g. the proposed excitation trajectory, and identify '
+            'over that window.')
     linear = reduce @ np.linalg.solve(reduced, reduce.T @ rhs)
     reference = physical_completion(linear[:10])
     scale = _parameter_scale(reference)
@@ -587,24 +626,31 @@ def identify_window(robot: RobotModel, link: str, window: Window, noise: SensorN
                                   'identification needs at least 20')
     structural = structural_null_space(regressor)
     equations = regressor_stack(regressor, window, noise)
-    check = identifiability(equations, structural)
-    if not check.condition <= max_condition:
-        raise IdentificationError(
-            f'poor excitation: the payload on {link} is not identifiable from this window '
-            f'(regressor condition number {check.condition:.3g} > {max_condition:g}); '
-            f'the window cannot see: {check.weak_text() or "every parameter"}. '
-            'Move the arm (the joints that carry the link) through a varied motion, e.g. '
-            'the proposed excitation trajectory, and identify over that window.')
+    # The raw regressor first (noise excites it too), then, after the fit, with the
+    # noise it measured discounted.
+    check = _excited(identifiability(equations, structural, 0.0), link, max_condition)
     estimate = solve(equations, link, structural, check)
-    step = momentum_step(equations, estimate, window.stamps_ns)
+    # A step in mu inflates the noise the fit measures: test for it before judging
+    # the excitation against that noise.
+    _conserved(equations, estimate, window.stamps_ns, max_step_ratio)
+    check = _excited(identifiability(equations, structural, estimate.chi2_per_dof), link,
+                     max_condition)
+    estimate.identifiability = check
+    estimate.payload.sigma['condition'] = check.condition
+    return estimate
+
+
+def _conserved(equations: 'NormalEquations', estimate: 'PayloadEstimate',
+               stamps_ns: np.ndarray, max_step_ratio: float) -> None:
+    """Refuse a window whose fit leaves a step in mu (an external-wrench event)."""
+    step = momentum_step(equations, estimate, stamps_ns)
     if step is not None and step[1] > max_step_ratio:
-        when = (step[0] - int(window.stamps_ns[0])) * 1e-9
+        when = (step[0] - int(stamps_ns[0])) * 1e-9
         raise IdentificationError(
             f'momentum is not conserved in the window: the fitted model leaves a step in '
             f'mu at {when:.2f} s into the window (F = {step[1]:.3g} > {max_step_ratio:g}), '
             'an external-wrench event; choose --start/--end free of thruster firings '
             'and contacts')
-    return estimate
 
 
 #: Spacing of the split points tried, and the shortest segment on either side (s).
@@ -644,6 +690,20 @@ def momentum_step(equations: 'NormalEquations', estimate: 'PayloadEstimate',
         if best is None or ratio > best[1]:
             best = (int(stamps_ns[k]), ratio)
     return best
+
+
+def _excited(check: Identifiability, link: str, max_condition: float) -> Identifiability:
+    """Return ``check`` if the window is excited enough, else refuse with what it misses."""
+    if check.condition <= max_condition and check.signal_to_noise >= MIN_SIGNAL_TO_NOISE:
+        return check
+    raise IdentificationError(
+        f'poor excitation: the payload on {link} is not identifiable from this window '
+        f'(regressor condition number {check.condition:.3g}, at most {max_condition:g}; '
+        f'the weakest direction\'s motion {check.signal_to_noise:.3g} times its noise, '
+        f'at least {MIN_SIGNAL_TO_NOISE:g}); '
+        f'the window cannot see: {check.weak_text() or "every parameter"}. '
+        'Move the arm (the joints that carry the link) through a varied motion, e.g. '
+        'the proposed excitation trajectory, and identify over that window.')
 
 
 def apply_payload(robot: RobotModel, estimate_or_payload) -> RobotModel:

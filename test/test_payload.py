@@ -230,6 +230,13 @@ def test_cli_simulate_payload_and_identify(tmp_path, capsys):
     assert 'mass' in capsys.readouterr().out
     # Noise-free sensors: the payload comes back to the integrator's accuracy.
     assert load_payload(out).mass == pytest.approx(8.0, rel=1e-4)
+    # A window of the bag: --start/--end seconds from its start.
+    window = tmp_path / 'window.yaml'
+    assert main(['identify', str(bag), '--link', 'forearm', '--start', '1', '--end', '4',
+                 '-o', str(window)]) == 0
+    assert load_payload(window).mass == pytest.approx(8.0, rel=1e-4)
+    assert main(['identify', str(bag), '--link', 'forearm', '--start', '1', '--end',
+                 '1.05']) == 4  # too few samples: refused, not a crash
     assert main(['simulate', '-o', str(tmp_path / 'x'), '--payload', 'forearm,1,2']) == 2
 
 
