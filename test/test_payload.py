@@ -236,7 +236,7 @@ def test_cli_simulate_payload_and_identify(tmp_path, capsys):
                  '-o', str(window)]) == 0
     assert load_payload(window).mass == pytest.approx(8.0, rel=1e-4)
     assert main(['identify', str(bag), '--link', 'forearm', '--start', '1', '--end',
-                 '1.05']) == 4  # too few samples: refused, not a crash
+                 '1.05', '--propose', str(tmp_path / 'e.yaml')]) == 4  # refused, no crash
     assert main(['simulate', '-o', str(tmp_path / 'x'), '--payload', 'forearm,1,2']) == 2
 
 
