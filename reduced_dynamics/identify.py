@@ -363,7 +363,7 @@ def _signal_to_noise(equations: 'NormalEquations', seen: np.ndarray,
     against the noise term C: below 1 the weakest direction moves less than the
     sensor noise does; an arm held still gives about 0.
     """
-    phi, n = equations.phi, equations.n
+    phi = equations.phi
     information = phi.T @ phi
     theta_block = information[:10, :10] - noise_scale * equations.noise_quadratic
     cross = information[:10, 10:]
