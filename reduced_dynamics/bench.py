@@ -45,6 +45,9 @@ same run (machines are noisy: ratios, not absolutes):
    the highest joint-state rate (of a sweep) sustained without a drop,
    against a bare rclpy relay node measured in windows of the same run
    (:mod:`reduced_dynamics.node_bench`). Skipped when rclpy is not importable.
+7. ``payload``: one payload identification (``identify``: read, fit, step test)
+   against a causal replay of the same simulated window
+   (:mod:`reduced_dynamics.payload_bench`, docs/payload.md).
 """
 
 from __future__ import annotations
@@ -97,6 +100,8 @@ class Settings:
     node_warmup: float = 1.0
     #: window of each rate of the sustained-rate sweep of section node [s]
     node_sweep_seconds: float = 2.0
+    #: the simulated window of section payload [s]
+    payload_seconds: float = 20.0
     quick: bool = False
 
     @classmethod
@@ -107,7 +112,8 @@ class Settings:
                    dg_steps=(0.05, 0.025), replay_seconds=3.0, memory_short_seconds=5.0,
                    memory_long_seconds=20.0, scaling_samples=200, scaling_evaluations=60,
                    planned_bag_seconds=20.0, node_seconds=2.0,
-                   node_warmup=1.0, node_sweep_seconds=1.0, quick=True)
+                   node_warmup=1.0, node_sweep_seconds=1.0, payload_seconds=6.0,
+                   quick=True)
 
 
 @dataclass
@@ -1077,7 +1083,7 @@ def write_csv(report: Report, path: str) -> None:
             writer.writerow(asdict(figure))
 
 
-SECTIONS = ('update', 'prediction', 'replay', 'scaling', 'planned', 'node')
+SECTIONS = ('update', 'prediction', 'replay', 'scaling', 'planned', 'node', 'payload')
 
 
 def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
@@ -1108,6 +1114,14 @@ def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
         workdir = tempfile.mkdtemp(prefix='reduced_dynamics_bench_')
         try:
             bench_planned(report, settings, workdir)
+        finally:
+            shutil.rmtree(workdir, ignore_errors=True)
+    if 'payload' in sections:
+        say('payload...')
+        from reduced_dynamics.payload_bench import bench_payload
+        workdir = tempfile.mkdtemp(prefix='reduced_dynamics_bench_')
+        try:
+            bench_payload(report, robot, settings, workdir)
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
     if 'node' in sections:

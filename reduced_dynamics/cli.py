@@ -15,7 +15,7 @@
 """
 Command line: ``reduced-dynamics validate | symmetries | simulate | replay | ...``.
 
-Subcommands: validate, symmetries, simulate, replay, predict, tune, bench.
+Subcommands: validate, symmetries, simulate, replay, predict, tune, bench, identify.
 
 One subcommand per task; ``--help`` on each lists its options.
 """
@@ -127,7 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _extra_commands() -> list:
     registrars = []
-    for module in ('simulator', 'replay', 'predict', 'tune', 'bench'):
+    for module in ('simulator', 'replay', 'predict', 'tune', 'bench', 'identify'):
         try:
             imported = __import__(f'reduced_dynamics.{module}', fromlist=['register_command'])
         except ImportError:

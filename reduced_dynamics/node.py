@@ -117,6 +117,9 @@ PREDICT_RESULT_TOPIC = '~/predict_base_motion/result'
 NS_PER_S = 1_000_000_000
 #: Name of the node's own status in /diagnostics (the estimator's is separate).
 NODE_STATUS_NAME = f'{NODE_NAME}: node'
+#: Payload identification (issue 22): the service and the estimate's topic.
+IDENTIFY_PAYLOAD_SERVICE = '~/identify_payload'
+PAYLOAD_TOPIC = '~/payload'
 #: A stamp gap above this many nominal periods counts as missing samples.
 GAP_FACTOR = 1.5
 
@@ -316,6 +319,12 @@ class _Shell:
         self.input_stats = {'joint_states': InputStats(), 'base': InputStats()}
         #: Times the estimator was reset because ROS time jumped back.
         self.time_resets = 0
+        # Payload (issue 22): the robot without it, the input window identify_payload
+        # uses, the payload held, and its service and topic while active.
+        self._nominal_robot = None
+        self._payload_window = None
+        self.payload = None
+        self._payload_service = self._payload_publisher = None
 
         # Validation is in place before declaring, so bad overrides fail at start-up.
         self.add_on_set_parameters_callback(self._validate_parameters)
@@ -437,14 +446,11 @@ class _Shell:
         there is one, stays (its estimator state too).
         """
         try:
-            robot = load_robot(urdf, self._value('base_joint'),
-                               np.array(self._value('gravity'), dtype=float))
+            nominal = load_robot(urdf, self._value('base_joint'),
+                                 np.array(self._value('gravity'), dtype=float))
+            robot, payload, window = self._payload_model(nominal)
             # cyclic_joints that the robot cannot be reduced by fail here, with the reason.
-            estimator = Estimator(robot, self._config,
-                                  use_odometry=self._value('base_input') == 'odom',
-                                  cyclic_joints=self._value('cyclic_joints'),
-                                  defer_predictions=True,
-                                  commanded_wrench=bool(self._value('commanded_wrench_topic')))
+            estimator = self._make_estimator(robot)
         except (ModelError, OSError, ValueError) as error:
             problem = f'cannot use the robot model from {source}: {error}'
             if self._estimator is not None:
@@ -459,6 +465,7 @@ class _Shell:
             return False
         replaced = self._estimator is not None
         self._estimator = estimator
+        self._nominal_robot, self.payload, self._payload_window = nominal, payload, window
         self._robot_source = source
         self._model_error = None
         self.get_logger().info(
@@ -471,6 +478,70 @@ class _Shell:
                 'second-stage reduction (Theorem 57) by the cyclic joints '
                 f'{list(estimator.cyclic_joints)}: their momenta on cyclic_momenta')
         return True
+
+    def _make_estimator(self, robot: Any) -> Estimator:
+        return Estimator(robot, self._config, use_odometry=self._value('base_input') == 'odom',
+                         cyclic_joints=self._value('cyclic_joints'), defer_predictions=True,
+                         commanded_wrench=bool(self._value('commanded_wrench_topic')))
+
+    # --- payload (issue 22, docs/payload.md) --------------------------------------------
+    def _payload_model(self, nominal: Any) -> tuple:
+        """Return (robot with payload_file's payload, the payload, the identification window)."""
+        from reduced_dynamics.payload import load_payload, with_payload
+        from reduced_dynamics.payload_online import PayloadWindow
+        link, path = self._value('payload_link'), self._value('payload_file')
+        payload = load_payload(path, link or None) if path else None
+        window = PayloadWindow(nominal, link, self._value('payload_window')) if link else None
+        return (with_payload(nominal, payload) if payload else nominal), payload, window
+
+    def _on_identify_payload(self, request: Any, response: Any) -> Any:
+        """Identify the payload over the last payload_window seconds and apply it."""
+        response.success, response.message = self.identify_payload()
+        return response
+
+    def identify_payload(self) -> tuple[bool, str]:
+        """
+        Identify the payload, re-reduce with it and restart the filter; return (ok, report).
+
+        The new estimator starts from the next samples: the filter initialises at
+        the new mu with its covariance. A refusal (poor excitation, an external
+        wrench in the window) keeps the model and says why.
+        """
+        from reduced_dynamics.identify import IdentificationError, SensorNoise
+        from reduced_dynamics.payload import with_payload
+        window = self._payload_window
+        if window is None:
+            return False, 'payload_link is empty: no link to identify a payload on'
+        try:
+            estimate = window.identify(SensorNoise.from_config(self._config))
+            estimator = self._make_estimator(with_payload(self._nominal_robot,
+                                                          estimate.payload))
+        except (IdentificationError, ModelError, ValueError, ArithmeticError) as error:
+            self.get_logger().warning(f'payload identification refused: {error}')
+            return False, f'refused: {error}'
+        self._flush_pending()
+        self._estimator = estimator
+        self.payload = estimate.payload
+        window.clear()
+        self._publish_payload()
+        report = estimate.text()
+        self.get_logger().info('payload applied, robot re-reduced, filter restarted:\n'
+                               + report)
+        return True, report
+
+    def _publish_payload(self) -> None:
+        if self._payload_publisher is None or self.payload is None:
+            return
+        from reduced_dynamics.payload_online import inertia_fields
+        fields = inertia_fields(self.payload)
+        msg = self._types.get('geometry_msgs/msg/InertiaStamped')()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = self.payload.link
+        msg.inertia.m = fields['m']
+        msg.inertia.com.x, msg.inertia.com.y, msg.inertia.com.z = fields['com']
+        for name in ('ixx', 'ixy', 'ixz', 'iyy', 'iyz', 'izz'):
+            setattr(msg.inertia, name, fields[name])
+        self._payload_publisher.publish(msg)
 
     def _on_robot_description(self, msg: Any) -> None:
         text = string_from_ros(msg)
@@ -491,6 +562,15 @@ class _Shell:
                 event_callbacks=quiet_publisher_events())
             self._encoders[topic.name] = cdr.ENCODERS[topic.msgtype]
         self._subscribe_inputs(overridable)
+        latched = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                             reliability=ReliabilityPolicy.RELIABLE)
+        self._payload_publisher = self.create_publisher(
+            self._types.get('geometry_msgs/msg/InertiaStamped'), PAYLOAD_TOPIC, latched)
+        self._payload_service = self.create_service(
+            self._types.get('std_srvs/srv/Trigger'), IDENTIFY_PAYLOAD_SERVICE,
+            self._on_identify_payload)
+        self._publish_payload()
         self._worker = _PredictionWorker(self._publish_prediction, self._on_worker_error)
         self._shell_active = True
         self._restart_watchdog()
@@ -509,6 +589,10 @@ class _Shell:
         if self._worker is not None:
             self._worker.stop()
             self._worker = None
+        if self._payload_service is not None:
+            self.destroy_service(self._payload_service)
+            self.destroy_publisher(self._payload_publisher)
+            self._payload_service = self._payload_publisher = None
         with self._publish_lock:
             for publisher in (*self._publishers_by_topic.values(), self._answer_path,
                               self._answer_result):
@@ -696,6 +780,8 @@ class _Shell:
         if stats is not None:
             # Not for commands: sent at switches, their gaps are not losses.
             stats.take(sample.stamp_ns)
+            if self._payload_window is not None:
+                self._payload_window.take(sample)
         estimator = self._estimator
         if estimator is None:
             self._reject('no_robot_model', self._model_error or 'no robot model')
@@ -818,6 +904,15 @@ class _Shell:
         self._processed_at_status = processed
         if self._value('commanded_wrench_topic'):
             values['received_command'] = str(self.received['command'])
+        if self.payload is not None:
+            sigma = self.payload.sigma
+            values['payload'] = (
+                f'{self.payload.mass:.4g} kg on {self.payload.link}, CoM '
+                + ' '.join(f'{c:+.4f}' for c in self.payload.com) + ' m, principal inertia '
+                + ' '.join(f'{c:.4g}' for c in self.payload.principal_inertia) + ' kg m^2'
+                + (f' (mass sigma {sigma["mass"]:.2g} kg)' if 'mass' in sigma else ''))
+        if self._payload_window is not None and self._payload_window.last_error:
+            values['payload_identification'] = self._payload_window.last_error
         values.update({f'rejected_{k}': str(v) for k, v in sorted(rejected.items())})
         if self._model_error:
             level, message = DIAG_ERROR, self._model_error

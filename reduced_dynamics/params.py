@@ -60,6 +60,14 @@ NODE_PARAMETERS: dict[str, ParameterSpec] = {
         'actuators; base frame, held until the next message); empty: off. With it the '
         'filter estimates the per-axis gain and bias of the delivered wrench and the '
         'disturbance beyond the command (~/drift/disturbance)'),
+    'payload_link': ParameterSpec('', None, None, (),
+                                  'URDF link holding a payload: payload_file\'s (if that '
+                                  'names none) and ~/identify_payload\'s; empty: none'),
+    'payload_file': ParameterSpec('', None, None, (),
+                                  'payload YAML (reduced-dynamics identify -o): the robot '
+                                  'model holds it from the start; empty: none'),
+    'payload_window': ParameterSpec(20.0, 1.0, 3600.0, (),
+                                    'seconds of input ~/identify_payload identifies over'),
     'cyclic_joints': ParameterSpec('', None, None, (),
                                    'second-stage reduction (Theorem 57): empty for off, '
                                    '"auto" for every cyclic joint found (reaction wheels, '
@@ -86,6 +94,12 @@ def check_any_parameter(name: str, value: Any) -> None:
                 len(value) != 3 or not all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
             raise ValueError('gravity must be a list of three numbers')
+        return
+    if isinstance(spec.default, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+                not spec.low <= float(value) <= spec.high:
+            raise ValueError(f'{name} must be a number in [{spec.low}, {spec.high}], '
+                             f'got {value!r}')
         return
     if not isinstance(value, str):
         raise ValueError(f'{name} must be a string, got {value!r}')

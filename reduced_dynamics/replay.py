@@ -673,6 +673,11 @@ def _run(args: argparse.Namespace) -> int:
         params['prediction_mode'] = args.prediction_mode
     robot = load_robot_from_params(params, args.urdf, args.base_joint, args.gravity,
                                    args.xacro_arg)
+    payload_file = args.payload or params.get('payload_file')
+    if payload_file:
+        from reduced_dynamics.payload import load_payload, with_payload
+        robot = with_payload(robot, load_payload(payload_file,
+                                                 params.get('payload_link') or None))
     options = ReplayOptions(params=params, joint_states_topic=args.joint_states_topic,
                             odom_topic=args.odom_topic, base_pose_topic=args.base_pose_topic,
                             trajectory_topic=args.trajectory_topic,
@@ -710,6 +715,9 @@ def register_command(commands: Any) -> None:
     parser.add_argument('-o', '--output', required=True, help='output bag directory')
     add_robot_arguments(parser)
     parser.add_argument('--params', help='parameters YAML (the node\'s format)')
+    parser.add_argument('--payload', metavar='YAML',
+                        help='the robot holds this payload (reduced-dynamics identify -o; '
+                             'default: the payload_file parameter)')
     parser.add_argument('--joint-states-topic')
     parser.add_argument('--trajectory-topic',
                         help='trajectory_msgs/JointTrajectory topic of planned arm motions '

@@ -1231,6 +1231,10 @@ def register_command(subparsers: Any) -> None:
                         help='play a planned joint trajectory (YAML/CSV, see reduced-dynamics '
                              'predict): the shape follows it exactly, the base by the full '
                              f'dynamics; the plan is recorded on {TOPIC_TRAJECTORY}')
+    parser.add_argument('--payload', metavar='LINK,MASS,CX,CY,CZ,IXX,IYY,IZZ[,IXY,IXZ,IYZ]',
+                        help='the robot holds a rigid payload on LINK: mass (kg), centre of '
+                             'mass in the link frame (m), inertia about it (kg m^2); the bag '
+                             'is the truth a replay with the nominal URDF does not know')
     parser.add_argument('--status', action='store_true',
                         help=f'also write {TOPIC_STATUS} ({STATUS_MSGTYPE}, a custom type '
                              f'embedded in the bag) at {STATUS_RATE:g} Hz')
@@ -1273,6 +1277,9 @@ def run_command(args: argparse.Namespace) -> int:
     if args.summary and Path(args.summary).exists() and not args.overwrite:
         raise ValueError(f'summary {args.summary} exists already (pass --overwrite to replace)')
     robot = load_robot_from_args(args)
+    if args.payload:
+        from reduced_dynamics.payload import Payload, with_payload
+        robot = with_payload(robot, Payload.parse(args.payload))
     summary = simulate_bag(robot, args.output, options)
     if args.summary:
         summary.write_json(args.summary)

@@ -29,7 +29,8 @@ def _tiny() -> bench.Settings:
                           dg_steps=(0.05,), prediction_points=11, replay_seconds=0.3,
                           memory_short_seconds=0.2, memory_long_seconds=0.4,
                           scaling_samples=40, scaling_evaluations=3,
-                          shape_joints=(6, 12), planned_bag_seconds=2.0, quick=True)
+                          shape_joints=(6, 12), planned_bag_seconds=2.0, payload_seconds=4.0,
+                          quick=True)
 
 
 def test_statistics_helpers():

@@ -1,0 +1,259 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""Payload identification (issue 22): regressor, solver, refusals, acceptance."""
+
+import numpy as np
+import pinocchio as pin
+import pytest
+import yaml
+
+from reduced_dynamics.cli import main
+from reduced_dynamics.identify import (
+    identify_bag, IdentificationError, log_cholesky_from_dynamic, momentum_quality,
+    MomentumRegressor, read_window)
+from reduced_dynamics.params import defaults
+from reduced_dynamics.payload import load_payload, Payload, PayloadError, with_payload
+from reduced_dynamics.robot.model import load_robot
+from reduced_dynamics.robot.random_tree import random_tree_urdf
+from reduced_dynamics.simulator import simulate_bag, SimulationOptions, ThrusterPulse
+
+PLANAR_TWO_LINK = """<?xml version="1.0"?>
+<robot name="planar_two_link">
+  <link name="world"/>
+  <joint name="base_joint" type="planar"><parent link="world"/><child link="platform"/>
+    <axis xyz="0 0 1"/></joint>
+  <link name="platform"><inertial><mass value="20.0"/>
+    <inertia ixx="0.5" ixy="0" ixz="0" iyy="0.5" iyz="0" izz="0.8"/></inertial></link>
+  <joint name="shoulder" type="continuous"><parent link="platform"/><child link="link_1"/>
+    <origin xyz="0.25 0 0.1"/><axis xyz="0 0 1"/></joint>
+  <link name="link_1"><inertial><origin xyz="0.2 0 0"/><mass value="3.0"/>
+    <inertia ixx="0.005" ixy="0" ixz="0" iyy="0.04" iyz="0" izz="0.04"/></inertial></link>
+  <joint name="elbow" type="continuous"><parent link="link_1"/><child link="link_2"/>
+    <origin xyz="0.4 0 0"/><axis xyz="0 0 1"/></joint>
+  <link name="link_2"><inertial><origin xyz="0.15 0 0"/><mass value="2.0"/>
+    <inertia ixx="0.003" ixy="0" ixz="0" iyy="0.015" iyz="0" izz="0.015"/></inertial></link>
+</robot>
+"""
+
+#: The realistic sensors of test/data/paper_realistic (scripts/make_test_bags.sh).
+REALISTIC = dict(noise_position=1e-4, noise_velocity=0.005, noise_effort=0.05,
+                 noise_pose=0.001, noise_orientation=0.0005, noise_twist=0.002,
+                 quantize=(('joint_position', 1e-5),), stamp_jitter=0.0003, latency=0.004,
+                 latency_jitter=0.001, drop_rate=0.01)
+
+
+def realistic_params() -> dict:
+    """Return the node parameters with the sensors' figures (paper_realistic.sensors.yaml)."""
+    params = defaults()
+    params.update(pose_position_noise=0.001, pose_angle_noise=0.0005,
+                  pose_stamp_noise=0.0003, twist_linear_noise=0.002,
+                  twist_angular_noise=0.002, joint_velocity_noise=0.005)
+    return params
+
+
+#: name -> (URDF, base joint, gravity, payload >= 20 % of the arm, sim seed, torque scale)
+CASES = {
+    'paper': ('', None, None, 'forearm,8,0.3,0.05,-0.02,0.12,0.2,0.25', 4, 1.0),
+    'tree': (random_tree_urdf(4, seed=0, prismatic=False), None, None,
+             'link_4,4,0.1,-0.05,0.08,0.03,0.04,0.05', 1, 3.0),
+    'planar': (PLANAR_TWO_LINK, 'planar', np.array([0.0, 0.0, -9.81]),
+               'link_2,1.5,0.25,0.04,0,0.004,0.01,0.012', 1, 1.0),
+}
+
+
+def case_robot(name: str):
+    urdf, base_joint, gravity = CASES[name][:3]
+    return load_robot(urdf, base_joint, gravity)
+
+
+@pytest.fixture(scope='module')
+def bags(tmp_path_factory):
+    """20 s of arm motion per case with the realistic sensors, the truth holding the payload."""
+    root = tmp_path_factory.mktemp('payload')
+    out = {}
+    for name, (_, _, _, spec, seed, scale) in CASES.items():
+        robot = case_robot(name)
+        path = root / name
+        simulate_bag(with_payload(robot, Payload.parse(spec)), path,
+                     SimulationOptions(duration=20.0, rate=100.0, seed=seed,
+                                       torque_scale=scale, **REALISTIC))
+        out[name] = path
+    return out
+
+
+def test_regressor_is_the_payload_momentum():
+    """Y theta is exactly mu(held) - mu(nominal) at any state (5.27), SE(3) and SE(2)."""
+    rng = np.random.default_rng(3)
+    for name in ('paper', 'planar'):
+        robot = case_robot(name)
+        payload = Payload.parse(CASES[name][3])
+        held = with_payload(robot, payload)
+        regressor = MomentumRegressor(robot, payload.link)
+        theta = payload.spatial_inertia().toDynamicParameters()
+        for _ in range(3):
+            g = robot.project_pose(pin.SE3.Random())
+            xi, qbar, qbar_dot = (rng.standard_normal(robot.n), rng.standard_normal(robot.m),
+                                  rng.standard_normal(robot.m))
+            rows, mu = regressor.rows(g, xi, qbar, qbar_dot)
+            v = np.concatenate([xi, qbar_dot])
+            mu_held = robot.group.Ad(g.inverse()).T @ (held.mass_matrix(qbar)[:robot.n] @ v)
+            assert np.allclose(mu + rows @ theta, mu_held, rtol=0, atol=1e-10)
+
+
+def test_payload_spec_yaml_and_refusals(tmp_path):
+    payload = Payload.parse('forearm,8,0.3,0.05,-0.02,0.12,0.2,0.25,0.01,0,0')
+    assert payload.inertia[0, 1] == 0.01
+    path = tmp_path / 'p.yaml'
+    payload.write(path)
+    loaded = load_payload(path)
+    assert loaded.link == 'forearm' and loaded.mass == 8.0
+    assert np.allclose(loaded.inertia, payload.inertia)
+    with pytest.raises(PayloadError, match='triangle|not physical'):
+        Payload.parse('forearm,1,0,0,0,0.1,0.1,0.5')
+    with pytest.raises(PayloadError, match='mass'):
+        Payload.parse('forearm,-1,0,0,0,0.1,0.1,0.1')
+    with pytest.raises(PayloadError, match='no link'):
+        with_payload(load_robot(''), Payload.parse('gripper,1,0,0,0,0.1,0.1,0.1'))
+
+
+def test_held_model_adds_the_mass():
+    robot = load_robot('')
+    held = with_payload(robot, Payload.parse('forearm,8,0.3,0,0,0.1,0.1,0.1'))
+    assert held.total_mass == pytest.approx(robot.total_mass + 8.0)
+    assert robot.total_mass == pytest.approx(433.8)  # the nominal model is untouched
+
+
+def test_log_cholesky_round_trip():
+    theta = Payload.parse('x,3,0.1,-0.2,0.05,0.02,0.03,0.04').spatial_inertia() \
+        .toDynamicParameters()
+    back = pin.LogCholeskyParameters(log_cholesky_from_dynamic(theta)).toDynamicParameters()
+    assert np.allclose(back, theta, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize('name', ['paper', 'tree', 'planar'])
+def test_identification_accuracy(bags, name):
+    """Issue 22 acceptance: mass 3 %, CoM 5 mm, principal inertias 15 %, each within 3 sigma."""
+    robot = case_robot(name)
+    truth = Payload.parse(CASES[name][3])
+    estimate = identify_bag(str(bags[name]), robot, truth.link, realistic_params())
+    found = estimate.payload
+    assert abs(found.mass / truth.mass - 1.0) < 0.03
+    assert abs(found.mass - truth.mass) < 3.0 * estimate.mass_sigma
+    if name == 'planar':
+        # A planar base sees m, m cx, m cy and Izz only: the rest is reported blind.
+        assert set(estimate.blind) == {'m*cz', 'Ixx', 'Ixy', 'Iyy', 'Ixz', 'Iyz'}
+        axes = [0, 1]
+        inertia, true_inertia = found.inertia[2, 2], truth.inertia[2, 2]
+        sigma = estimate.inertia_sigma[2, 2]
+        assert abs(inertia / true_inertia - 1.0) < 0.15
+        assert abs(inertia - true_inertia) < 3.0 * sigma
+    else:
+        assert estimate.blind == []
+        axes = [0, 1, 2]
+        error = found.principal_inertia - truth.principal_inertia
+        assert np.all(np.abs(error / truth.principal_inertia) < 0.15)
+        assert np.all(np.abs(error) < 3.0 * estimate.principal_sigma)
+    com_error = np.abs(found.com - truth.com)[axes]
+    assert np.all(com_error < 0.005)
+    assert np.all(com_error < 3.0 * estimate.com_sigma[axes])
+
+
+def test_identified_payload_restores_momentum_conservation(bags):
+    """The mu spread and false drift wrench: wrong model >> identified <= 2 x true model."""
+    robot = case_robot('paper')
+    truth = Payload.parse(CASES['paper'][3])
+    params = realistic_params()
+    estimate = identify_bag(str(bags['paper']), robot, truth.link, params)
+    window = read_window(str(bags['paper']), robot, params)
+    wrong = momentum_quality(robot, window, params)
+    identified = momentum_quality(with_payload(robot, estimate.payload), window, params)
+    true = momentum_quality(with_payload(robot, truth), window, params)
+    for key in ('mu_spread', 'drift_wrench'):
+        assert identified[key] <= 2.0 * true[key]
+        assert wrong[key] > 2.0 * true[key]
+
+
+def test_still_arm_is_refused(tmp_path):
+    """An unexcited window (the arm held still) is refused with the identifiability message."""
+    robot = load_robot('')
+    plan = tmp_path / 'still.yaml'
+    still = [0.1, 0.2, 0.3, 0.5, 0.2, -0.2]
+    plan.write_text(yaml.safe_dump({'joint_names': list(robot.shape_joint_names), 'points': [
+        {'time': 0.0, 'positions': still}, {'time': 10.0, 'positions': still}]}))
+    bag = tmp_path / 'still'
+    simulate_bag(with_payload(robot, Payload.parse(CASES['paper'][3])), bag,
+                 SimulationOptions(duration=5.0, rate=100.0, seed=4, trajectory=str(plan),
+                                   **REALISTIC))
+    with pytest.raises(IdentificationError, match='poor excitation.*not identifiable'):
+        identify_bag(str(bag), robot, 'forearm', realistic_params())
+    proposal = tmp_path / 'excite.yaml'
+    code = main(['identify', str(bag), '--link', 'forearm', '--propose', str(proposal),
+                 '--excitation-duration', '4'])
+    assert code == 4
+    document = yaml.safe_load(proposal.read_text())
+    positions = np.array([p['positions'] for p in document['points']])
+    assert document['points'][-1]['time'] == pytest.approx(4.0)
+    # The carrying joints move (the wrist fingers do not carry the forearm).
+    assert np.ptp(positions[:, :4], axis=0).min() > 0.05
+    assert np.ptp(positions[:, 4:], axis=0).max() == 0.0
+
+
+def test_window_with_a_thruster_pulse_is_refused(tmp_path):
+    robot = load_robot('')
+    bag = tmp_path / 'pulse'
+    simulate_bag(with_payload(robot, Payload.parse(CASES['paper'][3])), bag,
+                 SimulationOptions(duration=8.0, rate=100.0, seed=4,
+                                   thrusters=(ThrusterPulse(4.0, 0.5, (20, -10, 5, 2, -3, 4)),),
+                                   **REALISTIC))
+    with pytest.raises(IdentificationError, match='external-wrench event'):
+        identify_bag(str(bag), robot, 'forearm', realistic_params())
+
+
+def test_cli_simulate_payload_and_identify(tmp_path, capsys):
+    bag = tmp_path / 'bag'
+    assert main(['simulate', '-o', str(bag), '--duration', '6', '--rate', '50', '--seed', '4',
+                 '--payload', 'forearm,8,0.3,0.05,-0.02,0.12,0.2,0.25']) == 0
+    out = tmp_path / 'payload.yaml'
+    assert main(['identify', str(bag), '--link', 'forearm', '-o', str(out)]) == 0
+    assert 'mass' in capsys.readouterr().out
+    # Noise-free sensors: the payload comes back to the integrator's accuracy.
+    assert load_payload(out).mass == pytest.approx(8.0, rel=1e-4)
+    # A window of the bag: --start/--end seconds from its start.
+    window = tmp_path / 'window.yaml'
+    assert main(['identify', str(bag), '--link', 'forearm', '--start', '1', '--end', '4',
+                 '-o', str(window)]) == 0
+    assert load_payload(window).mass == pytest.approx(8.0, rel=1e-4)
+    assert main(['identify', str(bag), '--link', 'forearm', '--start', '1', '--end',
+                 '1.05', '--propose', str(tmp_path / 'e.yaml')]) == 4  # refused, no crash
+    assert main(['simulate', '-o', str(tmp_path / 'x'), '--payload', 'forearm,1,2']) == 2
+
+
+def test_replay_with_payload_file(bags, tmp_path):
+    """Replay with --payload: the robot gains the payload (mu spread falls to the true model's)."""
+    truth = Payload.parse(CASES['paper'][3])
+    payload_file = tmp_path / 'payload.yaml'
+    truth.write(payload_file)
+    params = tmp_path / 'params.yaml'
+    params.write_text(yaml.safe_dump({'/**/reduced_dynamics': {'ros__parameters': {
+        k: v for k, v in realistic_params().items()
+        if k.endswith('_noise') and k != 'pose_retimed_stamp_noise'}}}))
+    spreads = {}
+    for label, extra in (('nominal', []), ('payload', ['--payload', str(payload_file)])):
+        summary = tmp_path / f'{label}.json'
+        assert main(['replay', str(bags['paper']), '-o', str(tmp_path / label), '--quiet',
+                     '--params', str(params), '--no-smooth', '--summary-json', str(summary)]
+                    + extra) == 0
+        spreads[label] = np.linalg.norm(yaml.safe_load(summary.read_text())['mu_spread'])
+    assert spreads['payload'] < 0.5 * spreads['nominal']
