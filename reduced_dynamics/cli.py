@@ -15,7 +15,7 @@
 """
 Command line: ``reduced-dynamics validate | symmetries | simulate | replay | ...``.
 
-Subcommands: validate, symmetries, simulate, replay, predict, tune, bench.
+Subcommands: validate, symmetries, simulate, replay, replay-many, predict, tune, bench.
 
 One subcommand per task; ``--help`` on each lists its options.
 """
@@ -121,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _extra_commands() -> list:
     registrars = []
-    for module in ('simulator', 'replay', 'predict', 'tune', 'bench'):
+    for module in ('simulator', 'replay', 'fleet', 'predict', 'tune', 'bench'):
         try:
             imported = __import__(f'reduced_dynamics.{module}', fromlist=['register_command'])
         except ImportError:
