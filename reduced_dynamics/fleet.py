@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 from concurrent.futures import as_completed, Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 import dataclasses
 from dataclasses import dataclass
@@ -452,12 +453,29 @@ Submit = Callable[[BagJob], Future]
 
 @contextmanager
 def local_backend(workers: int) -> Iterator[Submit]:
-    """Yield submit(job) -> Future on a local process pool (a worker: one bag at a time)."""
+    """
+    Yield submit(job) -> Future on a local process pool (a worker: one bag at a time).
+
+    A worker that dies (killed, out of memory, a crash in native code) breaks the
+    pool: the bags it held fail with that error and the next bag gets a new pool.
+    """
     # fork: the workers start with the driver's imports (~1 s each under spawn).
     method = 'fork' if 'fork' in multiprocessing.get_all_start_methods() else 'spawn'
-    with ProcessPoolExecutor(max_workers=workers,
-                             mp_context=multiprocessing.get_context(method)) as pool:
-        yield functools.partial(pool.submit, run_bag)
+    context = multiprocessing.get_context(method)
+    pools = [ProcessPoolExecutor(max_workers=workers, mp_context=context)]
+
+    def submit(job: BagJob) -> Future:
+        try:
+            return pools[-1].submit(run_bag, job)
+        except BrokenProcessPool:
+            pools[-1].shutdown(wait=False)
+            pools.append(ProcessPoolExecutor(max_workers=workers, mp_context=context))
+            return pools[-1].submit(run_bag, job)
+    try:
+        yield submit
+    finally:
+        for pool in pools:
+            pool.shutdown()
 
 
 @contextmanager

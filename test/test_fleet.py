@@ -29,7 +29,7 @@ from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.bag.writer import BagWriter
 from reduced_dynamics.cli import main
 from reduced_dynamics.command_mapping import CommandMapping, freeflyer2_mapping
-from reduced_dynamics.fleet import (find_bags, plan_jobs, plot_fleet, read_table,
+from reduced_dynamics.fleet import (find_bags, plan_jobs, plot_fleet, read_table, run_bag,
                                     run_fleet)
 from reduced_dynamics.messages import cdr
 from reduced_dynamics.resources import config_path
@@ -313,3 +313,38 @@ def test_ray_local_cluster_replays_three_shipped_bags_identically(tmp_path):
         _compare(reference, _fleet(tmp_path, manifest, 'ray', 2), 'ray 2')
     finally:
         ray.shutdown()
+
+
+def test_bench_fleet_section_tiny():
+    """The bench's fleet figures: ratios of the same run's 1-worker, 2-worker and Ray runs."""
+    from reduced_dynamics import bench
+    settings = bench.Settings(repeats=1, fleet_bags=2, fleet_bag_seconds=0.3, quick=True)
+    report = bench.run_bench(settings, ['fleet'])
+    figures = {f.name: f for f in report.figures}
+    assert {f.section for f in report.figures} == {'fleet'}
+    two = figures['replay-many, local pool, 2 workers']
+    assert two.unit == 'bags/s' and two.ratio == two.median / two.baseline_median
+    assert two.target == 'ratio >= 1.7'
+    ray_figure = figures.get('replay-many, Ray on this machine, 2 CPUs')
+    if ray_figure is None:
+        assert 'Ray unavailable' in figures['replay-many, local pool, 1 worker'].note
+    else:
+        assert ray_figure.baseline_median == two.median and ray_figure.ratio > 0
+
+
+def _dies_on_paper_constant(job):
+    """Run a bag, but end the worker process on paper_constant (module level: picklable)."""
+    if job.name == 'paper_constant':
+        os._exit(9)  # no exception, no clean-up: the process is gone
+    return run_bag(job)
+
+
+def test_a_worker_that_dies_fails_its_bag_and_the_fleet_goes_on(tmp_path, monkeypatch):
+    """A bag that kills its worker process (as an out-of-memory kill would) is a failed row."""
+    from reduced_dynamics import fleet
+    monkeypatch.setattr(fleet, 'run_bag', _dies_on_paper_constant)
+    out = tmp_path / 'out'
+    jobs = plan_jobs([str(DATA / 'paper_constant'), str(DATA / 'paper_thruster')], str(out), {})
+    result = run_fleet(jobs, str(out), 1, 'local', progress=False)
+    assert [row['status'] for row in result.rows] == ['failed', 'ok']
+    assert 'BrokenProcessPool' in result.rows[0]['error'] and result.failed == 1
