@@ -127,6 +127,9 @@ def load_manifest(path: str) -> tuple[dict, list[tuple[Path, dict]]]:
             start: 10.0
             end: 40.0
             params: {pose_position_noise: 0.001}   # or a parameters YAML file
+          - path: campaign/run_03        # a named entry: a job of its own
+            name: run_03-first-half
+            end: 25.0
 
     Relative file paths (bags, urdf, params, command_mapping) are relative to the
     manifest's directory.
@@ -144,7 +147,7 @@ def load_manifest(path: str) -> tuple[dict, list[tuple[Path, dict]]]:
     def options(entry: Any, what: str) -> dict:
         if not isinstance(entry, dict):
             raise ValueError(f'manifest {path}: {what} must be a mapping of options')
-        unknown = sorted(set(entry) - known - {'path'})
+        unknown = sorted(set(entry) - known - {'path', 'name'})
         if unknown:
             raise ValueError(f'manifest {path}: {what}: unknown options {unknown}; '
                              f'known: {sorted(known)}')
@@ -200,25 +203,44 @@ def plan_jobs(paths: Sequence[str], out_dir: str, options: dict,
     Return the fleet's jobs: every bag of ``paths`` and of the manifest, once, in order.
 
     A bag's options: ``options`` (the command line), then the manifest's defaults,
-    then every manifest entry whose path is the bag or a directory holding it.
+    then every manifest entry whose path is the bag or a directory holding it. A
+    manifest entry with a ``name`` is a job of its own (one bag, e.g. a time window
+    of a bag that is also replayed whole) and applies to no other bag.
     """
     defaults, entries = load_manifest(manifest) if manifest else ({}, [])
-    bags: list[Path] = []
-    for path in [*paths, *(p for p, _ in entries)]:
+    shared = [(path, entry) for path, entry in entries if 'name' not in entry]
+    planned: list[tuple[Path, Optional[dict]]] = []
+    seen: set = set()
+    for path in [*paths, *(p for p, e in entries if 'name' not in e)]:
         for bag in find_bags(path):
             bag = bag.resolve()
-            if bag not in bags:
-                bags.append(bag)
-    if not bags:
+            if bag not in seen:
+                seen.add(bag)
+                planned.append((bag, None))
+    for path, entry in entries:
+        if 'name' in entry:
+            if not is_bag(path):
+                raise ValueError(f'manifest {manifest}: {entry["name"]}: {path} is not a bag '
+                                 '(an entry with a name is one bag)')
+            planned.append((path, entry))
+    if not planned:
         raise FileNotFoundError('no bag found in ' + ', '.join(map(str, paths or [manifest])))
     jobs, names = [], set()
-    for bag in bags:
+    for bag, own in planned:
         merged = {k: v for k, v in options.items() if v is not None}
         merged.update(defaults)
-        for path, entry in entries:
-            if bag == path or path in bag.parents:
-                merged.update(entry)
-        name = bag.stem if bag.is_file() else bag.name
+        if own is None:
+            for path, entry in shared:
+                if bag == path or path in bag.parents:
+                    merged.update(entry)
+            name = bag.stem if bag.is_file() else bag.name
+        else:
+            merged.update({k: v for k, v in own.items() if k != 'name'})
+            name = str(own['name'])
+            if not name or name.startswith('.') \
+                    or not all(c.isalnum() or c in '-_.' for c in name):
+                raise ValueError(f'manifest {manifest}: name {name!r}: use letters, digits, '
+                                 '"-", "_" and "."')
         unique, k = name, 2
         while unique in names:
             unique, k = f'{name}-{k}', k + 1

@@ -162,6 +162,27 @@ def test_manifest_options_apply_per_bag_over_the_command_line(tmp_path):
     assert len({job.options_hash for job in jobs.values()}) == len(jobs)
 
 
+def test_a_named_manifest_entry_is_a_job_of_its_own(tmp_path):
+    """The same bag whole and as a time window: two jobs, two rows."""
+    manifest = tmp_path / 'm.yaml'
+    manifest.write_text(f"""
+defaults: {{end: 3.0}}
+bags:
+  - {DATA / 'paper_constant'}
+  - {{path: {DATA / 'paper_constant'}, name: first-second, end: 1.0}}
+""")
+    out = tmp_path / 'out'
+    assert main(['replay-many', '--manifest', str(manifest), '-o', str(out), '--quiet',
+                 '--workers', '1']) == 0
+    rows = read_table(str(out / 'fleet.csv'))
+    assert [(r['name'], r['window_end_s']) for r in rows] == [('paper_constant', 3.0),
+                                                              ('first-second', 1.0)]
+    assert 0 < rows[1]['processed'] < rows[0]['processed']
+    manifest.write_text(f'bags:\n  - {{path: {DATA}, name: all}}\n')
+    with pytest.raises(ValueError, match='an entry with a name is one bag'):
+        plan_jobs([], str(out), {}, str(manifest))
+
+
 # --- command mapping ---------------------------------------------------------------------
 
 def test_freeflyer2_mapping_is_the_data_readme_switch_table():
