@@ -461,7 +461,7 @@ def plot_fleet(table: str | list[dict], png: str,
     ax.set_title(title, fontsize=10)
     ax.axhline(0.0, color='black', linewidth=0.5)
     ax.grid(True, axis='y', alpha=0.3)
-    ax.legend(fontsize=8, ncol=len(columns), loc='lower right')
+    ax.legend(fontsize=8, loc='upper left', bbox_to_anchor=(1.0, 1.0))
     fig.tight_layout()
     fig.savefig(png, dpi=80)
     plt.close(fig)

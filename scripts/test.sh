@@ -114,7 +114,7 @@ echo "python: $("$PYTHON" -c 'import sys; print(sys.executable, sys.version.spli
 if [ "$RD_SKIP_INSTALL" != 1 ]; then
   # Real ROS 2 Jazzy rclpy: a sourced ROS 2 install provides it; otherwise the PyPI wheels
   # of the [ros] extra (rclpy with Fast DDS and the message packages). [fleet]: Ray and
-  # Dask for replay-many's backends (test_fleet.py; ~1 min and ~320 MB from PyPI, measured).
+  # Dask for replay-many's backends (test_fleet.py; ~1 min and ~280 MB from PyPI, measured).
   extras=test,fleet
   if ! "$PYTHON" -c 'import rclpy' 2>/dev/null; then
     extras=test,ros,fleet
