@@ -132,7 +132,7 @@ class CommandMapping:
         return np.array([t.unit_wrench() for t in self.thrusters])
 
     def wrench(self, values: Any) -> np.ndarray:
-        """Return the body wrench (fx, fy, fz, tx, ty, tz) of one message's values."""
+        """Return the body wrench [fx fy fz tx ty tz] of one message's thruster values."""
         values = np.asarray(values, dtype=float).reshape(-1)
         if len(values) != len(self.thrusters):
             raise ValueError(f'{self.msgtype}.{self.field} has {len(values)} values, the '

@@ -422,8 +422,8 @@ def write_table(rows: list[dict], out_dir: str) -> tuple[str, str]:
     for row in rows:
         columns.extend(k for k in row if k not in columns)
     table = pa.Table.from_pylist([{c: row.get(c) for c in columns} for row in rows])
-    csv_path, parquet_path = os.path.join(out_dir, TABLE_CSV), os.path.join(out_dir,
-                                                                           TABLE_PARQUET)
+    csv_path = os.path.join(out_dir, TABLE_CSV)
+    parquet_path = os.path.join(out_dir, TABLE_PARQUET)
     pyarrow.csv.write_csv(table, csv_path)
     pyarrow.parquet.write_table(table, parquet_path)
     return csv_path, parquet_path
