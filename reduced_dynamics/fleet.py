@@ -479,7 +479,8 @@ def local_backend(workers: int) -> Iterator[Submit]:
     Yield submit(job) -> Future on a local process pool (a worker: one bag at a time).
 
     A worker that dies (killed, out of memory, a crash in native code) breaks the
-    pool: the bags it held fail with that error and the next bag gets a new pool.
+    pool: the bags it held fail with that error and the next bag gets a new pool
+    (:func:`run_fleet` tries each such bag twice).
     """
     # fork: the workers start with the driver's imports (~1 s each under spawn).
     method = 'fork' if 'fork' in multiprocessing.get_all_start_methods() else 'spawn'
@@ -601,16 +602,29 @@ def run_fleet(jobs: Sequence[BagJob], out_dir: str, workers: int = 1,
                 # At most `workers` bags in flight: the backends' queues stay short and
                 # the progress bar tells what runs now.
                 pending: dict[Future, int] = {}
-                queue = list(todo)
-                while queue or pending:
-                    while queue and len(pending) < max(workers, 1):
+                queue, retries = list(todo), []
+                attempts = dict.fromkeys(todo, 0)
+                while queue or retries or pending:
+                    if retries and not pending:
+                        # Alone: a bag that ends its worker again takes no other with it.
+                        index = retries.pop(0)
+                        attempts[index] += 1
+                        pending[submit(jobs[index])] = index
+                    while queue and not retries and len(pending) < max(workers, 1):
                         index = queue.pop(0)
+                        attempts[index] += 1
                         pending[submit(jobs[index])] = index
                     done = next(as_completed(pending))
                     index = pending.pop(done)
                     try:
                         row = done.result()
-                    except Exception as error:  # noqa: B902 (a worker that died)
+                    # run_bag never raises: this is the worker itself (killed, out of
+                    # memory, a crash). It takes the bags beside it down too, so each
+                    # gets a second try, alone; a bag that ends its worker twice fails.
+                    except Exception as error:  # noqa: B902
+                        if attempts[index] < 2:
+                            retries.append(index)
+                            continue
                         row = {**_job_columns(jobs[index]), 'status': 'failed',
                                'error': f'worker: {type(error).__name__}: {error}'}
                     finished(index, row)

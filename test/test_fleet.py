@@ -365,7 +365,9 @@ def test_a_worker_that_dies_fails_its_bag_and_the_fleet_goes_on(tmp_path, monkey
     from reduced_dynamics import fleet
     monkeypatch.setattr(fleet, 'run_bag', _dies_on_paper_constant)
     out = tmp_path / 'out'
-    jobs = plan_jobs([str(DATA / 'paper_constant'), str(DATA / 'paper_thruster')], str(out), {})
-    result = run_fleet(jobs, str(out), 1, 'local', progress=False)
-    assert [row['status'] for row in result.rows] == ['failed', 'ok']
+    jobs = plan_jobs([str(DATA / 'paper_constant'), str(DATA / 'paper_thruster'),
+                      str(DATA / 'planar_pose_only')], str(out), {})
+    # With 2 workers a bag beside the one that dies may go down with it: tried again.
+    result = run_fleet(jobs, str(out), 2, 'local', progress=False)
+    assert [row['status'] for row in result.rows] == ['failed', 'ok', 'ok']
     assert 'BrokenProcessPool' in result.rows[0]['error'] and result.failed == 1
