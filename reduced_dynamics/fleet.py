@@ -39,9 +39,10 @@ import json
 import multiprocessing
 import os
 from pathlib import Path
+import resource
 import sys
 import time
-from typing import Any, Callable, Iterator, Optional, Sequence
+from typing import Any, Callable, Iterator, NamedTuple, Optional, Sequence
 
 import yaml
 
@@ -330,6 +331,9 @@ def run_bag(job: BagJob) -> dict:
             fleet['command_correlation'] = _correlation(job.bag, out_bag, summary,
                                                         job.options['command_mapping'])
         fleet['wall_s'] = time.perf_counter() - started
+        # The worker's high-water mark so far (Linux: KiB): the fleet's largest is
+        # the memory one worker needs.
+        fleet['worker_peak_rss_mib'] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         summary['fleet'] = fleet
         _write_json(summary_path, summary)
         return fleet_row(job, summary)
@@ -387,7 +391,8 @@ def fleet_row(job: BagJob, summary: dict) -> dict:
                 'prediction_shape_residual_median':
                     summary.get('prediction_shape_residual_median'),
                 'replay_s': summary.get('seconds'),
-                'wall_s': fleet.get('wall_s')})
+                'wall_s': fleet.get('wall_s'),
+                'worker_peak_rss_mib': fleet.get('worker_peak_rss_mib')})
     correlation = fleet.get('command_correlation')
     if correlation is not None:
         row.update({'corr_fx': correlation.get('fx'), 'corr_fy': correlation.get('fy'),
@@ -473,67 +478,90 @@ def plot_fleet(table: str | list[dict], png: str,
 Submit = Callable[[BagJob], Future]
 
 
+class Slots(NamedTuple):
+    """What a backend offers: submit(job) -> Future, and how many bags run at once."""
+
+    submit: Submit
+    count: int
+
+
 @contextmanager
-def local_backend(workers: int) -> Iterator[Submit]:
+def local_backend(workers: Optional[int]) -> Iterator[Slots]:
     """
-    Yield submit(job) -> Future on a local process pool (a worker: one bag at a time).
+    Yield a local process pool of ``workers`` (default: the CPU count), one bag each.
 
     A worker that dies (killed, out of memory, a crash in native code) breaks the
     pool: the bags it held fail with that error and the next bag gets a new pool
     (:func:`run_fleet` tries each such bag twice).
     """
-    # fork: the workers start with the driver's imports (~1 s each under spawn).
-    method = 'fork' if 'fork' in multiprocessing.get_all_start_methods() else 'spawn'
-    context = multiprocessing.get_context(method)
-    pools = [ProcessPoolExecutor(max_workers=workers, mp_context=context)]
+    count = workers or os.cpu_count() or 1
+    # forkserver: workers forked from a clean server that imported replay once (~1 s
+    # each under spawn), not from the driver, whose threads (tqdm, a Ray or Dask client
+    # of an earlier run, gRPC) a plain fork would copy in an unknown state.
+    if 'forkserver' in multiprocessing.get_all_start_methods():
+        context = multiprocessing.get_context('forkserver')
+        context.set_forkserver_preload(['reduced_dynamics.fleet', 'reduced_dynamics.replay'])
+    else:
+        context = multiprocessing.get_context('spawn')
+    pools = [ProcessPoolExecutor(max_workers=count, mp_context=context)]
 
     def submit(job: BagJob) -> Future:
         try:
             return pools[-1].submit(run_bag, job)
         except BrokenProcessPool:
             pools[-1].shutdown(wait=False)
-            pools.append(ProcessPoolExecutor(max_workers=workers, mp_context=context))
+            pools.append(ProcessPoolExecutor(max_workers=count, mp_context=context))
             return pools[-1].submit(run_bag, job)
     try:
-        yield submit
+        yield Slots(submit, count)
     finally:
         for pool in pools:
             pool.shutdown()
 
 
 @contextmanager
-def ray_backend(workers: int, address: Optional[str]) -> Iterator[Submit]:
+def ray_backend(workers: Optional[int], address: Optional[str]) -> Iterator[Slots]:
     """
-    Yield submit(job) -> Future on Ray: an existing cluster at ``address``, else a local one.
+    Yield Ray: an existing cluster at ``address``, else a local one of ``workers`` CPUs.
 
     A task takes one CPU; the bag is read by the node the task lands on, from the
     same path: on a cluster, the bags and OUTDIR must be on a shared filesystem.
+    ``workers`` bags run at once (default: the cluster's CPUs).
     """
     import ray
     started = not ray.is_initialized()
     if started:
-        kwargs: dict[str, Any] = {'address': address} if address else {'num_cpus': workers}
+        kwargs: dict[str, Any] = {'address': address} if address \
+            else {'num_cpus': workers or os.cpu_count() or 1}
         ray.init(include_dashboard=False, log_to_driver=False, **kwargs)
     remote = ray.remote(num_cpus=1, max_retries=0)(run_bag)
     try:
-        yield lambda job: remote.remote(job).future()
+        count = workers or max(int(ray.cluster_resources().get('CPU', 1)), 1)
+        yield Slots(lambda job: remote.remote(job).future(), count)
     finally:
         if started:
             ray.shutdown()
 
 
 @contextmanager
-def dask_backend(workers: int, address: Optional[str]) -> Iterator[Submit]:
-    """Yield submit(job) -> Future on Dask distributed: a scheduler at ``address``, else local."""
+def dask_backend(workers: Optional[int], address: Optional[str]) -> Iterator[Slots]:
+    """
+    Yield Dask distributed: the scheduler at ``address``, else a local cluster.
+
+    The local cluster has ``workers`` single-threaded processes (default: the CPU
+    count); ``workers`` bags run at once (default: the cluster's threads).
+    """
     from distributed import Client, LocalCluster
     if address:
         client = Client(address)
     else:
-        client = Client(LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+        client = Client(LocalCluster(n_workers=workers or os.cpu_count() or 1,
+                                     threads_per_worker=1, processes=True,
                                      dashboard_address=None))
     try:
         executor = client.get_executor(pure=False)
-        yield functools.partial(executor.submit, run_bag)
+        count = workers or max(sum(client.nthreads().values()), 1)
+        yield Slots(functools.partial(executor.submit, run_bag), count)
     finally:
         cluster = client.cluster
         client.close()
@@ -541,8 +569,10 @@ def dask_backend(workers: int, address: Optional[str]) -> Iterator[Submit]:
             cluster.close()
 
 
-def backend(name: str, workers: int, address: Optional[str] = None) -> Any:
-    """Return the context manager of backend ``name`` (submit(job) -> Future)."""
+def backend(name: str, workers: Optional[int] = None, address: Optional[str] = None) -> Any:
+    """Return the context manager of backend ``name`` (it yields :class:`Slots`)."""
+    if workers is not None and workers < 1:
+        raise ValueError(f'workers must be >= 1, got {workers}')
     if name == 'local':
         if address:
             raise ValueError('--address is for the ray and dask backends')
@@ -570,7 +600,7 @@ class FleetResult:
         return sum(r['status'] == 'failed' for r in self.rows)
 
 
-def run_fleet(jobs: Sequence[BagJob], out_dir: str, workers: int = 1,
+def run_fleet(jobs: Sequence[BagJob], out_dir: str, workers: Optional[int] = None,
               backend_name: str = 'local', address: Optional[str] = None,
               progress: bool = True) -> FleetResult:
     """Replay ``jobs`` (resuming where the options' hash matches); write the table."""
@@ -598,8 +628,8 @@ def run_fleet(jobs: Sequence[BagJob], out_dir: str, workers: int = 1,
 
     try:
         if todo:
-            with backend(backend_name, workers, address) as submit:
-                # At most `workers` bags in flight: the backends' queues stay short and
+            with backend(backend_name, workers, address) as (submit, slots):
+                # At most `slots` bags in flight: the backends' queues stay short and
                 # the progress bar tells what runs now.
                 pending: dict[Future, int] = {}
                 queue, retries = list(todo), []
@@ -610,7 +640,7 @@ def run_fleet(jobs: Sequence[BagJob], out_dir: str, workers: int = 1,
                         index = retries.pop(0)
                         attempts[index] += 1
                         pending[submit(jobs[index])] = index
-                    while queue and not retries and len(pending) < max(workers, 1):
+                    while queue and not retries and len(pending) < slots:
                         index = queue.pop(0)
                         attempts[index] += 1
                         pending[submit(jobs[index])] = index
@@ -646,7 +676,7 @@ def _run(args: argparse.Namespace) -> int:
             options[key] = os.path.abspath(options[key])
     if not args.bags and not args.manifest:
         raise ValueError('give bags or directories of bags, or a --manifest')
-    if args.workers < 1:
+    if args.workers is not None and args.workers < 1:
         raise ValueError(f'--workers must be >= 1, got {args.workers}')
     jobs = plan_jobs(args.bags, args.output, options, args.manifest)
     result = run_fleet(jobs, args.output, args.workers, args.backend, args.address,
@@ -673,8 +703,9 @@ def register_command(commands: Any) -> None:
     parser.add_argument('bags', nargs='*', metavar='BAG_OR_DIR',
                         help='rosbag2 bags, .mcap files, or directories searched for bags')
     parser.add_argument('-o', '--output', required=True, metavar='OUTDIR')
-    parser.add_argument('--workers', type=int, default=os.cpu_count() or 1,
-                        help='bags replayed at once (default: the CPU count)')
+    parser.add_argument('--workers', type=int, default=None,
+                        help='bags replayed at once (default: the CPU count; on a Ray or '
+                             'Dask cluster, its CPUs)')
     parser.add_argument('--backend', choices=BACKENDS, default='local',
                         help='local process pool (default), Ray or Dask distributed')
     parser.add_argument('--address', help='Ray cluster or Dask scheduler address (default: '

@@ -39,7 +39,8 @@ from reduced_dynamics.thrusters import FREEFLYER_ARM, FREEFLYER_FORCE, LAYOUTS
 DATA = Path(__file__).resolve().parent / 'data'
 FREEFLYER_URDF = str(config_path('robots/freeflyer.urdf'))
 #: Summary entries that are wall-clock times or paths, not results.
-_NOT_RESULTS = {'seconds', 'samples_per_second', 'input_bag', 'output_bag', 'wall_s'}
+_NOT_RESULTS = {'seconds', 'samples_per_second', 'input_bag', 'output_bag', 'wall_s',
+                'worker_peak_rss_mib'}
 
 
 def _manifest(tmp_path: Path, extra: str = '') -> Path:
@@ -117,7 +118,7 @@ def test_fleet_outputs_table_and_damaged_bags(tmp_path):
     assert good['mu_spread_max'] == max(summary['mu_spread'])
     assert good['filter_poses_retimed'] == summary['filter']['poses_retimed']
     assert good['duration_s'] == pytest.approx(15.003393865)
-    assert good['wall_s'] > 0
+    assert good['wall_s'] > 0 and good['worker_peak_rss_mib'] > 10
     with open_bag(out / good['output_bag']) as reader:
         assert reader.message_count() == sum(summary['messages_out'].values()) > 0
     # The planar testbed with its own robot: per-bag options from the manifest.
@@ -369,5 +370,6 @@ def test_a_worker_that_dies_fails_its_bag_and_the_fleet_goes_on(tmp_path, monkey
                       str(DATA / 'planar_pose_only')], str(out), {})
     # With 2 workers a bag beside the one that dies may go down with it: tried again.
     result = run_fleet(jobs, str(out), 2, 'local', progress=False)
-    assert [row['status'] for row in result.rows] == ['failed', 'ok', 'ok']
+    assert [row['status'] for row in result.rows] == ['failed', 'ok', 'ok'], \
+        [row['error'] for row in result.rows]
     assert 'BrokenProcessPool' in result.rows[0]['error'] and result.failed == 1
