@@ -170,7 +170,7 @@ def test_a_named_manifest_entry_is_a_job_of_its_own(tmp_path):
 defaults: {{end: 3.0}}
 bags:
   - {DATA / 'paper_constant'}
-  - {{path: {DATA / 'paper_constant'}, name: first-second, end: 1.0}}
+  - {{path: {DATA / 'paper_constant'}, name: first-second, end: 1.0, plots: true}}
 """)
     out = tmp_path / 'out'
     assert main(['replay-many', '--manifest', str(manifest), '-o', str(out), '--quiet',
@@ -179,6 +179,8 @@ bags:
     assert [(r['name'], r['window_end_s']) for r in rows] == [('paper_constant', 3.0),
                                                               ('first-second', 1.0)]
     assert 0 < rows[1]['processed'] < rows[0]['processed']
+    assert (out / 'first-second' / 'plots' / 'momentum.png').is_file()
+    assert not (out / 'paper_constant' / 'plots').exists()
     manifest.write_text(f'bags:\n  - {{path: {DATA}, name: all}}\n')
     with pytest.raises(ValueError, match='an entry with a name is one bag'):
         plan_jobs([], str(out), {}, str(manifest))
