@@ -841,6 +841,14 @@ def bench_fleet(report: Report, robot, settings: Settings, workdir: str) -> None
     rate = {k: [count / s for s in v] for k, v in runs.items()}
     label = (f'{count} bags of {settings.fleet_bag_seconds:g} s at 1 kHz, '
              f'{os.cpu_count()} CPUs, load average {load:.1f} -> {os.getloadavg()[0]:.1f}')
+    try:
+        with open('/proc/sys/kernel/sched_autogroup_enabled', encoding='ascii') as stream:
+            if stream.read().strip() == '1':
+                # Linux shares the CPUs between sessions, not processes: on a busy
+                # machine the workers of one fleet split one session's share.
+                label += '; kernel autogroup on (CPU shared per session)'
+    except OSError:
+        pass
     report.add(make_figure('fleet', 'replay-many, local pool, 2 workers', 'bags/s', rate['2'],
                            'same, 1 worker', rate['1'],
                            [a / b for a, b in zip(rate['2'], rate['1'])], 'ratio >= 1.7',
