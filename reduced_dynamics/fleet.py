@@ -35,6 +35,7 @@ import dataclasses
 from dataclasses import dataclass
 import functools
 import hashlib
+import importlib
 import json
 import multiprocessing
 import os
@@ -485,6 +486,15 @@ class Slots(NamedTuple):
     count: int
 
 
+def _import_backend(module: str) -> Any:
+    """Return the backend's module, or a ValueError saying how to install it."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as error:
+        raise ValueError(f'the {module} backend is not installed ({error}): pip install '
+                         '"reduced_dynamics[fleet]" (Ray and Dask distributed)') from None
+
+
 @contextmanager
 def local_backend(workers: Optional[int]) -> Iterator[Slots]:
     """
@@ -528,12 +538,16 @@ def ray_backend(workers: Optional[int], address: Optional[str]) -> Iterator[Slot
     same path: on a cluster, the bags and OUTDIR must be on a shared filesystem.
     ``workers`` bags run at once (default: the cluster's CPUs).
     """
-    import ray
+    ray = _import_backend('ray')
     started = not ray.is_initialized()
     if started:
         kwargs: dict[str, Any] = {'address': address} if address \
             else {'num_cpus': workers or os.cpu_count() or 1}
-        ray.init(include_dashboard=False, log_to_driver=False, **kwargs)
+        try:
+            ray.init(include_dashboard=False, log_to_driver=False, **kwargs)
+        except Exception as error:  # noqa: B902 (Ray raises many kinds; all mean "no cluster")
+            raise ValueError(f'cannot start or reach Ray ({address or "local"}): '
+                             f'{error}') from error
     remote = ray.remote(num_cpus=1, max_retries=0)(run_bag)
     try:
         count = workers or max(int(ray.cluster_resources().get('CPU', 1)), 1)
@@ -551,9 +565,14 @@ def dask_backend(workers: Optional[int], address: Optional[str]) -> Iterator[Slo
     The local cluster has ``workers`` single-threaded processes (default: the CPU
     count); ``workers`` bags run at once (default: the cluster's threads).
     """
-    from distributed import Client, LocalCluster
+    distributed = _import_backend('distributed')
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
     if address:
-        client = Client(address)
+        try:
+            client = Client(address, timeout=30)
+        except OSError as error:  # TimeoutError, connection refused
+            raise ValueError(f'cannot reach the Dask scheduler at {address}: '
+                             f'{error}') from error
     else:
         client = Client(LocalCluster(n_workers=workers or os.cpu_count() or 1,
                                      threads_per_worker=1, processes=True,

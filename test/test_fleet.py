@@ -375,3 +375,12 @@ def test_a_worker_that_dies_fails_its_bag_and_the_fleet_goes_on(tmp_path, monkey
     assert [row['status'] for row in result.rows] == ['failed', 'ok', 'ok'], \
         [row['error'] for row in result.rows]
     assert 'BrokenProcessPool' in result.rows[0]['error'] and result.failed == 1
+
+
+@pytest.mark.parametrize('backend, module', [('ray', 'ray'), ('dask', 'distributed')])
+def test_a_missing_backend_is_a_clear_error(tmp_path, monkeypatch, capsys, backend, module):
+    import sys
+    monkeypatch.setitem(sys.modules, module, None)  # import fails as if not installed
+    assert main(['replay-many', str(DATA / 'paper_constant'), '-o', str(tmp_path / 'o'),
+                 '--backend', backend, '--quiet']) == 2
+    assert f'the {module} backend is not installed' in capsys.readouterr().err
