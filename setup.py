@@ -33,6 +33,7 @@ DATA_PACKAGE = package_name + '._data'
 config_files = _rel_glob('config/*.yaml')
 robot_files = _rel_glob('config/robots/*.urdf')
 plan_files = _rel_glob('config/plans/*.yaml')
+thruster_files = _rel_glob('config/thrusters/*.yaml')
 
 packages = find_packages(where=_here, exclude=['test', 'test.*'])
 package_dir = {}
@@ -40,7 +41,7 @@ package_data = {}
 if config_files or robot_files:
     packages.append(DATA_PACKAGE)
     package_dir[DATA_PACKAGE] = 'config'
-    package_data[DATA_PACKAGE] = ['*.yaml', 'robots/*.urdf', 'plans/*.yaml']
+    package_data[DATA_PACKAGE] = ['*.yaml', 'robots/*.urdf', 'plans/*.yaml', 'thrusters/*.yaml']
 
 # colcon (`setup.py install`/`develop`) puts the console scripts into lib/reduced_dynamics
 # (setup.cfg), where `ros2 run` looks and which is not on PATH. colcon-core's environment
@@ -65,6 +66,7 @@ setup(
         ('share/' + package_name + '/config', config_files),
         ('share/' + package_name + '/config/robots', robot_files),
         ('share/' + package_name + '/config/plans', plan_files),
+        ('share/' + package_name + '/config/thrusters', thruster_files),
     ] + colcon_bin,
     python_requires='>=3.10',
     install_requires=[
@@ -77,6 +79,9 @@ setup(
         'matplotlib',
         # .xacro robot descriptions (robot/xacro_file.py)
         'xacro',
+        # replay-many: its table (fleet.parquet, fleet.csv) and its progress bar
+        'pyarrow',
+        'tqdm',
     ],
     extras_require={
         'test': ['pytest', 'hypothesis'],
@@ -87,6 +92,9 @@ setup(
         # wheels, for machines without a ROS 2 install (the rosdep keys of package.xml
         # are the same dependencies for a ROS 2 install). lifecycle_msgs comes with rclpy.
         'ros': ['ros-jazzy-rclpy[fastrtps]', 'ros-jazzy-common-interfaces'],
+        # replay-many's distributed backends (--backend ray | dask); the local process
+        # pool needs neither.
+        'fleet': ['ray', 'dask[distributed]'],
     },
     tests_require=['pytest', 'hypothesis'],
     zip_safe=False,

@@ -102,6 +102,9 @@ class Settings:
     node_sweep_seconds: float = 2.0
     #: the simulated window of section payload [s]
     payload_seconds: float = 20.0
+    #: bags of section fleet and the length of each (1 kHz, simulated)
+    fleet_bags: int = 8
+    fleet_bag_seconds: float = 2.0
     quick: bool = False
 
     @classmethod
@@ -113,6 +116,7 @@ class Settings:
                    memory_long_seconds=20.0, scaling_samples=200, scaling_evaluations=60,
                    planned_bag_seconds=20.0, node_seconds=2.0,
                    node_warmup=1.0, node_sweep_seconds=1.0, payload_seconds=6.0,
+                   fleet_bag_seconds=1.0,
                    quick=True)
 
 
@@ -790,6 +794,82 @@ def bench_replay(report: Report, robot, settings: Settings, workdir: str) -> Non
                            'ratio <= 1.1 (flat)', lambda r: r <= 1.1, note))
 
 
+# --------------------------------------------------------------------------- fleet
+def _fleet_seconds(jobs: list, out: str, workers: int, backend: str) -> float:
+    """Run a fleet into a fresh ``out``; return its wall time (every bag must replay)."""
+    from reduced_dynamics.fleet import run_fleet
+    shutil.rmtree(out, ignore_errors=True)
+    start = time.perf_counter()
+    result = run_fleet(jobs, out, workers, backend, progress=False)
+    elapsed = time.perf_counter() - start
+    failed = [row for row in result.rows if row['status'] != 'ok']
+    if failed:
+        raise RuntimeError(f'fleet bench: a bag failed: {failed[0]}')
+    return elapsed
+
+
+def bench_fleet(report: Report, robot, settings: Settings, workdir: str) -> None:
+    """
+    Section fleet: replay-many throughput, 2 workers vs 1, Ray on this machine vs the pool.
+
+    ``fleet_bags`` copies of one simulated bag (1 kHz); every repeat runs each
+    configuration into a fresh OUTDIR (nothing resumed). The Ray cluster is started
+    once before the repeats, as a campaign's would be (its start-up is not timed).
+    """
+    from reduced_dynamics.fleet import plan_jobs
+    source = os.path.join(workdir, 'bags', 'bag0')
+    simulate_input_bag(robot, source, settings.fleet_bag_seconds)
+    for k in range(1, settings.fleet_bags):
+        shutil.copytree(source, os.path.join(workdir, 'bags', f'bag{k}'))
+    out = os.path.join(workdir, 'out')
+    jobs = plan_jobs([os.path.join(workdir, 'bags')], out, {})
+    try:
+        import ray
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+        ray_note = ''
+    except Exception as error:  # noqa: B902 (not installed, or it cannot start here)
+        ray, ray_note = None, f'Ray unavailable: {error}'
+    runs: dict[str, list] = {'1': [], '2': [], 'ray': []}
+    # Other processes on the machine take cores the 2 workers would use: say how busy it was.
+    load = os.getloadavg()[0]
+    try:
+        for _ in range(settings.repeats):
+            # Alternating the configurations spreads the machine's drift over all three.
+            runs['1'].append(_fleet_seconds(jobs, out, 1, 'local'))
+            runs['2'].append(_fleet_seconds(jobs, out, 2, 'local'))
+            if ray is not None:
+                runs['ray'].append(_fleet_seconds(jobs, out, 2, 'ray'))
+    finally:
+        if ray is not None:
+            ray.shutdown()
+        shutil.rmtree(out, ignore_errors=True)
+    count = len(jobs)
+    rate = {k: [count / s for s in v] for k, v in runs.items()}
+    label = (f'{count} bags of {settings.fleet_bag_seconds:g} s at 1 kHz, '
+             f'{os.cpu_count()} CPUs, load average {load:.1f} -> {os.getloadavg()[0]:.1f}')
+    try:
+        with open('/proc/sys/kernel/sched_autogroup_enabled', encoding='ascii') as stream:
+            if stream.read().strip() == '1':
+                # Linux shares the CPUs between sessions, not processes: on a busy
+                # machine the workers of one fleet split one session's share.
+                label += '; kernel autogroup on (CPU shared per session)'
+    except OSError:
+        pass
+    report.add(make_figure('fleet', 'replay-many, local pool, 2 workers', 'bags/s', rate['2'],
+                           'same, 1 worker', rate['1'],
+                           [a / b for a, b in zip(rate['2'], rate['1'])], 'ratio >= 1.7',
+                           lambda r: r >= 1.7, label))
+    if ray is not None:
+        report.add(make_figure('fleet', 'replay-many, Ray on this machine, 2 CPUs', 'bags/s',
+                               rate['ray'], 'local pool, 2 workers', rate['2'],
+                               [a / b for a, b in zip(rate['ray'], rate['2'])],
+                               'ratio >= 0.85 (within 15 %)', lambda r: r >= 0.85,
+                               label + '; ray.init before the repeats'))
+    else:
+        report.add(make_figure('fleet', 'replay-many, local pool, 1 worker', 'bags/s',
+                               rate['1'], note=ray_note))
+
+
 # --------------------------------------------------------------------------- 4. scaling
 def time_evaluation(robot, calls: int, repeats: int) -> list:
     """Return seconds per reduced vector-field evaluation at a generic state."""
@@ -1083,7 +1163,8 @@ def write_csv(report: Report, path: str) -> None:
             writer.writerow(asdict(figure))
 
 
-SECTIONS = ('update', 'prediction', 'replay', 'scaling', 'planned', 'node', 'payload')
+SECTIONS = ('update', 'prediction', 'replay', 'scaling', 'planned', 'node', 'payload',
+            'fleet')
 
 
 def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
@@ -1129,6 +1210,13 @@ def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
         workdir = tempfile.mkdtemp(prefix='reduced_dynamics_bench_')
         try:
             bench_node(report, settings, workdir)
+        finally:
+            shutil.rmtree(workdir, ignore_errors=True)
+    if 'fleet' in sections:
+        say('fleet (replay-many)...')
+        workdir = tempfile.mkdtemp(prefix='reduced_dynamics_bench_')
+        try:
+            bench_fleet(report, robot, settings, workdir)
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
     return report

@@ -15,7 +15,8 @@
 """
 Command line: ``reduced-dynamics validate | symmetries | simulate | replay | ...``.
 
-Subcommands: validate, symmetries, simulate, replay, predict, tune, bench, identify.
+Subcommands: validate, symmetries, simulate, replay, replay-many, predict, tune, bench,
+identify.
 
 One subcommand per task; ``--help`` on each lists its options.
 """
@@ -127,7 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _extra_commands() -> list:
     registrars = []
-    for module in ('simulator', 'replay', 'predict', 'tune', 'bench', 'identify'):
+    for module in ('simulator', 'replay', 'fleet', 'predict', 'tune', 'bench', 'identify'):
         try:
             imported = __import__(f'reduced_dynamics.{module}', fromlist=['register_command'])
         except ImportError:

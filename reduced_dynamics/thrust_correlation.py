@@ -23,10 +23,13 @@ rotated by the measured yaw), both smoothed by the same Savitzky-Golay filter
 (window 61, order 3), 61 samples dropped at each end.
 
 The commands are ``ff_msgs/msg/ThrusterCommand`` (``std_msgs/Header header``,
-``bool[8] switches``), whose definition is not in the bags: their CDR bytes are
-read directly (:func:`decode_thruster_command`). :func:`write_command_bag`
-turns them into the body-frame geometry_msgs/WrenchStamped the estimator's
-commanded-wrench input takes (README "Commanded wrench").
+``bool[8] switches``), whose definition is not in the bags. What they push with
+is data, not code: a command mapping (:mod:`reduced_dynamics.command_mapping`;
+default the shipped ``config/thrusters/freeflyer2.yaml``) gives the message's
+definition and each thruster's direction, position and force, so any thruster
+vehicle's command is judged the same way. :func:`write_command_bag` turns them
+into the body-frame geometry_msgs/WrenchStamped the estimator's commanded-wrench
+input takes (README "Commanded wrench").
 
 :func:`write_command_twin` writes a recording's **command twin**: the same pose
 stamps (receive times and all), the recording's own measured mocap noise
@@ -47,12 +50,12 @@ from scipy.signal import savgol_filter
 
 from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.bag.writer import BagWriter
+from reduced_dynamics.command_mapping import CommandMapping, freeflyer2_mapping
 from reduced_dynamics.estimator.retiming import FrameRetimer
 from reduced_dynamics.messages.cdr import encode_wrench_stamped
 from reduced_dynamics.messages.samples import WrenchSample
 from reduced_dynamics.resources import config_path
 from reduced_dynamics.robot.model import load_robot
-from reduced_dynamics.thrusters import FREEFLYER_FORCE, LAYOUTS
 
 COMMAND_TOPIC = '/robot/commands/binary_thrust'
 #: The commands as body wrenches in :func:`write_command_bag`'s output.
@@ -87,17 +90,11 @@ def decode_thruster_command(data: bytes) -> tuple[int, tuple[bool, ...]]:
     return sec * 1_000_000_000 + nanosec, switches
 
 
-def _commands(bag: str) -> tuple[np.ndarray, np.ndarray]:
-    """Return command stamps [ns] (the record time where the header stamp is 0) and wrenches."""
-    units = np.array(LAYOUTS['freeflyer'])[:, [0, 1, 5]] * FREEFLYER_FORCE
-    stamps, wrenches = [], []
-    with open_bag(bag) as reader:
-        for message in reader.raw_messages([COMMAND_TOPIC]):
-            stamp, switches = decode_thruster_command(message.data)
-            stamps.append(stamp or message.timestamp_ns)
-            wrenches.append(np.array(switches, dtype=float) @ units)
-    order = np.argsort(stamps, kind='stable')
-    return np.array(stamps)[order], np.array(wrenches)[order]
+def _commands(bag: str, mapping: Optional[CommandMapping] = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Return command stamps [ns] (the record time where the header stamp is 0), (Fx, Fy, Mz)."""
+    stamps, wrenches = (mapping or freeflyer2_mapping()).read_commands(bag)
+    return stamps, wrenches[:, [0, 1, 5]]
 
 
 def _planar(pose) -> tuple[float, float, float]:
@@ -114,7 +111,8 @@ def _poses(bag: str, topic: str) -> tuple[list[int], np.ndarray]:
         for message in reader.messages([topic]):
             stamp = message.msg.header.stamp.sec * 1_000_000_000 \
                 + message.msg.header.stamp.nanosec
-            rows.append((stamp, *_planar(message.msg.pose)))
+            pose = message.msg.pose  # PoseStamped's pose, Odometry's PoseWithCovariance
+            rows.append((stamp, *_planar(getattr(pose, 'pose', pose))))
     rows.sort(key=lambda row: row[0])
     return [row[0] for row in rows], np.array([row[1:] for row in rows])
 
@@ -139,15 +137,22 @@ def _held(stamps: list[int], source_stamps, values: np.ndarray) -> np.ndarray:
 
 def thrust_correlation(bag: str, out_bag: str, pose_topic: str = POSE_TOPIC,
                        window: int = WINDOW, order: int = ORDER,
-                       poses_bag: Optional[str] = None) -> Correlation:
+                       poses_bag: Optional[str] = None,
+                       mapping: Optional[CommandMapping] = None) -> Correlation:
     """
     Return the README's correlation of ``out_bag``'s wrench estimate with ``bag``'s commands.
 
-    ``poses_bag``: the bag whose poses turn the command into the world frame (default
-    ``bag``; a command twin's own, :func:`write_command_twin`).
+    ``poses_bag``: the bag whose poses (PoseStamped or Odometry) turn the command into
+    the world frame (default ``bag``; a command twin's own, :func:`write_command_twin`).
+    ``mapping``: the command message and thrusters (default freeflyer2's).
     """
     stamps, estimate = _estimates(out_bag)
-    command_stamps, commands = _commands(bag)
+    if len(stamps) <= 2 * window:
+        raise ValueError(f'{out_bag}: {len(stamps)} wrench estimates, the correlation needs '
+                         f'more than {2 * window} (the smoothing window dropped at each end)')
+    command_stamps, commands = _commands(bag, mapping)
+    if not len(command_stamps):
+        raise ValueError(f'{bag}: no thruster command to correlate with')
     pose_stamps, poses = _poses(poses_bag or bag, pose_topic)
     state = _held(stamps, pose_stamps, poses)
     x, y, yaw = state[:, 0], state[:, 1], state[:, 2]
@@ -175,29 +180,33 @@ def momentum_spread(out_bag: str) -> Optional[np.ndarray]:
 
 
 def write_command_bag(bag: str, out: str, pose_topic: str = POSE_TOPIC,
-                      frame_id: str = 'robot') -> int:
+                      frame_id: str = 'robot', mapping: Optional[CommandMapping] = None) -> int:
     """
     Copy ``bag``'s poses and write its thruster switches as body wrenches; return the count.
 
-    Each ff_msgs/msg/ThrusterCommand becomes a geometry_msgs/msg/WrenchStamped on
-    :data:`WRENCH_COMMAND_TOPIC` at the same record time: the nominal body wrench of
-    the switches by the data README's thruster map (0.2 N per thruster, 0.11461 m
-    lever arm; :data:`reduced_dynamics.thrusters.LAYOUTS`), stamped with the
+    Each command message (``mapping``, default freeflyer2's ff_msgs/msg/ThrusterCommand)
+    becomes a geometry_msgs/msg/WrenchStamped on :data:`WRENCH_COMMAND_TOPIC` at the
+    same record time: the nominal body wrench of its values by the mapping (freeflyer2:
+    the data README's map, 0.2 N per thruster, 0.11461 m lever arm), stamped with the
     header stamp (the record time where it is 0), ``frame_id`` the base link.
     The poses are copied byte for byte.
     """
-    units = np.array(LAYOUTS['freeflyer']) * FREEFLYER_FORCE
+    mapping = mapping or freeflyer2_mapping()
     count = 0
     topics = {pose_topic: 'geometry_msgs/msg/PoseStamped',
               WRENCH_COMMAND_TOPIC: 'geometry_msgs/msg/WrenchStamped'}
     with open_bag(bag) as reader, BagWriter(out, topics, overwrite=True) as writer:
-        for message in reader.raw_messages([pose_topic, COMMAND_TOPIC]):
+        decode = mapping.decoder(reader)
+        for message in reader.raw_messages([pose_topic, mapping.topic]):
             if message.topic == pose_topic:
                 writer.write_raw(pose_topic, message.timestamp_ns, bytes(message.data))
                 continue
-            stamp, switches = decode_thruster_command(bytes(message.data))
-            wrench = np.array(switches, dtype=float) @ units
-            sample = WrenchSample(stamp or message.timestamp_ns, frame_id, wrench[:3],
+            msg = decode(bytes(message.data))
+            if msg is None:  # undecodable: counted by the reader
+                continue
+            stamp = mapping.stamp(msg, message.timestamp_ns)
+            wrench = mapping.wrench(getattr(msg, mapping.field))
+            sample = WrenchSample(stamp, frame_id, wrench[:3],
                                   wrench[3:])
             writer.write_raw(WRENCH_COMMAND_TOPIC, message.timestamp_ns,
                              encode_wrench_stamped(sample))

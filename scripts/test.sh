@@ -17,8 +17,8 @@
 #
 #   1. installs the ament linters from apt (Debian 12 / Ubuntu) when missing,
 #   2. creates the checkout's own venv (.colcon/venv, scripts/python_env.sh) and pip-installs
-#      the package there (editable, [test] and [docs] extras; [ros] = the real rclpy wheels
-#      when no ROS 2 install provides rclpy) and colcon; checks that real rclpy imports and
+#      the package there (editable, [test], [docs] and [fleet] extras; [ros] = the real rclpy
+#      wheels when no ROS 2 install provides rclpy) and colcon; checks that real rclpy imports and
 #      initialises,
 #   3. colcon build  (workspace under .colcon/, never build/ install/ log/),
 #   4. checks the ros2-run executable lib/reduced_dynamics/reduced_dynamics_node and the
@@ -113,10 +113,12 @@ echo "python: $("$PYTHON" -c 'import sys; print(sys.executable, sys.version.spli
 
 if [ "$RD_SKIP_INSTALL" != 1 ]; then
   # Real ROS 2 Jazzy rclpy: a sourced ROS 2 install provides it; otherwise the PyPI wheels
-  # of the [ros] extra (rclpy with Fast DDS and the message packages).
-  extras=test,docs   # docs: Sphinx, which test/test_docs.py runs on docs/
+  # of the [ros] extra (rclpy with Fast DDS and the message packages). [docs]: Sphinx, which
+  # test/test_docs.py runs on docs/. [fleet]: Ray and Dask for replay-many's backends
+  # (test_fleet.py; ~1 min and ~280 MB from PyPI, measured).
+  extras=test,docs,fleet
   if ! "$PYTHON" -c 'import rclpy' 2>/dev/null; then
-    extras=test,docs,ros
+    extras=test,docs,ros,fleet
   fi
   step "pip install -e '.[$extras]' colcon-common-extensions"
   "$PYTHON" -m pip install -q -e "$REPO_ROOT[$extras]" colcon-common-extensions

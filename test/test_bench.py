@@ -47,8 +47,9 @@ def test_statistics_helpers():
 
 
 def test_bench_sections_tiny(tmp_path):
-    # The node section (real DDS, processes) has its own test: test_bench_node.py.
-    sections = [s for s in bench.SECTIONS if s != 'node']
+    # The node section (real DDS, processes) has its own test: test_bench_node.py; the
+    # fleet section (process pools, Ray) its own in test_fleet.py.
+    sections = [s for s in bench.SECTIONS if s not in ('node', 'fleet')]
     report = bench.run_bench(_tiny(), sections)
     assert {f.section for f in report.figures} == set(sections)
     for figure in report.figures:
