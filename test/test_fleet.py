@@ -156,7 +156,8 @@ def test_manifest_options_apply_per_bag_over_the_command_line(tmp_path):
     manifest = _manifest(tmp_path, f'  - path: {DATA / "paper_constant"}\n    start: 1.0\n')
     jobs = {job.name: job for job in plan_jobs([str(DATA)], str(tmp_path / 'o'),
                                                {'end': 2.5, 'urdf': None}, str(manifest))}
-    assert len(jobs) == len([p for p in DATA.iterdir() if p.is_dir()])
+    # every rosbag2 bag under test/data (a folder with metadata.yaml, nested ones too), nothing else
+    assert len(jobs) == len(list(DATA.rglob('metadata.yaml')))
     assert jobs['paper_constant'].options == {'end': 2.5, 'start': 1.0}
     assert jobs['freeflyer_testbed'].options['urdf'] == FREEFLYER_URDF
     assert jobs['paper_realistic'].options == {'end': 2.5}
@@ -271,7 +272,8 @@ def test_correlation_columns_from_a_command_mapping(tmp_path):
     bags = tmp_path / 'bags'
     bags.mkdir()
     assert with_thruster_commands(DATA / 'freeflyer_testbed', bags / 'testbed', mapping) == 122
-    shutil.copytree(DATA / 'paper_constant', bags / 'no_commands')
+    # the same robot's recording without the thruster command topic
+    shutil.copytree(DATA / 'freeflyer_testbed', bags / 'no_commands')
     out = tmp_path / 'out'
     assert main(['replay-many', str(bags), '-o', str(out), '--urdf', FREEFLYER_URDF,
                  '--base-pose-topic', '/base_pose', '--command-mapping', mapping_path,
@@ -368,8 +370,12 @@ def test_a_worker_that_dies_fails_its_bag_and_the_fleet_goes_on(tmp_path, monkey
     from reduced_dynamics import fleet
     monkeypatch.setattr(fleet, 'run_bag', _dies_on_paper_constant)
     out = tmp_path / 'out'
-    jobs = plan_jobs([str(DATA / 'paper_constant'), str(DATA / 'paper_thruster'),
-                      str(DATA / 'planar_pose_only')], str(out), {})
+    manifest = tmp_path / 'planar.yaml'  # the planar bag's own robot
+    manifest.write_text(f"bags:\n  - path: {DATA / 'planar_pose_only'}\n"
+                        f"    urdf: {config_path('robots/planar_testbed.urdf')}\n"
+                        f"    base_joint: planar\n")
+    jobs = plan_jobs([str(DATA / 'paper_constant'), str(DATA / 'paper_thruster')],
+                     str(out), {}, str(manifest))
     # With 2 workers a bag beside the one that dies may go down with it: tried again.
     result = run_fleet(jobs, str(out), 2, 'local', progress=False)
     assert [row['status'] for row in result.rows] == ['failed', 'ok', 'ok'], \
