@@ -127,6 +127,12 @@ OFFSET_PROBABILITY = 1e-3
 STAMP_TWIST_TIME = 0.5
 #: Re-linearisations of an update with a twist (iterated EKF).
 ITERATIONS = kernels.ITERATIONS
+#: A measurement gap of more than STALL_PERIODS nominal intervals is a stall of the base
+#: stream; measurements then stamped less than BUNCHED of an interval apart are its burst.
+STALL_PERIODS = 8.0
+BUNCHED = 0.25
+#: Weight of a regular measurement interval in the nominal interval's running average.
+INTERVAL_WEIGHT = 0.05
 LOG_2PI = math.log(2.0 * math.pi)
 _EMPTY = np.zeros(0)
 
@@ -235,6 +241,13 @@ class MomentumFilter:
         # Body twist averaged over STAMP_TWIST_TIME (pose stamp noise) and its time.
         self._stamp_twist = np.zeros(n)
         self._stamp_twist_ns: Optional[int] = None
+        # Stall and burst of the base stream (see _in_burst): the nominal interval
+        # between measurements, the last stamp and the start of the current stall.
+        self._interval: Optional[float] = None
+        self._last_measured_ns: Optional[int] = None
+        self._stall_from_ns: Optional[int] = None
+        #: measurements left out as a burst after a stall of their stream (_in_burst)
+        self.burst_skipped = 0
         # H of a pose measurement, [1 0 0] (the step test's signatures need it).
         self._h_pose = np.zeros((n, dim))
         self._h_pose[:, :n] = np.eye(n)
@@ -532,6 +545,9 @@ class MomentumFilter:
                  gated: list) -> None:
         """Update with ``measurement`` (if any) at the current time and record the step."""
         g_pred, x_pred, p_pred = self._g, self.x, self.p
+        if measurement is not None and self._in_burst(measurement):
+            self.burst_skipped += 1
+            measurement = None
         if measurement is not None:
             cause = None
             try:
@@ -559,6 +575,36 @@ class MomentumFilter:
             self.steps.append(FilterStep(stamp_ns, transition, g_pred, x_pred, p_pred,
                                          self._g, self.x, self.p, lin.locked_inverse, output,
                                          self._held_command()))
+
+    def _in_burst(self, measurement: Measurement) -> bool:
+        """
+        Return whether ``measurement`` belongs to a burst after a stall of its stream.
+
+        A stream that stalls (a gap of more than ``STALL_PERIODS`` nominal intervals)
+        and then delivers its buffered frames in a burst, stamped on receipt less than
+        ``BUNCHED`` of an interval apart, gives those frames stamps that say nothing of
+        when they were taken (anywhere since the stall began), and their errors are
+        not independent: all are late, the oldest most. Updating with them drove the
+        momentum (a 309 ms stall of a real mocap stream spiked the causal force to
+        9 N). The first frame after the stall and the bunched ones after it are left
+        out (``burst_skipped``); the next regular interval ends the burst. A re-timed
+        stamp (a frame time with its own sigma, estimator/retiming.py) is kept.
+        """
+        stamp, last = measurement.stamp_ns, self._last_measured_ns
+        self._last_measured_ns = stamp
+        if last is None or stamp <= last:
+            return False
+        gap = (stamp - last) * 1e-9
+        nominal = self._interval
+        if nominal is None:
+            self._interval = gap
+            return False
+        if gap > STALL_PERIODS * nominal:
+            self._stall_from_ns = last
+        elif gap >= BUNCHED * nominal:
+            self._stall_from_ns = None
+            self._interval = nominal + INTERVAL_WEIGHT * (gap - nominal)
+        return self._stall_from_ns is not None and measurement.stamp_sigma is None
 
     def step(self, stamp_ns: int, lin: Linearisation, pose: Optional[pin.SE3],
              twist: Optional[np.ndarray], command: Optional[Command] = None) -> bool:

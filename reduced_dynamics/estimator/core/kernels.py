@@ -36,6 +36,9 @@ from reduced_dynamics.estimator.core.lie import adjoint, compose, group_exp, gro
 
 #: Re-linearisations of an update with a twist (iterated EKF).
 ITERATIONS = 2
+#: 3-point Gauss-Legendre nodes and weights on [-1, 1] (exact to degree 5).
+_GAUSS_NODES = np.array([-np.sqrt(0.6), 0.0, np.sqrt(0.6)])
+_GAUSS_WEIGHTS = np.array([5.0 / 9.0, 8.0 / 9.0, 5.0 / 9.0])
 
 
 @njit(cache=True)
@@ -99,12 +102,15 @@ def transition(g: np.ndarray, x: np.ndarray, locked: np.ndarray, inverse_locked:
     """
     Return Phi = exp(F dt) (third order) and the discrete process noise Q (3n).
 
-    The block series of ``MomentumFilter._transition`` (filter.py): with
-    a = F_gg dt, b = F_gmu dt, Phi_gg = 1 + a + a^2/2 + a^3/6,
-    Phi_gmu = b + ab/2 + a^2 b/6, Phi_gw = (b/2 + ab/6) dt, Phi_muw = dt; Van Loan's
-    integral to fourth order with q = Q_w dt: Q_ww = q, Q_muw = q dt/2,
-    Q_mumu = q dt^2/3, Q_gw = (b/6 + ab/24) q dt, Q_gmu = b q dt^2/8,
-    Q_gg = A Sigma A^T dt^2.
+    F has two non-trivial blocks only, F_gg = -(ad_xi + I^-1 W(pi)) and
+    F_gmu = I^-1 Ad_g^T, at mu in the middle of the step; the mu-w chain is
+    nilpotent. With a = F_gg dt, b = F_gmu dt the series gives, blockwise,
+    Phi_gg = 1 + a + a^2/2 + a^3/6, Phi_gmu = b + ab/2 + a^2 b/6,
+    Phi_gw = (b/2 + ab/6) dt, Phi_muw = dt. Q is Van Loan's integral of the wrench
+    density through Phi(s)'s w column (3-point Gauss-Legendre; with q = Q_w dt it
+    gives Q_ww = q, Q_muw = q dt/2, Q_mumu = q dt^2/3, Q_gw = (b/6 + ab/24) q dt,
+    Q_gmu = b q dt^2/8 + O(dt^5), Q_gg = b q b^T dt^2/20 + O(dt^6)), plus
+    Q_gg += A Sigma_qdot A^T dt^2 (encoder velocity noise held over the step).
     """
     n = locked.shape[0]
     ad_t = adjoint(g, basis, pinv, whole).T
@@ -120,21 +126,27 @@ def transition(g: np.ndarray, x: np.ndarray, locked: np.ndarray, inverse_locked:
     phi[:n, 2 * n:] = (0.5 * b + ab / 6.0) * dt
     for i in range(n):
         phi[n + i, 2 * n + i] = dt
-    # Q_w = Ad_{g^-1}^T I diag(s^2) I Ad_{g^-1}.
+    # Q_w = Ad_{g^-1}^T I diag(s^2) I Ad_{g^-1} (a density: per second).
     scaled = adjoint(inverse(g), basis, pinv, whole).T @ locked
-    qa = ((scaled * jerk_var) @ scaled.T) * dt
-    q = np.empty((3 * n, 3 * n))
-    q[:n, :n] = joint_cov * (dt * dt)
-    q_gmu = (b * (dt * dt / 8.0)) @ qa
-    q_gw = ((b / 6.0 + ab / 24.0) * dt) @ qa
-    q[:n, n:2 * n] = q_gmu
-    q[:n, 2 * n:] = q_gw
-    q[n:2 * n, :n] = q_gmu.T
-    q[2 * n:, :n] = q_gw.T
-    q[n:2 * n, n:2 * n] = qa * (dt * dt / 3.0)
-    q[n:2 * n, 2 * n:] = qa * (0.5 * dt)
-    q[2 * n:, n:2 * n] = qa * (0.5 * dt)
-    q[2 * n:, 2 * n:] = qa
+    density = (scaled * jerk_var) @ scaled.T
+    # Van Loan's integral int_0^dt Phi(s) L Qc L^T Phi(s)^T ds by 3-point Gauss-Legendre:
+    # a sum of terms v Qc v^T, so Q is positive semi-definite by construction (the
+    # truncated series was not: after a 1 s stall its Q_gg = 0 beside Q_gw != 0 made P
+    # indefinite). Exact for the mu-w chain (polynomials of degree <= 5 in s).
+    q = np.zeros((3 * n, 3 * n))
+    column = np.zeros((3 * n, n))
+    for node in range(3):
+        s = 0.5 * dt * (1.0 + _GAUSS_NODES[node])
+        a_s = a * (s / dt)
+        b_s = b * (s / dt)
+        # Phi(s)'s w column: [(b_s/2 + a_s b_s/6) s; s 1; 1] (the series above at s).
+        column[:n] = (0.5 * b_s + (a_s @ b_s) / 6.0) * s
+        for i in range(n):
+            column[n + i, i] = s
+            column[2 * n + i, i] = 1.0
+        q += (0.5 * dt * _GAUSS_WEIGHTS[node]) * (column @ density @ column.T)
+    q[:n, :n] += joint_cov * (dt * dt)
+    q = symmetric(q)
     return phi, q
 
 
@@ -176,13 +188,15 @@ def transition_commanded(g: np.ndarray, x: np.ndarray, locked: np.ndarray,
     qc = np.zeros((dim, dim))
     qc[2 * n:3 * n, 2 * n:3 * n] = (scaled * jerk_var) @ scaled.T
     qc[3 * n:, 3 * n:] = command_density
-    a = qc * dt
-    fa = fdt @ a
-    f2a = fdt @ fa
-    f3a = fdt @ f2a
-    f2af = f2a @ fdt.T
-    q = a + 0.5 * (fa + fa.T) + (f2a + f2a.T + 2.0 * fa @ fdt.T) / 6.0 \
-        + (f3a + f3a.T + 3.0 * (f2af + f2af.T)) / 24.0
+    # Van Loan's integral by 3-point Gauss-Legendre with Phi(s) the same series at s:
+    # positive semi-definite by construction (see transition).
+    q = np.zeros((dim, dim))
+    for node in range(3):
+        s = 0.5 * dt * (1.0 + _GAUSS_NODES[node])
+        fs = f * s
+        fs2 = fs @ fs
+        phi_s = np.eye(dim) + fs + 0.5 * fs2 + (fs2 @ fs) / 6.0
+        q += (0.5 * dt * _GAUSS_WEIGHTS[node]) * (phi_s @ qc @ phi_s.T)
     q[:n, :n] += joint_cov * (dt * dt)
     return phi, symmetric(q)
 
