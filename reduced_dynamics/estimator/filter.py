@@ -131,8 +131,11 @@ ITERATIONS = kernels.ITERATIONS
 #: stream; measurements then stamped less than BUNCHED of an interval apart are its burst.
 STALL_PERIODS = 8.0
 BUNCHED = 0.25
-#: Weight of a regular measurement interval in the nominal interval's running average.
+#: Weight of a measurement interval in the nominal interval's running average, and the
+#: number of first intervals whose median starts it.
 INTERVAL_WEIGHT = 0.05
+FIRST_GAPS = 9
+LOG_4 = math.log(4.0)
 LOG_2PI = math.log(2.0 * math.pi)
 _EMPTY = np.zeros(0)
 
@@ -246,6 +249,7 @@ class MomentumFilter:
         self._interval: Optional[float] = None
         self._last_measured_ns: Optional[int] = None
         self._stall_from_ns: Optional[int] = None
+        self._first_gaps: list[float] = []
         #: measurements left out as a burst after a stall of their stream (_in_burst)
         self.burst_skipped = 0
         # H of a pose measurement, [1 0 0] (the step test's signatures need it).
@@ -597,13 +601,21 @@ class MomentumFilter:
         gap = (stamp - last) * 1e-9
         nominal = self._interval
         if nominal is None:
-            self._interval = gap
+            # The nominal interval starts as the median of the first gaps (one gap may
+            # be a bunched pair).
+            self._first_gaps.append(gap)
+            if len(self._first_gaps) == FIRST_GAPS:
+                self._interval = float(np.median(self._first_gaps))
             return False
         if gap > STALL_PERIODS * nominal:
             self._stall_from_ns = last
         elif gap >= BUNCHED * nominal:
             self._stall_from_ns = None
-            self._interval = nominal + INTERVAL_WEIGHT * (gap - nominal)
+        if self._stall_from_ns is None or gap > STALL_PERIODS * nominal:
+            # A robust running average (log domain, each gap's pull clipped to 4x): a
+            # lone stall or bunched pair barely moves it; the bursts' gaps never do.
+            pull = min(max(math.log(gap / nominal), -LOG_4), LOG_4)
+            self._interval = nominal * math.exp(INTERVAL_WEIGHT * pull)
         return self._stall_from_ns is not None and measurement.stamp_sigma is None
 
     def step(self, stamp_ns: int, lin: Linearisation, pose: Optional[pin.SE3],
@@ -627,7 +639,7 @@ class MomentumFilter:
                 lin: Linearisation, stamp_sigma: Optional[float] = None) -> bool:
         n = self.n
         g0, x0, p0 = self._g, self.x, self.p
-        measured = pose.homogeneous
+        measured = np.ascontiguousarray(pose.homogeneous)
         with_twist = twist is not None
         values = _EMPTY if twist is None else np.asarray(twist, dtype=float)
         sigma = 0.0

@@ -429,7 +429,7 @@ class Estimator:
                          'nis_sum', 'nis_dof', '_lin', '_gated_run', '_gated_residuals',
                          'pose_offsets', '_stamp_twist', '_stamp_twist_ns', 'diverged',
                          'restart_causes', 'burst_skipped', '_interval', '_last_measured_ns',
-                         '_stall_from_ns'):
+                         '_stall_from_ns', '_first_gaps'):
                 setattr(self.filter, name, getattr(old_filter, name))
             if self.commanded_wrench:
                 self.filter._command = old_filter._command
