@@ -562,7 +562,9 @@ class MomentumFilter:
                 elif not (np.diag(self.p) >= 0.0).all():
                     cause = 'negative variance'
             except (np.linalg.LinAlgError, ZeroDivisionError) as error:
-                accepted, cause = False, f'singular matrix ({error})'
+                accepted = False
+                cause = 'covariance not finite' if not np.isfinite(self.p).all() \
+                    else f'singular matrix ({error})'
             if cause is not None:
                 # Last resort: the Joseph form keeps P positive semi-definite for any
                 # gain, so this takes a covariance corrupted before the update (a
