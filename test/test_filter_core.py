@@ -104,8 +104,9 @@ def test_process_noise_is_positive_semidefinite_after_a_long_gap(command: bool) 
 
 def _stalled_stream(robot, stall: float, seed: int = 0):
     """
-    A 16 kg free-flyer drifting without wrench, 120 Hz mocap stamped on receipt.
+    Return the start and the poses of a free-flyer drifting without wrench (120 Hz).
 
+    The mocap is stamped on receipt.
     Frames of [4 s, 4 s + stall) are held and delivered at its end in one burst,
     stamped 20 us apart (a stalled mocap client), as in the recording of issue 19.
     """

@@ -27,6 +27,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 import pinocchio as pin
 
+
 @dataclass(frozen=True)
 class NoiseModel:
     """
