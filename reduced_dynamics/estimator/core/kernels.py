@@ -133,18 +133,23 @@ def transition(g: np.ndarray, x: np.ndarray, locked: np.ndarray, inverse_locked:
     # a sum of terms v Qc v^T, so Q is positive semi-definite by construction (the
     # truncated series was not: after a 1 s stall its Q_gg = 0 beside Q_gw != 0 made P
     # indefinite). Exact for the mu-w chain (polynomials of degree <= 5 in s).
+    # With r = s/dt the w column is [g_r; s 1; 1], g_r = (b r/2 + ab r^2/6) s, so the
+    # blocks are sums over the nodes of g D g^T, s g D, g D, s^2 D, s D and D.
     q = np.zeros((3 * n, 3 * n))
-    column = np.zeros((3 * n, n))
     for node in range(3):
-        s = 0.5 * dt * (1.0 + _GAUSS_NODES[node])
-        a_s = a * (s / dt)
-        b_s = b * (s / dt)
-        # Phi(s)'s w column: [(b_s/2 + a_s b_s/6) s; s 1; 1] (the series above at s).
-        column[:n] = (0.5 * b_s + (a_s @ b_s) / 6.0) * s
-        for i in range(n):
-            column[n + i, i] = s
-            column[2 * n + i, i] = 1.0
-        q += (0.5 * dt * _GAUSS_WEIGHTS[node]) * (column @ density @ column.T)
+        r = 0.5 * (1.0 + _GAUSS_NODES[node])
+        s = r * dt
+        weight = 0.5 * dt * _GAUSS_WEIGHTS[node]
+        g_r = (0.5 * r) * b + (r * r / 6.0) * ab
+        gd = (g_r * s) @ density
+        q[:n, :n] += weight * (gd @ (g_r * s).T)
+        q[:n, n:2 * n] += (weight * s) * gd
+        q[:n, 2 * n:] += weight * gd
+        q[n:2 * n, n:2 * n] += (weight * s * s) * density
+        q[n:2 * n, 2 * n:] += (weight * s) * density
+        q[2 * n:, 2 * n:] += weight * density
+    q[n:, :n] = q[:n, n:].T
+    q[2 * n:, n:2 * n] = q[n:2 * n, 2 * n:].T
     q[:n, :n] += joint_cov * (dt * dt)
     q = symmetric(q)
     return phi, q
@@ -217,8 +222,31 @@ def propagate(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
                             jerk_var, basis, pinv, whole, ad_rows, form_rows)
     g1, x1 = propagate_mean(g, x, inverse_locked, connection_qd, dt, u, commanded, basis, pinv,
                             whole)
-    p1 = phi @ p @ phi.T + q
+    if commanded:
+        p1 = phi @ p @ phi.T + q
+    else:
+        p1 = _chain_product(phi, p, dt) + q
     return g1, x1, symmetric(p1), phi
+
+
+@njit(cache=True)
+def _chain_product(phi: np.ndarray, p: np.ndarray, dt: float) -> np.ndarray:
+    """
+    Return Phi P Phi^T for the 3n transition, whose lower block rows are [0 1 dt; 0 0 1].
+
+    Phi P's rows: the pose block row is a product, the mu row is P_mu + dt P_w, the w
+    row P_w; the same again on the columns (a third of the dense products' work).
+    """
+    n = p.shape[0] // 3
+    m = np.empty_like(p)
+    m[:n] = phi[:n] @ p
+    m[n:2 * n] = p[n:2 * n] + dt * p[2 * n:]
+    m[2 * n:] = p[2 * n:]
+    out = np.empty_like(p)
+    out[:, :n] = m @ phi[:n].T
+    out[:, n:2 * n] = m[:, n:2 * n] + dt * m[:, 2 * n:]
+    out[:, 2 * n:] = m[:, 2 * n:]
+    return out
 
 
 @njit(cache=True)
@@ -283,8 +311,12 @@ def innovation(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
             h[i, i] = 1.0
         nu = group_log(compose(inverse(g), pose), pinv, whole)
         r = r_pose.copy()
-    ph = p @ h.T
-    s = symmetric(h @ ph + r)
+    if with_twist:
+        ph = p @ h.T
+        s = symmetric(h @ ph + r)
+    else:
+        ph = p[:, :n].copy()
+        s = symmetric(p[:n, :n] + r)
     m = nu.shape[0]
     rhs = np.empty((m, dim + 1))
     rhs[:, :dim] = ph.T
@@ -328,8 +360,14 @@ def correct(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
         s = symmetric(p[:n, :n] + r)
     g1 = compose(g, group_exp(dx[:n], basis, whole))
     x1 = x + dx[n:]
-    keep = np.eye(dim) - gain @ h
-    p1 = keep @ p @ keep.T + gain @ r @ gain.T
+    if with_twist:
+        keep = np.eye(dim) - gain @ h
+        p1 = keep @ p @ keep.T + gain @ r @ gain.T
+    else:
+        # H = [1 0 0]: (1 - K H) P = P - K P_g. (rows), then times (1 - K H)^T on the
+        # right: the same product form with the identity blocks skipped.
+        left = p - gain @ p[:n]
+        p1 = left - left[:, :n] @ gain.T + gain @ r @ gain.T
     return g1, x1, symmetric(p1), h, s, gain
 
 
