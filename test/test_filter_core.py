@@ -173,3 +173,29 @@ def test_a_restart_is_logged_and_counted_with_its_cause(caplog) -> None:
     assert any('restarted' in record.message and record.levelno == logging.WARNING
                for record in caplog.records)
     assert np.isfinite(flt.p).all()
+
+
+def test_stall_detector_flags_a_burst_and_nothing_else() -> None:
+    """120 Hz with bunched pairs and 40 ms gaps: no burst; a 0.3 s stall: its burst only."""
+    from reduced_dynamics.estimator.core.stalls import StallDetector
+    rng = np.random.default_rng(4)
+    period = NS // 120
+    stamps, t = [], 0
+    # The first gap a bunched pair (30 us): the median start must not take it as nominal.
+    stamps += [0, 30_000]
+    t = period
+    for k in range(2000):
+        t += period + int(rng.normal(0.0, 5e5))
+        stamps.append(t)
+        if k % 100 == 50:
+            stamps.append(t + 30_000)   # a bunched pair (1 %)
+        if k % 300 == 150:
+            t += 4 * period             # a 40 ms gap (frames lost)
+    detector = StallDetector()
+    assert not any(detector.in_burst(stamp) for stamp in stamps)
+    assert abs(detector.interval - period * 1e-9) < 0.1 * period * 1e-9
+    stall_end = stamps[-1] + int(0.3 * NS)
+    burst = [stall_end + k * 20_000 for k in range(36)]
+    after = [burst[-1] + period * (k + 1) for k in range(5)]
+    flags = [detector.in_burst(stamp) for stamp in burst + after]
+    assert all(flags[:36]) and not any(flags[36:])

@@ -65,8 +65,15 @@ stamping on receipt) puts ``xi dt`` into the residual: the pose noise is
 ``R + xi xi^T sigma_t^2`` (``pose_stamp``), with xi the body twist averaged over
 ``STAMP_TWIST_TIME``. A GLR test of a step in w on the innovations
 (:class:`~reduced_dynamics.estimator.events.WrenchStepTest`) lets the filter take
-a thruster switching at once (``x += D Delta``, ``P += D J^-1 D^T``). A covariance
-that loses positive definiteness restarts the filter from the measurement.
+a thruster switching at once (``x += D Delta``, ``P += D J^-1 D^T``). Frames a
+stream delivers in a burst after a stall carry no timing and are left out
+(:mod:`~reduced_dynamics.estimator.core.stalls`).
+
+The arithmetic runs compiled (:mod:`~reduced_dynamics.estimator.core.kernels`,
+docs/estimator_core.md). The covariance cannot break down: the process noise is a
+sum of ``v Qc v^T`` terms and the update is in Joseph form, both symmetrised. A
+covariance still not finite or with a negative variance (a corrupted input)
+restarts the filter from the measurement, logged as a warning and counted by cause.
 
 Each step may record what the fixed-interval (Rauch-Tung-Striebel) smoother
 needs (:class:`FilterStep`); :func:`smooth` runs it on the group.
@@ -107,6 +114,7 @@ from scipy.stats import chi2
 
 from reduced_dynamics.estimator.core import kernels
 from reduced_dynamics.estimator.core.smoother import smooth
+from reduced_dynamics.estimator.core.stalls import StallDetector
 from reduced_dynamics.estimator.core.state import (Command, FilterState, FilterStep,
                                                    Linearisation, Measurement, NoiseModel,
                                                    between)
@@ -127,15 +135,6 @@ OFFSET_PROBABILITY = 1e-3
 STAMP_TWIST_TIME = 0.5
 #: Re-linearisations of an update with a twist (iterated EKF).
 ITERATIONS = kernels.ITERATIONS
-#: A measurement gap of more than STALL_PERIODS nominal intervals is a stall of the base
-#: stream; measurements then stamped less than BUNCHED of an interval apart are its burst.
-STALL_PERIODS = 8.0
-BUNCHED = 0.25
-#: Weight of a measurement interval in the nominal interval's running average, and the
-#: number of first intervals whose median starts it.
-INTERVAL_WEIGHT = 0.05
-FIRST_GAPS = 9
-LOG_4 = math.log(4.0)
 LOG_2PI = math.log(2.0 * math.pi)
 _EMPTY = np.zeros(0)
 
@@ -244,13 +243,9 @@ class MomentumFilter:
         # Body twist averaged over STAMP_TWIST_TIME (pose stamp noise) and its time.
         self._stamp_twist = np.zeros(n)
         self._stamp_twist_ns: Optional[int] = None
-        # Stall and burst of the base stream (see _in_burst): the nominal interval
-        # between measurements, the last stamp and the start of the current stall.
-        self._interval: Optional[float] = None
-        self._last_measured_ns: Optional[int] = None
-        self._stall_from_ns: Optional[int] = None
-        self._first_gaps: list[float] = []
-        #: measurements left out as a burst after a stall of their stream (_in_burst)
+        #: stalls of the base stream and their bursts (core/stalls.py)
+        self.stalls = StallDetector()
+        #: measurements left out as a burst after a stall of their stream
         self.burst_skipped = 0
         # H of a pose measurement, [1 0 0] (the step test's signatures need it).
         self._h_pose = np.zeros((n, dim))
@@ -549,7 +544,10 @@ class MomentumFilter:
                  gated: list) -> None:
         """Update with ``measurement`` (if any) at the current time and record the step."""
         g_pred, x_pred, p_pred = self._g, self.x, self.p
-        if measurement is not None and self._in_burst(measurement):
+        if measurement is not None and self.stalls.in_burst(measurement.stamp_ns) \
+                and measurement.stamp_sigma is None:
+            # A frame of a burst after a stall (core/stalls.py): its stamp says nothing of
+            # when it was taken. A re-timed stamp (its own sigma) is a frame time: kept.
             self.burst_skipped += 1
             measurement = None
         if measurement is not None:
@@ -581,44 +579,6 @@ class MomentumFilter:
             self.steps.append(FilterStep(stamp_ns, transition, g_pred, x_pred, p_pred,
                                          self._g, self.x, self.p, lin.locked_inverse, output,
                                          self._held_command()))
-
-    def _in_burst(self, measurement: Measurement) -> bool:
-        """
-        Return whether ``measurement`` belongs to a burst after a stall of its stream.
-
-        A stream that stalls (a gap of more than ``STALL_PERIODS`` nominal intervals)
-        and then delivers its buffered frames in a burst, stamped on receipt less than
-        ``BUNCHED`` of an interval apart, gives those frames stamps that say nothing of
-        when they were taken (anywhere since the stall began), and their errors are
-        not independent: all are late, the oldest most. Updating with them drove the
-        momentum (a 309 ms stall of a real mocap stream spiked the causal force to
-        9 N). The first frame after the stall and the bunched ones after it are left
-        out (``burst_skipped``); the next regular interval ends the burst. A re-timed
-        stamp (a frame time with its own sigma, estimator/retiming.py) is kept.
-        """
-        stamp, last = measurement.stamp_ns, self._last_measured_ns
-        self._last_measured_ns = stamp
-        if last is None or stamp <= last:
-            return False
-        gap = (stamp - last) * 1e-9
-        nominal = self._interval
-        if nominal is None:
-            # The nominal interval starts as the median of the first gaps (one gap may
-            # be a bunched pair).
-            self._first_gaps.append(gap)
-            if len(self._first_gaps) == FIRST_GAPS:
-                self._interval = float(np.median(self._first_gaps))
-            return False
-        if gap > STALL_PERIODS * nominal:
-            self._stall_from_ns = last
-        elif gap >= BUNCHED * nominal:
-            self._stall_from_ns = None
-        if self._stall_from_ns is None or gap > STALL_PERIODS * nominal:
-            # A robust running average (log domain, each gap's pull clipped to 4x): a
-            # lone stall or bunched pair barely moves it; the bursts' gaps never do.
-            pull = min(max(math.log(gap / nominal), -LOG_4), LOG_4)
-            self._interval = nominal * math.exp(INTERVAL_WEIGHT * pull)
-        return self._stall_from_ns is not None and measurement.stamp_sigma is None
 
     def step(self, stamp_ns: int, lin: Linearisation, pose: Optional[pin.SE3],
              twist: Optional[np.ndarray], command: Optional[Command] = None) -> bool:

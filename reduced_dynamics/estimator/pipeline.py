@@ -428,8 +428,7 @@ class Estimator:
             for name in ('g', 'x', 'p', 'stamp_ns', 'steps', 'gated', 'log_likelihood',
                          'nis_sum', 'nis_dof', '_lin', '_gated_run', '_gated_residuals',
                          'pose_offsets', '_stamp_twist', '_stamp_twist_ns', 'diverged',
-                         'restart_causes', 'burst_skipped', '_interval', '_last_measured_ns',
-                         '_stall_from_ns', '_first_gaps'):
+                         'restart_causes', 'burst_skipped', 'stalls'):
                 setattr(self.filter, name, getattr(old_filter, name))
             if self.commanded_wrench:
                 self.filter._command = old_filter._command
@@ -1242,7 +1241,7 @@ class Estimator:
         ``filter_restarts``: re-initialisations after the covariance broke down (last
         resort, logged as a warning), ``filter_restart_causes`` by cause;
         ``burst_skipped``: base measurements left out as a burst after a stall of their
-        stream (filter.py ``_in_burst``);
+        stream (estimator/core/stalls.py);
         ``steps_taken``: wrench steps the GLR test detected and the filter took;
         ``pose_steps``: detections not taken, a step of the measured pose explaining the
         innovations better (events.py);
