@@ -390,7 +390,7 @@ def bench_update(report: Report, robot, settings: Settings) -> None:
 
 
 def bench_first_call(report: Report, settings: Settings) -> None:
-X
+    """Time the compiled filter kernels' first call in a fresh process (numba's disk cache)."""
     time_first_call()  # fills the cache if this checkout never ran the kernels
     warm = [time_first_call() for _ in range(min(settings.repeats, 3))]
     report.add(make_figure('update', 'filter kernels: first call, cached', 's', warm,
