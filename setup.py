@@ -72,6 +72,7 @@ setup(
     install_requires=[
         'numpy',
         'scipy',
+        'numba',  # the filter core's compiled kernels (estimator/core)
         'pin',
         'rosbags',
         'mcap',

@@ -24,7 +24,7 @@ from reduced_dynamics.cli import build_parser
 
 
 def _tiny() -> bench.Settings:
-    return bench.Settings(repeats=2, update_samples=60, crba_calls=50,
+    return bench.Settings(repeats=2, update_samples=60, update_warmup=0.05, crba_calls=50,
                           full_rtols=(1e-6, 1e-9), reduced_rtols=(1e-8,),
                           dg_steps=(0.05,), prediction_points=11, replay_seconds=0.3,
                           memory_short_seconds=0.2, memory_long_seconds=0.4,
@@ -59,6 +59,8 @@ def test_bench_sections_tiny(tmp_path):
             assert math.isfinite(figure.ratio)
     names = [f.name for f in report.figures]
     assert 'estimator update (paper robot)' in names
+    first_call = [f for f in report.figures if f.name == 'filter kernels: first call, cached']
+    assert first_call and 0.0 < first_call[0].median < 600.0
     assert any(n.startswith('reduced dop853') for n in names)
     assert any(n.startswith('reduced discrete_gradient') for n in names)
     assert 'replay throughput (prediction off)' in names

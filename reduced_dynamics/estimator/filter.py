@@ -65,8 +65,15 @@ stamping on receipt) puts ``xi dt`` into the residual: the pose noise is
 ``R + xi xi^T sigma_t^2`` (``pose_stamp``), with xi the body twist averaged over
 ``STAMP_TWIST_TIME``. A GLR test of a step in w on the innovations
 (:class:`~reduced_dynamics.estimator.events.WrenchStepTest`) lets the filter take
-a thruster switching at once (``x += D Delta``, ``P += D J^-1 D^T``). A covariance
-that loses positive definiteness restarts the filter from the measurement.
+a thruster switching at once (``x += D Delta``, ``P += D J^-1 D^T``). Frames a
+stream delivers in a burst after a stall carry no timing and are left out
+(:mod:`~reduced_dynamics.estimator.core.stalls`).
+
+The arithmetic runs compiled (:mod:`~reduced_dynamics.estimator.core.kernels`,
+docs/estimator_core.md). The covariance cannot break down: the process noise is a
+sum of ``v Qc v^T`` terms and the update is in Joseph form, both symmetrised. A
+covariance still not finite or with a negative variance (a corrupted input)
+restarts the filter from the measurement, logged as a warning and counted by cause.
 
 Each step may record what the fixed-interval (Rauch-Tung-Striebel) smoother
 needs (:class:`FilterStep`); :func:`smooth` runs it on the group.
@@ -96,16 +103,28 @@ filter is the 3n one above, operation for operation.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections import Counter
+import logging
 import math
-from typing import NamedTuple, Optional, Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 import pinocchio as pin
 from scipy.stats import chi2
 
+from reduced_dynamics.estimator.core import kernels
+from reduced_dynamics.estimator.core.smoother import smooth
+from reduced_dynamics.estimator.core.stalls import StallDetector
+from reduced_dynamics.estimator.core.state import (Command, FilterState, FilterStep,
+                                                   Linearisation, Measurement, NoiseModel,
+                                                   between)
 from reduced_dynamics.estimator.events import StepDetection, WrenchStepTest
 from reduced_dynamics.geometry.lie_group import BaseGroup
+
+__all__ = ['Command', 'FilterState', 'FilterStep', 'Linearisation', 'Measurement',
+           'MomentumFilter', 'NoiseModel', 'between', 'smooth']
+
+LOG = logging.getLogger(__name__)
 
 #: Consecutive gated measurements after which a momentum jump is accepted.
 GATE_RESET = 3
@@ -115,138 +134,19 @@ OFFSET_PROBABILITY = 1e-3
 #: Time constant [s] of the twist average that scales the pose stamp noise.
 STAMP_TWIST_TIME = 0.5
 #: Re-linearisations of an update with a twist (iterated EKF).
-ITERATIONS = 2
+ITERATIONS = kernels.ITERATIONS
 LOG_2PI = math.log(2.0 * math.pi)
-
-
-@dataclass(frozen=True)
-class NoiseModel:
-    """
-    Sensor and process noise in physical units (standard deviations).
-
-    ``pose_position`` [m], ``pose_angle`` [rad]: pose measurement noise;
-    ``twist_linear`` [m/s], ``twist_angular`` [rad/s]: Odometry twist noise;
-    ``joint_velocity`` [rad/s or m/s]: encoder velocity noise;
-    ``jerk_linear`` [m/s^3/sqrt(Hz)], ``jerk_angular`` [rad/s^3/sqrt(Hz)]: density
-    of the body acceleration random walk that drives w (scaled by I);
-    ``initial_speed`` [m/s], ``initial_rate`` [rad/s], ``initial_acceleration``
-    [m/s^2 and rad/s^2]: prior spread of the motion before the first update.
-    Commanded wrench only: ``command_gain`` prior spread of the gain (about 1),
-    ``command_gain_drift`` [1/sqrt(s)] its random-walk density;
-    ``command_bias_linear`` [m/s^2], ``command_bias_angular`` [rad/s^2] prior
-    spread of the bias as a body acceleration (scaled by I), which drifts at
-    ``command_gain_drift`` times that per sqrt(s); ``disturbance_linear``
-    [m/s^3/sqrt(Hz)], ``disturbance_angular`` [rad/s^3/sqrt(Hz)]: the density
-    of w's random walk in place of ``jerk_*`` (w is then the disturbance beyond
-    the command, which no longer carries the thruster switching).
-    """
-
-    pose_position: float = 1e-3
-    pose_angle: float = 2e-3
-    twist_linear: float = 1e-2
-    twist_angular: float = 1e-2
-    joint_velocity: float = 1e-2
-    jerk_linear: float = 0.05
-    jerk_angular: float = 0.5
-    initial_speed: float = 1.0
-    initial_rate: float = 1.0
-    initial_acceleration: float = 1.0
-    command_gain: float = 0.5
-    command_gain_drift: float = 2e-3
-    command_bias_linear: float = 5e-3
-    command_bias_angular: float = 2.5e-2
-    disturbance_linear: float = 1e-3
-    disturbance_angular: float = 5e-3
-    pose_stamp: float = 0.0
-
-
-class Linearisation(NamedTuple):
-    """Per-sample inputs of the process model: I, I^-1, A qbar_dot, A Sigma A^T."""
-
-    locked: np.ndarray
-    locked_inverse: np.ndarray
-    connection_qd: np.ndarray
-    joint_cov: np.ndarray
-
-
-def between(before: Linearisation, after: Linearisation, fraction: float) -> Linearisation:
-    """
-    Return the inputs ``fraction`` of the way from ``before`` to ``after``.
-
-    I^-1 and A qbar_dot are interpolated linearly (the trapezoid of the step's
-    inputs); I and A Sigma A^T are those of ``after``. ``fraction`` 0.5 is the
-    middle of a joint-state interval, written as the plain mean.
-    """
-    if fraction == 0.5:
-        return Linearisation(after.locked,
-                             0.5 * (before.locked_inverse + after.locked_inverse),
-                             0.5 * (before.connection_qd + after.connection_qd), after.joint_cov)
-    return Linearisation(
-        after.locked,
-        before.locked_inverse + fraction * (after.locked_inverse - before.locked_inverse),
-        before.connection_qd + fraction * (after.connection_qd - before.connection_qd),
-        after.joint_cov)
-
-
-class Measurement(NamedTuple):
-    """A base measurement at its own stamp: the pose, and the body twist with Odometry."""
-
-    stamp_ns: int
-    pose: pin.SE3
-    twist: Optional[np.ndarray]
-    #: the stamp's standard deviation [s] when it differs from ``NoiseModel.pose_stamp``
-    #: (a re-timed frame time, estimator/retiming.py); None: ``pose_stamp`` (used only
-    #: when ``pose_stamp`` > 0)
-    stamp_sigma: Optional[float] = None
-
-
-@dataclass
-class FilterStep:
-    """
-    What the RTS smoother needs from one step (predicted and filtered).
-
-    ``output``: the step is a joint-state row (an output of the estimator);
-    False for a base measurement between two rows.
-    """
-
-    stamp_ns: int
-    transition: Optional[np.ndarray]
-    g_pred: pin.SE3
-    x_pred: np.ndarray
-    p_pred: np.ndarray
-    g: pin.SE3
-    x: np.ndarray
-    p: np.ndarray
-    locked_inverse: np.ndarray
-    output: bool = True
-    #: commanded wrench only: the command held at this step's end
-    command: Optional[np.ndarray] = None
-
-
-class Command(NamedTuple):
-    """
-    The commanded body wrench over a step (dual coordinates, body frame).
-
-    ``mean``: its mean over the step (what the propagation integrates);
-    ``now``: the value held at the step's end (what the total wrench reports).
-    """
-
-    mean: np.ndarray
-    now: np.ndarray
-
-
-class FilterState(NamedTuple):
-    """A state estimate: pose, [mu; w] (and [k; b]), covariance (3n or 5n square)."""
-
-    g: pin.SE3
-    x: np.ndarray
-    p: np.ndarray
+_EMPTY = np.zeros(0)
 
 
 def _axis_kinds(group: BaseGroup) -> np.ndarray:
     """Return True for algebra coordinates that rotate (angular), else False."""
     basis = group.algebra_basis
     return np.abs(basis[3:]).sum(axis=0) > 0.0
+
+
+def _homogeneous(g: Optional[pin.SE3]) -> Optional[np.ndarray]:
+    return None if g is None else np.ascontiguousarray(g.homogeneous)
 
 
 class MomentumFilter:
@@ -256,7 +156,9 @@ class MomentumFilter:
     :meth:`row` processes one joint-state row with the base measurements
     stamped since the previous one (each updates once, at its own stamp);
     :meth:`step` is the row with one measurement at the row's stamp. ``record``
-    keeps the steps for :func:`smooth`.
+    keeps the steps for :func:`smooth`. The arithmetic is in
+    :mod:`~reduced_dynamics.estimator.core.kernels` (compiled); this class holds
+    the state, the gating decisions and the step test.
 
     Arrays of the state (``x``, ``p``) are replaced, never modified in place, so
     that recorded steps can share them.
@@ -290,7 +192,8 @@ class MomentumFilter:
         for size in (n, 2 * n):
             self._gates[size] = math.inf if gate_probability <= 0.0 \
                 else float(chi2.isf(gate_probability, size))
-        self.g: Optional[pin.SE3] = None
+        #: the pose as a 4 x 4 homogeneous array (``g`` is its pin.SE3 view)
+        self._g: Optional[np.ndarray] = None
         self.x = np.zeros(dim - n)
         self.p = np.zeros((dim, dim))
         self.stamp_ns: Optional[int] = None
@@ -307,6 +210,7 @@ class MomentumFilter:
         self.last_nis: float = 0.0
         self._eye = np.eye(dim)
         self._eye_n = np.eye(n)
+        self._command_density = np.zeros((2 * n, 2 * n))
         if command:
             self._bias_var = np.where(angular, noise.command_bias_angular ** 2,
                                       noise.command_bias_linear ** 2)
@@ -320,31 +224,42 @@ class MomentumFilter:
         self.nis_dof = 0
         self._lin: Optional[Linearisation] = None
         # Structure constants as matrices: ad(eta) = (eta @ ad_rows).reshape(n, n) and
-        # W(pi) = (form_rows @ pi).reshape(n, n) (one matmul each, no einsum).
+        # W(pi) = (form_rows @ pi).reshape(n, n) (kernels.form).
         structure = group.structure_constants
         self._ad_rows = np.ascontiguousarray(structure.reshape(n, n * n))
         self._form_rows = np.ascontiguousarray(structure.transpose(0, 2, 1).reshape(n * n, n))
         self._whole = group.is_whole
-        self._basis, self._pinv = group.algebra_basis, group.algebra_pinv
-        # Phi has the identity on its diagonal and dt I from w to mu (set per step).
-        self._chain = (np.arange(n, 2 * n), np.arange(2 * n, 3 * n))
-        # Coefficients of the series terms of Phi's top block row (see _transition).
-        self._series1 = np.r_[np.full(2 * n, 0.5), np.full(n, 1.0 / 3.0)]
-        self._series2 = np.r_[np.full(2 * n, 1.0 / 6.0), np.zeros(n)]
+        self._basis = np.ascontiguousarray(group.algebra_basis)
+        self._pinv = np.ascontiguousarray(group.algebra_pinv)
         self._r_pose = np.diag(self._pose_var)
         self._r_twist = np.diag(self._twist_var)
-        self.step_test = WrenchStepTest(n, step_significance, self.dim)
+        self.step_test = WrenchStepTest(n, step_significance, dim)
         #: the wrench step taken since the last row (None: none detected)
         self.step_detected: Optional[StepDetection] = None
         self.steps_taken = 0
-        #: re-initialisations after the covariance lost positive definiteness
+        #: re-initialisations (last resort: the covariance broke down), and by cause
         self.diverged = 0
+        self.restart_causes: Counter = Counter()
         # Body twist averaged over STAMP_TWIST_TIME (pose stamp noise) and its time.
         self._stamp_twist = np.zeros(n)
         self._stamp_twist_ns: Optional[int] = None
+        #: stalls of the base stream and their bursts (core/stalls.py)
+        self.stalls = StallDetector()
+        #: measurements left out as a burst after a stall of their stream
+        self.burst_skipped = 0
         # H of a pose measurement, [1 0 0] (the step test's signatures need it).
-        self._h_pose = np.zeros((n, self.dim))
+        self._h_pose = np.zeros((n, dim))
         self._h_pose[:, :n] = np.eye(n)
+
+    # --- the pose -----------------------------------------------------------------
+    @property
+    def g(self) -> Optional[pin.SE3]:
+        """Return the base pose estimate (None before the first measurement)."""
+        return None if self._g is None else pin.SE3(self._g)
+
+    @g.setter
+    def g(self, value: Optional[pin.SE3]) -> None:
+        self._g = _homogeneous(value)
 
     # --- pieces of the model ----------------------------------------------------------
     @property
@@ -367,7 +282,6 @@ class MomentumFilter:
         n = self.n
         return self.p[2 * n:3 * n, 2 * n:3 * n]
 
-    # --- commanded wrench -------------------------------------------------------------
     @property
     def gain(self) -> np.ndarray:
         """Return the per-axis gain k of the delivered wrench (commanded wrench only)."""
@@ -378,10 +292,13 @@ class MomentumFilter:
         """Return the per-axis bias b of the delivered body wrench (commanded wrench only)."""
         return self.x[3 * self.n:]
 
+    def body_momentum(self) -> np.ndarray:
+        """Return pi = Ad_g^T mu (the momentum in the base frame) of the current estimate."""
+        return kernels.adjoint(self._g, self._basis, self._pinv, self._whole).T @ self.mu
+
     def delivered(self, g: pin.SE3, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Return the delivered wrench Ad_{g^-1}^T (k o u + b) in the world frame."""
-        n = self.n
-        return self.group.Ad(g.inverse()).T @ (x[2 * n:3 * n] * u + x[3 * n:])
+        return kernels.delivered(_homogeneous(g), x, u, self._basis, self._pinv, self._whole)
 
     def total_wrench(self) -> tuple[np.ndarray, np.ndarray]:
         """
@@ -409,8 +326,7 @@ class MomentumFilter:
 
     def wrench_significance(self) -> float:
         """Return w^T P_ww^-1 w (chi-square with n degrees of freedom when w = 0)."""
-        w = self.wrench
-        return float(w @ np.linalg.solve(self.wrench_cov, w))
+        return kernels.significance(self.x, self.p, self.n)
 
     def _adjoint(self, g: pin.SE3) -> np.ndarray:
         """Return Ad_g on the subalgebra (n x n)."""
@@ -424,14 +340,10 @@ class MomentumFilter:
             return g.actionInverse
         return self._pinv @ g.actionInverse @ self._basis
 
-    def _form(self, covector: np.ndarray) -> np.ndarray:
-        """Return W(covector)[a, b] = <covector, [e_a, e_b]> (``coadjoint_form``)."""
-        n = self.n
-        return (self._form_rows @ covector).reshape(n, n)
-
     def twist(self, g: pin.SE3, mu: np.ndarray, lin: Linearisation) -> np.ndarray:
         """Return xi = I^-1 Ad_g^T mu - A qbar_dot (reconstruction)."""
-        return lin.locked_inverse @ (self._adjoint(g).T @ mu) - lin.connection_qd
+        return kernels.twist(_homogeneous(g), mu, lin.locked_inverse, lin.connection_qd,
+                             self._basis, self._pinv, self._whole)
 
     def jacobian(self, g: pin.SE3, mu: np.ndarray, lin: Linearisation) -> np.ndarray:
         """Return F of the error dynamics at (g, mu) (3n x 3n)."""
@@ -445,30 +357,34 @@ class MomentumFilter:
         f[n:2 * n, 2 * n:3 * n] = np.eye(n)
         return f
 
-    def command_jacobian(self, f: np.ndarray, g: pin.SE3, x: np.ndarray,
-                         u: np.ndarray) -> None:
-        """Add the commanded wrench's blocks (module docstring) to F, in place."""
-        n = self.n
-        to_world = self.group.Ad(g.inverse()).T
-        c = x[2 * n:3 * n] * u + x[3 * n:]
-        f[n:2 * n, :n] = to_world @ self.group.coadjoint_form(c)
-        f[n:2 * n, 3 * n:4 * n] = to_world * u
-        f[n:2 * n, 4 * n:] = to_world
-
     def twist_jacobian(self, g: pin.SE3, mu: np.ndarray, lin: Linearisation) -> np.ndarray:
         """Return H of the twist measurement (n x 3n)."""
-        n = self.n
-        ad_t = self._adjoint(g).T
-        pi = ad_t @ mu
-        h = np.zeros((n, self.dim))
-        h[:, :n] = -lin.locked_inverse @ self._form(pi)
-        h[:, n:2 * n] = lin.locked_inverse @ ad_t
-        return h
+        x = np.zeros(self.dim - self.n)
+        x[:self.n] = mu
+        h, _ = kernels.twist_measurement(_homogeneous(g), x, _homogeneous(g), np.zeros(self.n),
+                                         lin.locked_inverse, lin.connection_qd, self.dim,
+                                         self._basis, self._pinv, self._whole,
+                                         self._form_rows)
+        return h[self.n:]
 
     def wrench_density(self, g: pin.SE3, locked: np.ndarray) -> np.ndarray:
         """Return the spectral density of w_dot: Ad_{g^-1}^T I diag(s^2) I Ad_{g^-1}."""
         scaled = self._adjoint_inverse(g).T @ locked
         return (scaled * self._jerk_var) @ scaled.T
+
+    def _command_input(self, u: Optional[np.ndarray]) -> np.ndarray:
+        return _EMPTY if u is None else np.asarray(u, dtype=float)
+
+    def _densities(self, lin: Linearisation) -> np.ndarray:
+        """Return the random-walk density of (k, b) (commanded wrench; else unused)."""
+        if not self.command:
+            return self._command_density
+        n = self.n
+        drift = self.noise.command_gain_drift ** 2
+        out = np.zeros((2 * n, 2 * n))
+        out[:n, :n] = np.eye(n) * drift
+        out[n:, n:] = (lin.locked * (self._bias_var * drift)) @ lin.locked.T
+        return out
 
     def propagate_mean(self, g: pin.SE3, x: np.ndarray, lin: Linearisation,
                        dt: float, u: Optional[np.ndarray] = None
@@ -479,110 +395,25 @@ class MomentumFilter:
         ``u`` (commanded wrench): the command's mean over the step; the
         delivered wrench is taken at the pose of the step's middle.
         """
-        if u is not None:
-            return self._propagate_commanded(g, x, lin, dt, u)
-        n, exp = self.n, self.group.exp
-        mu, w = x[:n], x[n:]
-        half = exp(self.twist(g, mu, lin) * (0.5 * dt))
-        xi = self.twist(g * half, mu + w * (0.5 * dt), lin)
-        out = x.copy()
-        out[:n] = mu + w * dt
-        return g * exp(xi * dt), out
-
-    def _propagate_commanded(self, g: pin.SE3, x: np.ndarray, lin: Linearisation,
-                             dt: float, u: np.ndarray) -> tuple[pin.SE3, np.ndarray]:
-        n, group = self.n, self.group
-        mu = x[:n]
-        middle = g * group.exp(self.twist(g, mu, lin) * (0.5 * dt))
-        rate = x[n:2 * n] + self.delivered(middle, x, u)
-        xi = self.twist(middle, mu + rate * (0.5 * dt), lin)
-        out = x.copy()
-        out[:n] = mu + rate * dt
-        return g * group.exp(xi * dt), out
+        g1, x1 = kernels.propagate_mean(_homogeneous(g), x, lin.locked_inverse,
+                                        lin.connection_qd, dt, self._command_input(u),
+                                        u is not None, self._basis, self._pinv, self._whole)
+        return pin.SE3(g1), x1
 
     def _transition(self, g: pin.SE3, x: np.ndarray, lin: Linearisation,
                     dt: float, u: Optional[np.ndarray] = None
                     ) -> tuple[np.ndarray, np.ndarray]:
-        """
-        Return Phi = exp(F dt) (third order) and the discrete process noise Q.
-
-        F has two non-trivial blocks only, F_gg = -(ad_xi + I^-1 W(pi)) and
-        F_gmu = I^-1 Ad_g^T, at mu in the middle of the step; the mu-w chain is
-        nilpotent. With a = F_gg dt, b = F_gmu dt the series gives, blockwise,
-        Phi_gg = 1 + a + a^2/2 + a^3/6, Phi_gmu = b + ab/2 + a^2 b/6,
-        Phi_gw = (b/2 + ab/6) dt, Phi_muw = dt. Van Loan's integral
-        int_0^dt Phi(s) Qc Phi(s)^T ds as its Taylor series to fourth order in F dt
-        (exact for the mu-w chain), with q = Q_w dt: Q_ww = q, Q_muw = q dt/2,
-        Q_mumu = q dt^2/3, Q_gw = (b/6 + ab/24) q dt, Q_gmu = b q dt^2/8, and
-        Q_gg = A Sigma_qdot A^T dt^2 (encoder velocity noise held over the step).
-        With the commanded wrench (``u``: its mean over the step) F has more blocks
-        (module docstring): the series is then evaluated on the dense 5n matrices.
-        """
+        """Return Phi = exp(F dt) (third order) and Q (kernels.transition and _commanded)."""
         if u is not None:
-            return self._transition_commanded(g, x, lin, dt, u)
-        n = self.n
-        ad_t = self._adjoint(g).T
-        pi = ad_t @ (x[:n] + x[n:] * (0.5 * dt))
-        inverse = lin.locked_inverse
-        xi = inverse @ pi - lin.connection_qd
-        a = ((xi @ self._ad_rows).reshape(n, n) + inverse @ self._form(pi)) * -dt
-        b = (inverse @ ad_t) * dt
-        # The top block row of Phi - 1 from t = [a, b, b dt/2]: t + (a t) c1 + (a a t) c2
-        # with c1 = 1/2 (1/3 in the last block) and c2 = 1/6 (0): the series above.
-        t = np.concatenate((a, b, b * (0.5 * dt)), axis=1)
-        at = a @ t
-        phi = self._eye.copy()
-        phi[:n] += t + at * self._series1 + (a @ at) * self._series2
-        phi[self._chain] = dt
-        # Q_w = Ad_{g^-1}^T I diag(s^2) I Ad_{g^-1}; Ad_{g^-1} = Ad_g^-1 on the subgroup.
-        scaled = self._adjoint_inverse(g).T @ lin.locked
-        qa = ((scaled * self._jerk_var) @ scaled.T) * dt
-        q = np.empty((3 * n, 3 * n))
-        q[:n, :n] = lin.joint_cov * (dt * dt)
-        # [Q_gmu, Q_gw] = [b dt^2/8, (b/6 + ab/24) dt] (1 x 2 blocks) times q.
-        q[:n, n:] = (np.concatenate((b * (dt * dt / 8.0),
-                                     (b / 6.0 + at[:, n:2 * n] / 24.0) * dt)) @ qa
-                     ).reshape(2, n, n).transpose(1, 0, 2).reshape(n, 2 * n)
-        q[n:, :n] = q[:n, n:].T
-        # [[Q_mumu, Q_muw], [Q_wmu, Q_ww]] = [[dt^2/3, dt/2], [dt/2, 1]] (x) q.
-        q[n:, n:] = (np.array([[dt * dt / 3.0, 0.5 * dt], [0.5 * dt, 1.0]])[:, None, :, None]
-                     * qa[None, :, None, :]).reshape(2 * n, 2 * n)
-        return phi, q
-
-    def _transition_commanded(self, g: pin.SE3, x: np.ndarray, lin: Linearisation,
-                              dt: float, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Return Phi and Q of the commanded-wrench filter (dense series, see _transition)."""
-        n = self.n
-        mu_mid = x[:n] + (x[n:2 * n] + self.delivered(g, x, u)) * (0.5 * dt)
-        f = self.jacobian(g, mu_mid, lin)
-        self.command_jacobian(f, g, x, u)
-        fdt = f * dt
-        f2 = fdt @ fdt
-        phi = self._eye + fdt + 0.5 * f2 + (f2 @ fdt) / 6.0
-        qc = np.zeros((self.dim, self.dim))
-        qc[2 * n:3 * n, 2 * n:3 * n] = self.wrench_density(g, lin.locked)
-        qc[3 * n:, 3 * n:] = self._command_density(lin.locked)
-        # Van Loan's integral int_0^dt Phi(s) Qc Phi(s)^T ds as its Taylor series:
-        # exact for the mu-w chain (nilpotent), fourth order in dt otherwise.
-        a = qc * dt
-        fa = fdt @ a
-        f2a = fdt @ fa
-        f3a = fdt @ f2a
-        f2af = f2a @ fdt.T
-        q = a + 0.5 * (fa + fa.T) + (f2a + f2a.T + 2.0 * fa @ fdt.T) / 6.0 \
-            + (f3a + f3a.T + 3.0 * (f2af + f2af.T)) / 24.0
-        # Encoder velocity noise held over the step: A Sigma A^T dt^2 on delta_g.
-        q[:n, :n] += lin.joint_cov * (dt * dt)
-        return phi, 0.5 * (q + q.T)
-
-    def _command_density(self, locked: np.ndarray) -> np.ndarray:
-        """Return the random-walk density of (k, b): gain drift, bias drift (body, by I)."""
-        n = self.n
-        drift = self.noise.command_gain_drift ** 2
-        out = np.zeros((2 * n, 2 * n))
-        out[:n, :n] = np.eye(n) * drift
-        out[n:, n:] = (locked * (self._bias_var * drift)) @ locked.T
-        return out
+            return kernels.transition_commanded(
+                _homogeneous(g), x, lin.locked, lin.locked_inverse, lin.connection_qd,
+                lin.joint_cov, dt, np.asarray(u, dtype=float), self._jerk_var,
+                self._densities(lin), self._basis, self._pinv, self._whole, self._ad_rows,
+                self._form_rows)
+        return kernels.transition(_homogeneous(g), x, lin.locked, lin.locked_inverse,
+                                  lin.connection_qd, lin.joint_cov, dt, self._jerk_var,
+                                  self._basis, self._pinv, self._whole, self._ad_rows,
+                                  self._form_rows)
 
     def _command_prior(self, locked: np.ndarray) -> np.ndarray:
         """Return the prior covariance of (k, b): k = 1 +- gain, b = 0 +- I bias."""
@@ -602,7 +433,7 @@ class MomentumFilter:
         between rows, see :class:`FilterStep`).
         """
         n = self.n
-        self.g = g
+        self._g = pose = _homogeneous(g)
         self.stamp_ns = stamp_ns
         self._lin = lin
         to_world = self._adjoint_inverse(g).T @ lin.locked  # body velocity -> mu
@@ -625,7 +456,7 @@ class MomentumFilter:
         self._stamp_twist_ns = stamp_ns
         self.step_test.reset(settle_from_ns=stamp_ns)
         if self.record:
-            self.steps.append(FilterStep(stamp_ns, None, g, self.x, p, g, self.x, p,
+            self.steps.append(FilterStep(stamp_ns, None, pose, self.x, p, pose, self.x, p,
                                          lin.locked_inverse, output, self._held_command()))
 
     def _held_command(self) -> Optional[np.ndarray]:
@@ -640,7 +471,7 @@ class MomentumFilter:
         ``command``: the commanded wrench over the step (commanded-wrench filters;
         None there: zero).
         """
-        u = None
+        u = _EMPTY
         if self.command:
             u = self._command_zero if command is None else command.mean
             self._command = self._command_zero if command is None else command.now
@@ -648,10 +479,10 @@ class MomentumFilter:
         if dt <= 0.0:
             self.step_test.propagate(stamp_ns, self._eye)
             return self._eye
-        transition, q = self._transition(self.g, self.x, lin, dt, u)
-        self.g, self.x = self.propagate_mean(self.g, self.x, lin, dt, u)
-        p = transition @ self.p @ transition.T + q
-        self.p = 0.5 * (p + p.T)
+        self._g, self.x, self.p, transition = kernels.propagate(
+            self._g, self.x, self.p, lin.locked, lin.locked_inverse, lin.connection_qd,
+            lin.joint_cov, dt, u, self.command, self._jerk_var, self._densities(lin),
+            self._basis, self._pinv, self._whole, self._ad_rows, self._form_rows)
         self.stamp_ns = stamp_ns
         self.step_test.propagate(stamp_ns, transition)
         return transition
@@ -676,7 +507,7 @@ class MomentumFilter:
         the row. Return the gated measurements as (stamp, NIS).
         """
         self.step_detected = None
-        if self.g is None:
+        if self._g is None:
             if prior is not None:
                 if self.command and commands:
                     self._command = commands[-1].now
@@ -712,26 +543,41 @@ class MomentumFilter:
                  measurement: Optional[Measurement], lin: Linearisation, output: bool,
                  gated: list) -> None:
         """Update with ``measurement`` (if any) at the current time and record the step."""
-        g_pred, x_pred, p_pred = self.g, self.x, self.p
+        g_pred, x_pred, p_pred = self._g, self.x, self.p
+        if measurement is not None and self.stalls.in_burst(measurement.stamp_ns) \
+                and measurement.stamp_sigma is None:
+            # A frame of a burst after a stall (core/stalls.py): its stamp says nothing of
+            # when it was taken. A re-timed stamp (its own sigma) is a frame time: kept.
+            self.burst_skipped += 1
+            measurement = None
         if measurement is not None:
+            cause = None
             try:
                 accepted = self._update(measurement.pose, measurement.twist, lin,
                                         measurement.stamp_sigma)
-                broken = not (np.isfinite(self.p).all() and (np.diag(self.p) >= 0.0).all())
-            except np.linalg.LinAlgError:
-                accepted, broken = False, True
-            if broken:
-                # The covariance lost positive definiteness (noise settings far below
-                # what the data do, e.g. tuned on stamps that are off by milliseconds):
-                # start again from this measurement (a restart step) instead of failing.
+                if not np.isfinite(self.p).all():
+                    cause = 'covariance not finite'
+                elif not (np.diag(self.p) >= 0.0).all():
+                    cause = 'negative variance'
+            except (np.linalg.LinAlgError, ZeroDivisionError) as error:
+                accepted = False
+                cause = 'covariance not finite' if not np.isfinite(self.p).all() \
+                    else f'singular matrix ({error})'
+            if cause is not None:
+                # Last resort: the Joseph form keeps P positive semi-definite for any
+                # gain, so this takes a covariance corrupted before the update (a
+                # non-finite input, an overflow). Start again from the measurement.
                 self.diverged += 1
+                self.restart_causes[cause] += 1
+                LOG.warning('momentum filter restarted at %d ns: %s (restart %d)',
+                            stamp_ns, cause, self.diverged)
                 self.initialise(stamp_ns, measurement.pose, lin, measurement.twist, output)
                 return
             if not accepted:
                 gated.append((measurement.stamp_ns, self.last_nis))
         if self.record:
             self.steps.append(FilterStep(stamp_ns, transition, g_pred, x_pred, p_pred,
-                                         self.g, self.x, self.p, lin.locked_inverse, output,
+                                         self._g, self.x, self.p, lin.locked_inverse, output,
                                          self._held_command()))
 
     def step(self, stamp_ns: int, lin: Linearisation, pose: Optional[pin.SE3],
@@ -745,7 +591,7 @@ class MomentumFilter:
         """
         measurement = None if pose is None else Measurement(stamp_ns, pose, twist)
         commands = None if command is None else (command,)
-        if self.g is None:
+        if self._g is None:
             self.row(stamp_ns, lin, measurement, (), commands)
             return True
         return not self.row(stamp_ns, lin, None, () if measurement is None else (measurement,),
@@ -753,46 +599,31 @@ class MomentumFilter:
 
     def _update(self, pose: pin.SE3, twist: Optional[np.ndarray],
                 lin: Linearisation, stamp_sigma: Optional[float] = None) -> bool:
-        n, group = self.n, self.group
-        g0, x0, p0 = self.g, self.x, self.p
-        residual = group.log(g0.inverse() * pose)
-        r_pose = self._r_pose
+        n = self.n
+        g0, x0, p0 = self._g, self.x, self.p
+        measured = np.ascontiguousarray(pose.homogeneous)
+        with_twist = twist is not None
+        values = _EMPTY if twist is None else np.asarray(twist, dtype=float)
+        sigma = 0.0
         if self.noise.pose_stamp > 0.0:
             # Stamp error dt: the measured pose is g exp(xi dt), so R += xi xi^T sigma_t^2,
             # with xi the body twist averaged over STAMP_TWIST_TIME: the estimate's own
             # transients (after a gate reset) must not weaken the poses that correct them.
             # A re-timed stamp (a frame time, estimator/retiming.py) carries its own.
             sigma = self.noise.pose_stamp if stamp_sigma is None else stamp_sigma
-            xi = self._stamp_twist * sigma
-            r_pose = r_pose + np.outer(xi, xi)
-        if twist is None:
-            # H = [1 0 0]: P H^T and H P H^T are blocks of P.
-            h = None
-            nu = residual
-            r = r_pose
-            ph = p0[:, :n]
-            s = p0[:n, :n] + r
-        else:
-            h, nu = self._twist_measurement(g0, x0, pose, twist, lin, residual)
-            r = np.zeros((2 * n, 2 * n))
-            r[:n, :n] = r_pose
-            r[n:, n:] = self._r_twist + lin.joint_cov
-            ph = p0 @ h.T
-            s = h @ ph + r
-        s = 0.5 * (s + s.T)
-        size = len(nu)
-        # One solve for the gain and the NIS: S^-1 [(P H^T)^T, nu].
-        solved = np.linalg.solve(s, np.column_stack((ph.T, nu)))
-        nis = float(nu @ solved[:, -1])
+        size = 2 * n if with_twist else n
+        accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain = kernels.update(
+            g0, x0, p0, measured, values, with_twist, lin.locked_inverse, lin.connection_qd,
+            lin.joint_cov, self._pose_var, self._stamp_twist, sigma, self._twist_var,
+            self._gates[size], self._basis, self._pinv, self._whole, self._form_rows)
         self.last_nis = nis
         # Innovation log-likelihood (what `reduced-dynamics tune` maximises) and NIS sums.
-        sign, logdet = np.linalg.slogdet(s)
         self.log_likelihood -= 0.5 * (nis + logdet + size * LOG_2PI)
         self.nis_sum += nis
         self.nis_dof += size
-        if nis > self._gates[size]:
+        if not accepted:
             self._gated_run += 1
-            if h is None:
+            if not with_twist:
                 self._gated_residuals.append((nu, r))
             if self._gated_run < GATE_RESET:
                 # Counted only when rejected: ``gated`` is the measurements not used (the
@@ -809,56 +640,33 @@ class MomentumFilter:
             else:
                 # A momentum jump no wrench of the random walk explains, seen 3 times
                 # in a row: believe it, with the prior spread of mu and w added.
-                to_world = self._adjoint_inverse(g0).T @ lin.locked
+                to_world = self._adjoint_inverse(pin.SE3(g0)).T @ lin.locked
                 p0[n:2 * n, n:2 * n] += (to_world * self._speed_var) @ to_world.T
                 p0[2 * n:3 * n, 2 * n:3 * n] += (to_world * self._accel_var) @ to_world.T
             self.p = p0
             # The step hypotheses described the filter before the jump: start afresh.
             self.step_test.reset()
-            if h is None:
-                ph = p0[:, :n]
-                s = p0[:n, :n] + r
-            else:
-                ph = p0 @ h.T
-                s = h @ ph + r
-            solved = np.linalg.solve(s, ph.T)
+            g1, x1, p1, h, s, gain = kernels.correct(
+                g0, x0, p0, measured, values, with_twist, h, nu, r,
+                kernels.gain_of(p0, h, r), lin.locked_inverse, lin.connection_qd,
+                self._basis, self._pinv, self._whole, self._form_rows)
         self._gated_run = 0
         self._gated_residuals = []
-        gain = solved[:, :self.dim].T
-        dx = gain @ nu
-        if h is not None:
-            # Iterated EKF (Gauss-Newton on the posterior): the twist is bilinear in
-            # (g, mu), so one linearisation leaves a second-order miss where w steps.
-            for _ in range(ITERATIONS):
-                g_i = g0 * group.exp(dx[:n])
-                h, nu_i = self._twist_measurement(g_i, x0 + dx[n:], pose, twist, lin, None)
-                ph = p0 @ h.T
-                s = h @ ph + r
-                gain = np.linalg.solve(0.5 * (s + s.T), ph.T).T
-                dx = gain @ (nu_i + h @ dx)
-        self.g = g0 * group.exp(dx[:n])
-        self.x = x0 + dx[n:]
-        if h is None:
-            keep = self._eye.copy()
-            keep[:, :n] -= gain
-        else:
-            keep = self._eye - gain @ h
-        p = keep @ p0 @ keep.T + gain @ r @ gain.T
-        self.p = 0.5 * (p + p.T)
+        self._g, self.x, self.p = g1, x1, p1
         if self.noise.pose_stamp > 0.0:
             last, self._stamp_twist_ns = self._stamp_twist_ns, self.stamp_ns
             dt = 0.0 if last is None else max(self.stamp_ns - last, 0) * 1e-9
             weight = min(1.0, dt / STAMP_TWIST_TIME)
-            self._stamp_twist = self._stamp_twist + weight * (
-                self.twist(self.g, self.x[:n], lin) - self._stamp_twist)
-        detection = self.step_test.update(self._h_pose if h is None else h, s, gain, nu)
+            self._stamp_twist = self._stamp_twist + weight * (kernels.twist(
+                g1, x1[:n], lin.locked_inverse, lin.connection_qd, self._basis, self._pinv,
+                self._whole) - self._stamp_twist)
+        detection = self.step_test.update(self._h_pose if not with_twist else h, s, gain, nu)
         if detection is not None:
             # A wrench step (thruster on/off: a jump, not a random walk): take its
             # maximum-likelihood size and its uncertainty (Willsky-Jones compensation).
-            self.g = self.g * group.exp(detection.correction[:n])
-            self.x = self.x + detection.correction[n:]
-            p = self.p + detection.covariance
-            self.p = 0.5 * (p + p.T)
+            self._g, self.x, self.p = kernels.compensate(
+                self._g, self.x, self.p, detection.correction, detection.covariance,
+                self._basis, self._whole)
             self.step_test.reset()
             self.step_detected = detection
             self.steps_taken += 1
@@ -884,61 +692,6 @@ class MomentumFilter:
                      for d, (_, noise) in zip(residuals - mean, runs))
         return mean if spread <= self._offset_threshold[len(runs)] else None
 
-    def _twist_measurement(self, g: pin.SE3, x: np.ndarray, pose: pin.SE3,
-                           twist: np.ndarray, lin: Linearisation,
-                           residual: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """Return H and the innovation of pose and twist at (g, x) (``residual``: the pose's)."""
-        n = self.n
-        if residual is None:
-            residual = self.group.log(g.inverse() * pose)
-        ad_t = self._adjoint(g).T
-        pi = ad_t @ x[:n]
-        inverse = lin.locked_inverse
-        h = np.zeros((2 * n, self.dim))
-        h[:n, :n] = self._eye_n
-        h[n:, :n] = -inverse @ self._form(pi)
-        h[n:, n:2 * n] = inverse @ ad_t
-        predicted = inverse @ pi - lin.connection_qd
-        return h, np.concatenate((residual, twist - predicted))
-
     def state(self) -> FilterState:
         """Return the current estimate (copies)."""
         return FilterState(self.g, self.x.copy(), self.p.copy())
-
-
-def smooth(group: BaseGroup, steps: Sequence[FilterStep]) -> list[FilterState]:
-    """
-    Run the Rauch-Tung-Striebel smoother backwards over recorded steps (error-state form).
-
-    ``C_k = P_k Phi_{k+1}^T (P^-_{k+1})^-1``; the smoothed correction at k is
-    ``C_k (x^s_{k+1} - x^-_{k+1})`` with the pose difference taken as
-    ``log(g^-_{k+1}^-1 g^s_{k+1})``; ``P^s_k = P_k + C_k (P^s_{k+1} - P^-_{k+1}) C_k^T``.
-    """
-    count = len(steps)
-    if not count:
-        return []
-    n = group.dim
-    last = steps[-1]
-    out: list[Optional[FilterState]] = [None] * count
-    out[-1] = FilterState(last.g, last.x.copy(), last.p.copy())
-    g_s, x_s, p_s = out[-1]
-    for k in range(count - 2, -1, -1):
-        step, after = steps[k], steps[k + 1]
-        if after.transition is None:
-            # A restart: the next step does not depend on this one.
-            out[k] = FilterState(step.g, step.x.copy(), step.p.copy())
-            g_s, x_s, p_s = out[k]
-            continue
-        cross = step.p @ after.transition.T
-        try:
-            gain = np.linalg.solve(after.p_pred, cross.T).T
-        except np.linalg.LinAlgError:
-            gain = cross @ np.linalg.pinv(after.p_pred)
-        diff = np.concatenate((group.log(after.g_pred.inverse() * g_s), x_s - after.x_pred))
-        dx = gain @ diff
-        g_k = step.g * group.exp(dx[:n])
-        x_k = step.x + dx[n:]
-        p_k = step.p + gain @ (p_s - after.p_pred) @ gain.T
-        g_s, x_s, p_s = g_k, x_k, 0.5 * (p_k + p_k.T)
-        out[k] = FilterState(g_s, x_s, p_s)
-    return out  # type: ignore[return-value]

@@ -427,7 +427,8 @@ class Estimator:
             # New noise and gate; the estimate and the recorded steps stay.
             for name in ('g', 'x', 'p', 'stamp_ns', 'steps', 'gated', 'log_likelihood',
                          'nis_sum', 'nis_dof', '_lin', '_gated_run', '_gated_residuals',
-                         'pose_offsets', '_stamp_twist', '_stamp_twist_ns', 'diverged'):
+                         'pose_offsets', '_stamp_twist', '_stamp_twist_ns', 'diverged',
+                         'restart_causes', 'burst_skipped', 'stalls'):
                 setattr(self.filter, name, getattr(old_filter, name))
             if self.commanded_wrench:
                 self.filter._command = old_filter._command
@@ -876,7 +877,8 @@ class Estimator:
             self._command_stamps, self._command_values = [], []
             self._command_from_ns = None
             self._command_gate.restart()
-        for name in ('steps', 'gated', 'log_likelihood', 'nis_sum', 'nis_dof', 'diverged'):
+        for name in ('steps', 'gated', 'log_likelihood', 'nis_sum', 'nis_dof', 'diverged',
+                     'restart_causes', 'burst_skipped'):
             setattr(self.filter, name, getattr(old, name))
         events = self.detector.events
         self.detector = EventDetector(self.robot.n, config.event_significance,
@@ -1236,7 +1238,10 @@ class Estimator:
         coordinate (1 when the noise parameters fit the data); ``innovation_gated``;
         ``pose_offsets``: runs of gated poses taken as a step of the pose sensor (a
         motion-capture body re-fitted), not as a momentum jump;
-        ``filter_restarts``: re-initialisations after the covariance broke down;
+        ``filter_restarts``: re-initialisations after the covariance broke down (last
+        resort, logged as a warning), ``filter_restart_causes`` by cause;
+        ``burst_skipped``: base measurements left out as a burst after a stall of their
+        stream (estimator/core/stalls.py);
         ``steps_taken``: wrench steps the GLR test detected and the filter took;
         ``pose_steps``: detections not taken, a step of the measured pose explaining the
         innovations better (events.py);
@@ -1247,7 +1252,9 @@ class Estimator:
         return {'log_likelihood': flt.log_likelihood,
                 'nis_per_dof': flt.nis_sum / flt.nis_dof if flt.nis_dof else None,
                 'innovation_gated': flt.gated, 'pose_offsets': flt.pose_offsets,
-                'filter_restarts': flt.diverged, 'steps_taken': flt.steps_taken,
+                'filter_restarts': flt.diverged,
+                'filter_restart_causes': dict(flt.restart_causes),
+                'burst_skipped': flt.burst_skipped, 'steps_taken': flt.steps_taken,
                 'pose_steps': flt.step_test.pose_steps,
                 'poses_retimed': self._retimer.retimed,
                 'retiming_restarts': self._retimer.restarts}
