@@ -49,9 +49,10 @@ This is the only module importing rclpy, and it stays importable without it:
 from __future__ import annotations
 
 import array
-from collections import Counter
+from collections import Counter, deque
 import queue
 import signal
+import statistics
 import sys
 import threading
 from typing import Any, Callable, Optional, Sequence
@@ -117,8 +118,12 @@ PREDICT_RESULT_TOPIC = '~/predict_base_motion/result'
 NS_PER_S = 1_000_000_000
 #: Name of the node's own status in /diagnostics (the estimator's is separate).
 NODE_STATUS_NAME = f'{NODE_NAME}: node'
-#: A stamp gap above this many nominal periods counts as missing samples.
+#: A stamp gap above this many nominal periods counts as missing samples (InputStats).
 GAP_FACTOR = 1.5
+#: Recent stamps of one input the nominal period is estimated from (InputStats).
+PERIOD_STAMPS = 64
+#: Gaps per span of the period's median: a bunched pair or one loss gap moves few spans.
+SPAN_GAPS = 8
 
 _DOUBLE_TYPES = (float, int)
 
@@ -206,29 +211,97 @@ def reliable_qos(depth: int = OUTPUT_QOS_DEPTH) -> 'QoSProfile':
 
 
 class InputStats:
-    """Received count, stamp gaps (samples lost before the node) and rates, per input."""
+    """
+    Received count, samples lost before the node (as far as stamps prove) and rates, per input.
+
+    The nominal period is a robust rate: the median, over the last PERIOD_STAMPS
+    stamps, of the spans of SPAN_GAPS consecutive gaps (divided by SPAN_GAPS),
+    re-estimated as the stream goes on, so it learns a longer period too. A bunched
+    pair of stamps (0.1 ms apart, as mocap clients and loaded publishers produce)
+    moves few spans and none by much; one loss gap moves only SPAN_GAPS of them.
+
+    A gap is a loss only when the stamps prove it: it exceeds GAP_FACTOR periods
+    after subtracting the time the samples just before it came early (a bunched
+    pair and the long gap after it lose nothing), and the next stamp continues
+    from the gap's far end at the stream's rate. A stamp the stream does not
+    follow (an outlier, ahead or behind) counts nothing; a stamp that goes back
+    and is followed (a bag loop) re-anchors the stream; a gap after which the
+    stream runs slower is a rate change, not a loss, and the period learns it.
+    """
 
     def __init__(self) -> None:
         """Start empty."""
         self.received = 0
         self.missing = 0
-        self._last_ns: Optional[int] = None
-        self._period_ns = 0.0
+        self._stamps: deque[int] = deque(maxlen=PERIOD_STAMPS)
+        self._period_ns = 0.0  # 0: not known yet
+        self._since_period = 0
+        # How early the samples since the last on-time gap came [ns], the last SPAN_GAPS.
+        self._early: deque[float] = deque(maxlen=SPAN_GAPS)
+        self._suspect: Optional[int] = None  # a stamp that broke the stream
+        self._outliers = 0  # outliers since the last stamp: samples that fill a gap
         self._window_received = 0
 
+    @property
+    def period_ns(self) -> float:
+        """Return the nominal period [ns] (0 until enough stamps are seen)."""
+        return self._period_ns
+
     def take(self, stamp_ns: int) -> None:
-        """Count one message; estimate the nominal period and count stamp gaps."""
+        """Count one message; judge the gap before it once the next stamp shows what it was."""
         self.received += 1
-        last, self._last_ns = self._last_ns, stamp_ns
-        if last is None or stamp_ns <= last:
+        stamps = self._stamps
+        suspect, self._suspect = self._suspect, None
+        if suspect is not None:
+            self._decide(suspect, stamp_ns)
+        if not stamps:
+            stamps.append(stamp_ns)
             return
-        gap = stamp_ns - last
+        gap = stamp_ns - stamps[-1]
         period = self._period_ns
-        if period and gap > GAP_FACTOR * period:
-            self.missing += int(round(gap / period)) - 1
-            return  # a gap does not retune the nominal period
-        # Slow exponential average: one late message does not move the period.
-        self._period_ns = gap if not period else 0.95 * period + 0.05 * gap
+        if gap <= 0 or (period and gap - sum(self._early) > GAP_FACTOR * period):
+            self._suspect = stamp_ns  # the next stamp decides what it was
+            return
+        self._advance(stamp_ns, gap)
+
+    def _decide(self, suspect: int, stamp_ns: int) -> None:
+        """Judge a stamp that broke the stream by the stamp after it."""
+        gap = suspect - self._stamps[-1]
+        step = stamp_ns - suspect
+        period = self._period_ns
+        limit = GAP_FACTOR * period if period else abs(gap)
+        if gap <= 0:
+            if 0 <= step <= limit:  # the stream goes on from the earlier time: re-anchor
+                self._stamps.clear()
+                self._stamps.append(suspect)
+                self._early.clear()
+                self._outliers = 0
+            else:
+                self._outliers += 1  # an outlier behind the stream
+            return
+        if step < 0:
+            self._outliers += 1  # an outlier ahead of the stream
+            return
+        if step <= limit:  # the stream goes on at its rate after the gap: samples lost
+            slots = int(round((gap - sum(self._early)) / period)) - 1
+            self.missing += max(0, slots - self._outliers)
+        self._advance(suspect, gap)  # (else slower after the gap: a rate change)
+
+    def _advance(self, stamp_ns: int, gap: int) -> None:
+        self._stamps.append(stamp_ns)
+        self._outliers = 0
+        period = self._period_ns
+        if gap < period:
+            self._early.append(period - gap)
+        else:
+            self._early.clear()
+        self._since_period += 1
+        if self._since_period >= SPAN_GAPS or not period:
+            self._since_period = 0
+            stamps = list(self._stamps)
+            if len(stamps) > 2 * SPAN_GAPS:
+                self._period_ns = statistics.median(
+                    b - a for a, b in zip(stamps, stamps[SPAN_GAPS:])) / SPAN_GAPS
 
     def window(self) -> int:
         """Return the messages received since the last call."""

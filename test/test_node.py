@@ -869,3 +869,53 @@ def test_parameter_changes_at_rate_while_messages_flow(ros, node_factory):
     momentum = ros.published('~/momentum', node)
     assert node.estimator.processed == len(momentum) > 0.9 * SAMPLES
     assert dict(node.estimator.rejected) == {}
+
+
+# ------------------------------------------------------------------ issue 21: node seams
+def _stats_after(stamps):
+    from reduced_dynamics.node import InputStats
+    stats = InputStats()
+    for stamp in stamps:
+        stats.take(int(stamp))
+    return stats
+
+
+def test_a_bunched_pair_of_stamps_invents_no_loss(ros, node_factory):
+    """Issue 21.1: 400 clean 200 Hz samples with one pair 0.1 ms apart lose nothing."""
+    period = 5_000_000
+    stamps = [T0_NS + k * period for k in range(400)]
+    stamps[200] = stamps[199] + 100_000  # stamped 0.1 ms after its predecessor
+    assert _stats_after(stamps).missing == 0
+    # Through the node, as its diagnostics report it (the estimator may reject the pair).
+    node = node_factory(urdf_path=str(paper_robot_urdf()))
+    run = trajectory()
+    for k, stamp in enumerate(stamps):
+        i = k % SAMPLES
+        ros.deliver(node, 'joint_states', joint_state(
+            ros, stamp, run['names'], run['qbar'][i], run['qbar_dot'][i], run['effort'][i]))
+    values = node.node_status().values_dict()
+    assert values['received_joint_states'] == '400'
+    assert values['missing_joint_states'] == '0'
+
+
+def test_stamps_prove_a_loss_before_it_is_counted():
+    """Issue 21.1: only gaps the stream continues after are losses, against a robust rate."""
+    period = 10_000_000
+    clean = [k * period for k in range(300)]
+    # Mocap packets in pairs 20 us apart (100 Hz of samples): nothing is lost.
+    pairs = [(k // 2) * 2 * period + (k % 2) * 20_000 for k in range(300)]
+    assert _stats_after(pairs).missing == 0
+    # An isolated stamp far ahead (or behind) that the stream does not follow.
+    for bad in (clean[150] + 3600 * NS, 0):
+        stamps = list(clean)
+        stamps[150] = bad
+        assert _stats_after(stamps).missing == 0, bad
+    # The stream slows down to half its rate: a rate change, learnt, never a loss.
+    slower = clean[:150] + [clean[149] + k * 2 * period for k in range(1, 150)]
+    stats = _stats_after(slower)
+    assert stats.missing == 0 and stats.period_ns == 2 * period
+    # Five samples lost, then the stream goes on: counted, and only them.
+    lost = clean[:100] + clean[105:]
+    assert _stats_after(lost).missing == 5
+    # A bag loop: the stamps go back and the stream follows; nothing lost.
+    assert _stats_after(clean + clean).missing == 0
