@@ -1170,8 +1170,9 @@ def spin_until_signal(node: Any, stopper: '_StopOnSignal') -> None:
 def usage_text() -> str:
     """Return the parameters (with defaults) and the topics, as ``--help`` prints them."""
     def entry(head: str, text: str) -> list[str]:
-        return ['  ' + head] + textwrap.wrap(text, 92, initial_indent=' ' * 6,
-                                              subsequent_indent=' ' * 6)
+        indent = ' ' * 6
+        return ['  ' + head] + textwrap.wrap(text, 92, initial_indent=indent,
+                                             subsequent_indent=indent)
 
     lines = ['parameters (--ros-args -p NAME:=VALUE, or --ros-args --params-file FILE):']
     for name, spec in ALL_PARAMETERS.items():
