@@ -310,7 +310,8 @@ class InputStats:
             return
         gap = stamp_ns - stamps[-1]
         period = self._period_ns
-        if gap <= 0 or (period and gap - sum(self._early) > GAP_FACTOR * period):
+        if gap <= 0 or (period and gap > GAP_FACTOR * period
+                        and gap - sum(self._early) > GAP_FACTOR * period):
             self._suspect = stamp_ns  # the next stamp decides what it was
             return
         self._advance(stamp_ns, gap)
@@ -347,7 +348,8 @@ class InputStats:
         else:
             self._early.clear()
         self._since_period += 1
-        if self._since_period >= SPAN_GAPS or not period:
+        # Re-estimated every half window (a median of 56 spans costs ~20 us).
+        if self._since_period >= PERIOD_STAMPS // 2 or not period:
             self._since_period = 0
             stamps = list(self._stamps)
             if len(stamps) > 2 * SPAN_GAPS:
