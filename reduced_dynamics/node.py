@@ -130,8 +130,6 @@ NODE_STATUS_NAME = f'{NODE_NAME}: node'
 GAP_FACTOR = 1.5
 #: Recent stamps of one input the nominal period is estimated from (InputStats).
 PERIOD_STAMPS = 64
-#: Gaps per span of the period's median: a bunched pair or one loss gap moves few spans.
-SPAN_GAPS = 8
 
 _DOUBLE_TYPES = (float, int)
 
@@ -265,19 +263,23 @@ class InputStats:
     """
     Received count, samples lost before the node (as far as stamps prove) and rates, per input.
 
-    The nominal period is a robust rate: the median, over the last PERIOD_STAMPS
-    stamps, of the spans of SPAN_GAPS consecutive gaps (divided by SPAN_GAPS),
-    re-estimated as the stream goes on, so it learns a longer period too. A bunched
-    pair of stamps (0.1 ms apart, as mocap clients and loaded publishers produce)
-    moves few spans and none by much; one loss gap moves only SPAN_GAPS of them.
+    The nominal period is the stream's tick, a robust rate: the median of the last
+    PERIOD_STAMPS gaps, leaving out the gaps shorter than a quarter of their mean
+    (bunched stamps: two mocap packets stamped almost together, a loaded
+    publisher's burst). It is re-estimated as the stream goes on, so it learns a
+    longer period too.
 
-    A gap is a loss only when the stamps prove it: it exceeds GAP_FACTOR periods
-    after subtracting the time the samples just before it came early (a bunched
-    pair and the long gap after it lose nothing), and the next stamp continues
-    from the gap's far end at the stream's rate. A stamp the stream does not
-    follow (an outlier, ahead or behind) counts nothing; a stamp that goes back
-    and is followed (a bag loop) re-anchors the stream; a gap after which the
-    stream runs slower is a rate change, not a loss, and the period learns it.
+    A gap is a loss only when the stamps prove it:
+
+    * it exceeds GAP_FACTOR periods after subtracting the credit of the window:
+      the samples it holds beyond what its time span and the period imply (a
+      bunched pair and a long gap near it lose nothing: the packet of the long
+      gap came with the pair);
+    * the next stamp continues from the gap's far end at the stream's rate. A
+      stamp the stream does not follow (an outlier, ahead or behind) fills a slot
+      and counts nothing; a stamp that goes back and is followed (a bag loop)
+      re-anchors the stream; a gap after which the stream runs slower is a rate
+      change, not a loss.
     """
 
     def __init__(self) -> None:
@@ -287,8 +289,6 @@ class InputStats:
         self._stamps: deque[int] = deque(maxlen=PERIOD_STAMPS)
         self._period_ns = 0.0  # 0: not known yet
         self._since_period = 0
-        # How early the samples since the last on-time gap came [ns], the last SPAN_GAPS.
-        self._early: deque[float] = deque(maxlen=SPAN_GAPS)
         self._suspect: Optional[int] = None  # a stamp that broke the stream
         self._outliers = 0  # outliers since the last stamp: samples that fill a gap
         self._window_received = 0
@@ -310,11 +310,17 @@ class InputStats:
             return
         gap = stamp_ns - stamps[-1]
         period = self._period_ns
-        if gap <= 0 or (period and gap > GAP_FACTOR * period
-                        and gap - sum(self._early) > GAP_FACTOR * period):
+        if gap < 0 or (period and gap > GAP_FACTOR * period
+                        and gap - self._credit_ns() > GAP_FACTOR * period):
             self._suspect = stamp_ns  # the next stamp decides what it was
             return
-        self._advance(stamp_ns, gap)
+        self._advance(stamp_ns)
+
+    def _credit_ns(self) -> float:
+        """Return the time [ns] of the window's samples beyond its span's count of periods."""
+        stamps, period = self._stamps, self._period_ns
+        extra = len(stamps) - 1 - (stamps[-1] - stamps[0]) / period
+        return max(0.0, extra) * period
 
     def _decide(self, suspect: int, stamp_ns: int) -> None:
         """Judge a stamp that broke the stream by the stamp after it."""
@@ -322,11 +328,10 @@ class InputStats:
         step = stamp_ns - suspect
         period = self._period_ns
         limit = GAP_FACTOR * period if period else abs(gap)
-        if gap <= 0:
+        if gap < 0:
             if 0 <= step <= limit:  # the stream goes on from the earlier time: re-anchor
                 self._stamps.clear()
                 self._stamps.append(suspect)
-                self._early.clear()
                 self._outliers = 0
             else:
                 self._outliers += 1  # an outlier behind the stream
@@ -335,26 +340,22 @@ class InputStats:
             self._outliers += 1  # an outlier ahead of the stream
             return
         if step <= limit:  # the stream goes on at its rate after the gap: samples lost
-            slots = int(round((gap - sum(self._early)) / period)) - 1
+            slots = int(round((gap - self._credit_ns()) / period)) - 1
             self.missing += max(0, slots - self._outliers)
-        self._advance(suspect, gap)  # (else slower after the gap: a rate change)
+        self._advance(suspect)  # (else slower after the gap: a rate change)
 
-    def _advance(self, stamp_ns: int, gap: int) -> None:
+    def _advance(self, stamp_ns: int) -> None:
         self._stamps.append(stamp_ns)
         self._outliers = 0
-        period = self._period_ns
-        if gap < period:
-            self._early.append(period - gap)
-        else:
-            self._early.clear()
         self._since_period += 1
-        # Re-estimated every half window (a median of 56 spans costs ~20 us).
-        if self._since_period >= PERIOD_STAMPS // 2 or not period:
+        # Re-estimated every half window (a median of 64 gaps costs ~40 us).
+        if self._since_period >= PERIOD_STAMPS // 2 or not self._period_ns:
             self._since_period = 0
-            stamps = list(self._stamps)
-            if len(stamps) > 2 * SPAN_GAPS:
-                self._period_ns = statistics.median(
-                    b - a for a, b in zip(stamps, stamps[SPAN_GAPS:])) / SPAN_GAPS
+            stamps = self._stamps
+            if len(stamps) > PERIOD_STAMPS // 4:
+                gaps = [b - a for a, b in zip(stamps, list(stamps)[1:])]
+                shortest = (stamps[-1] - stamps[0]) / len(gaps) / 4
+                self._period_ns = float(statistics.median(g for g in gaps if g >= shortest))
 
     def window(self) -> int:
         """Return the messages received since the last call."""
