@@ -309,9 +309,8 @@ class InputStats:
             stamps.append(stamp_ns)
             return
         gap = stamp_ns - stamps[-1]
-        period = self._period_ns
-        if gap < 0 or (period and gap > GAP_FACTOR * period
-                        and gap - self._credit_ns() > GAP_FACTOR * period):
+        limit = GAP_FACTOR * self._period_ns
+        if gap < 0 or (limit and gap > limit and gap - self._credit_ns() > limit):
             self._suspect = stamp_ns  # the next stamp decides what it was
             return
         self._advance(stamp_ns)
