@@ -40,7 +40,9 @@ Two shells share the logic: :class:`ReducedDynamicsNode` (plain, the default:
 configured and active at construction) and
 :class:`ReducedDynamicsLifecycleNode` (managed: configure loads and checks the
 model, activate subscribes and publishes). ``main()`` picks one
-(``--lifecycle`` or the ``reduced_dynamics_lifecycle_node`` executable).
+(``--lifecycle`` or the ``reduced_dynamics_lifecycle_node`` executable);
+``--help`` prints the parameters and topics instead. docs/node_seams.md says
+what the node does with bad settings and with input from a loaded machine.
 
 This is the only module importing rclpy, and it stays importable without it:
 ``main()`` then prints one line saying ROS 2 is not sourced and returns 1.
