@@ -40,7 +40,9 @@ Two shells share the logic: :class:`ReducedDynamicsNode` (plain, the default:
 configured and active at construction) and
 :class:`ReducedDynamicsLifecycleNode` (managed: configure loads and checks the
 model, activate subscribes and publishes). ``main()`` picks one
-(``--lifecycle`` or the ``reduced_dynamics_lifecycle_node`` executable).
+(``--lifecycle`` or the ``reduced_dynamics_lifecycle_node`` executable);
+``--help`` prints the parameters and topics instead. docs/node_seams.md says
+what the node does with bad settings and with input from a loaded machine.
 
 This is the only module importing rclpy, and it stays importable without it:
 ``main()`` then prints one line saying ROS 2 is not sourced and returns 1.
@@ -48,11 +50,15 @@ This is the only module importing rclpy, and it stays importable without it:
 
 from __future__ import annotations
 
+import argparse
 import array
-from collections import Counter
+from collections import Counter, deque
+import difflib
 import queue
 import signal
+import statistics
 import sys
+import textwrap
 import threading
 from typing import Any, Callable, Optional, Sequence
 
@@ -84,11 +90,12 @@ try:
     from rclpy.qos import HistoryPolicy
     from rclpy.qos import QoSProfile
     from rclpy.qos import ReliabilityPolicy
-    from rclpy.qos_overriding_options import QoSOverridingOptions
+    from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
     from rclpy.serialization import deserialize_message
     from rclpy.signals import SignalHandlerOptions
     from rclpy.clock import JumpThreshold
     from rclpy.event_handler import PublisherEventCallbacks
+    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
     from rcl_interfaces.msg import FloatingPointRange
     from rcl_interfaces.msg import ParameterDescriptor
     from rcl_interfaces.msg import SetParametersResult
@@ -96,8 +103,12 @@ except ImportError:  # main() explains; the ROS-free core must stay usable
     rclpy = None
     Node = LifecycleNode = object
 
+    class InvalidQosOverridesError(Exception):  # type: ignore[no-redef]
+        """Stands in for rclpy's (never raised without rclpy)."""
+
 ROS_NOT_SOURCED = ('reduced_dynamics_node: ROS 2 Jazzy is not sourced (rclpy not importable); '
-                   'source /opt/ros/jazzy/setup.bash')
+                   'source /opt/ros/jazzy/setup.bash, or install the rclpy wheels: '
+                   'pip install ".[ros]"')
 #: Latched URDF topic (robot_state_publisher), relative to the node's namespace.
 ROBOT_DESCRIPTION_TOPIC = 'robot_description'
 #: Node-clock time between two log lines about the same kind of rejected input.
@@ -120,8 +131,10 @@ NODE_STATUS_NAME = f'{NODE_NAME}: node'
 #: Payload identification (issue 22): the service and the estimate's topic.
 IDENTIFY_PAYLOAD_SERVICE = '~/identify_payload'
 PAYLOAD_TOPIC = '~/payload'
-#: A stamp gap above this many nominal periods counts as missing samples.
+#: A stamp gap above this many nominal periods counts as missing samples (InputStats).
 GAP_FACTOR = 1.5
+#: Recent stamps of one input the nominal period is estimated from (InputStats).
+PERIOD_STAMPS = 64
 
 _DOUBLE_TYPES = (float, int)
 
@@ -208,30 +221,145 @@ def reliable_qos(depth: int = OUTPUT_QOS_DEPTH) -> 'QoSProfile':
                       reliability=ReliabilityPolicy.RELIABLE)
 
 
+#: Values each QoS override policy takes (rclpy's qos_overrides.<topic>.<entity>.<policy>).
+QOS_POLICY_CHOICES = {
+    'reliability': ('reliable', 'best_effort', 'best_available', 'system_default'),
+    'history': ('keep_last', 'keep_all', 'system_default'),
+    'durability': ('volatile', 'transient_local', 'best_available', 'system_default'),
+    'liveliness': ('automatic', 'manual_by_topic', 'best_available', 'system_default'),
+}
+#: QoS override policies given as integers (depth: messages; the others: nanoseconds).
+QOS_POLICY_INTEGERS = ('depth', 'deadline', 'lifespan', 'liveliness_lease_duration')
+#: The largest history depth DDS takes (a signed 32-bit count).
+QOS_MAX_DEPTH = 2**31 - 1
+
+
+def qos_override_problem(name: str, value: Any) -> Optional[str]:
+    """
+    Return why a ``qos_overrides.*`` value would fail in rclpy, or None if it is valid.
+
+    rclpy raises a RuntimeError (an unknown policy value) or an RCLError from
+    rmw (a negative depth) deep in ``create_subscription``; checked first, the
+    node can answer with one line instead.
+    """
+    policy = name.rpartition('.')[2]
+    choices = QOS_POLICY_CHOICES.get(policy)
+    if choices is not None:
+        if not isinstance(value, str) or value.lower() not in choices:
+            return f'{name} is {value!r}, must be one of: {", ".join(choices)}'
+    elif policy in QOS_POLICY_INTEGERS:
+        high = QOS_MAX_DEPTH if policy == 'depth' else 2**63 - 1
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= high:
+            return f'{name} is {value!r}, must be an integer in [0, {high}]'
+    elif policy == 'avoid_ros_namespace_conventions' and not isinstance(value, bool):
+        return f'{name} is {value!r}, must be true or false'
+    return None
+
+
+def _as_double(parameter: 'Parameter') -> 'Parameter':
+    """Return an integer given for a double parameter as a double (the same one otherwise)."""
+    spec = ALL_PARAMETERS.get(parameter.name)
+    if spec is not None and _is_double(spec) and parameter.type_ == Parameter.Type.INTEGER:
+        return Parameter(parameter.name, Parameter.Type.DOUBLE, float(parameter.value))
+    return parameter
+
+
 class InputStats:
-    """Received count, stamp gaps (samples lost before the node) and rates, per input."""
+    """
+    Received count, samples lost before the node (as far as stamps prove) and rates, per input.
+
+    The nominal period is the stream's tick, a robust rate: the median of the last
+    PERIOD_STAMPS gaps, leaving out the gaps shorter than a quarter of their mean
+    (bunched stamps: two mocap packets stamped almost together, a loaded
+    publisher's burst). It is re-estimated as the stream goes on, so it learns a
+    longer period too.
+
+    A gap is a loss only when the stamps prove it:
+
+    * it exceeds GAP_FACTOR periods after subtracting the credit of the window:
+      the samples it holds beyond what its time span and the period imply (a
+      bunched pair and a long gap near it lose nothing: the packet of the long
+      gap came with the pair);
+    * the next stamp continues from the gap's far end at the stream's rate. A
+      stamp the stream does not follow (an outlier, ahead or behind) fills a slot
+      and counts nothing; a stamp that goes back and is followed (a bag loop)
+      re-anchors the stream; a gap after which the stream runs slower is a rate
+      change, not a loss.
+    """
 
     def __init__(self) -> None:
         """Start empty."""
         self.received = 0
         self.missing = 0
-        self._last_ns: Optional[int] = None
-        self._period_ns = 0.0
+        self._stamps: deque[int] = deque(maxlen=PERIOD_STAMPS)
+        self._period_ns = 0.0  # 0: not known yet
+        self._since_period = 0
+        self._suspect: Optional[int] = None  # a stamp that broke the stream
+        self._outliers = 0  # outliers since the last stamp: samples that fill a gap
         self._window_received = 0
 
+    @property
+    def period_ns(self) -> float:
+        """Return the nominal period [ns] (0 until enough stamps are seen)."""
+        return self._period_ns
+
     def take(self, stamp_ns: int) -> None:
-        """Count one message; estimate the nominal period and count stamp gaps."""
+        """Count one message; judge the gap before it once the next stamp shows what it was."""
         self.received += 1
-        last, self._last_ns = self._last_ns, stamp_ns
-        if last is None or stamp_ns <= last:
+        stamps = self._stamps
+        suspect, self._suspect = self._suspect, None
+        if suspect is not None:
+            self._decide(suspect, stamp_ns)
+        if not stamps:
+            stamps.append(stamp_ns)
             return
-        gap = stamp_ns - last
+        gap = stamp_ns - stamps[-1]
+        limit = GAP_FACTOR * self._period_ns
+        if gap < 0 or (limit and gap > limit and gap - self._credit_ns() > limit):
+            self._suspect = stamp_ns  # the next stamp decides what it was
+            return
+        self._advance(stamp_ns)
+
+    def _credit_ns(self) -> float:
+        """Return the time [ns] of the window's samples beyond its span's count of periods."""
+        stamps, period = self._stamps, self._period_ns
+        extra = len(stamps) - 1 - (stamps[-1] - stamps[0]) / period
+        return max(0.0, extra) * period
+
+    def _decide(self, suspect: int, stamp_ns: int) -> None:
+        """Judge a stamp that broke the stream by the stamp after it."""
+        gap = suspect - self._stamps[-1]
+        step = stamp_ns - suspect
         period = self._period_ns
-        if period and gap > GAP_FACTOR * period:
-            self.missing += int(round(gap / period)) - 1
-            return  # a gap does not retune the nominal period
-        # Slow exponential average: one late message does not move the period.
-        self._period_ns = gap if not period else 0.95 * period + 0.05 * gap
+        limit = GAP_FACTOR * period if period else abs(gap)
+        if gap < 0:
+            if 0 <= step <= limit:  # the stream goes on from the earlier time: re-anchor
+                self._stamps.clear()
+                self._stamps.append(suspect)
+                self._outliers = 0
+            else:
+                self._outliers += 1  # an outlier behind the stream
+            return
+        if step < 0:
+            self._outliers += 1  # an outlier ahead of the stream
+            return
+        if step <= limit:  # the stream goes on at its rate after the gap: samples lost
+            slots = int(round((gap - self._credit_ns()) / period)) - 1
+            self.missing += max(0, slots - self._outliers)
+        self._advance(suspect)  # (else slower after the gap: a rate change)
+
+    def _advance(self, stamp_ns: int) -> None:
+        self._stamps.append(stamp_ns)
+        self._outliers = 0
+        self._since_period += 1
+        # Re-estimated every half window (a median of 64 gaps costs ~40 us).
+        if self._since_period >= PERIOD_STAMPS // 2 or not self._period_ns:
+            self._since_period = 0
+            stamps = self._stamps
+            if len(stamps) > PERIOD_STAMPS // 4:
+                gaps = [b - a for a, b in zip(stamps, list(stamps)[1:])]
+                shortest = (stamps[-1] - stamps[0]) / len(gaps) / 4
+                self._period_ns = float(statistics.median(g for g in gaps if g >= shortest))
 
     def window(self) -> int:
         """Return the messages received since the last call."""
@@ -325,12 +453,30 @@ class _Shell:
         self._payload_window = None
         self.payload = None
         self._payload_service = self._payload_publisher = None
+        #: Times the header stamps jumped back while ROS time did not (estimator/stamps.py).
+        self.stamp_resets = 0
+        self._resets_seen = 0  # the estimator's clock_resets already accounted for
+        self._warned_unknown: set[str] = set()
 
+        overrides = self._parameter_overrides  # rclpy's: command line and parameter files
+        problems = [problem for name, parameter in overrides.items()
+                    if name.startswith('qos_overrides.')
+                    for problem in [qos_override_problem(name, parameter.value)] if problem]
+        if problems:
+            raise InvalidQosOverridesError('; '.join(problems))
+        # An integer given for a double is stored as a double (it then reports DOUBLE):
+        # the overrides here (declare_parameter does not call pre-set callbacks), later
+        # changes in the pre-set callback.
+        for name, parameter in list(overrides.items()):
+            overrides[name] = _as_double(parameter)
+        self.add_pre_set_parameters_callback(
+            lambda parameters: [_as_double(p) for p in parameters])
         # Validation is in place before declaring, so bad overrides fail at start-up.
         self.add_on_set_parameters_callback(self._validate_parameters)
         for name, spec in ALL_PARAMETERS.items():
             self.declare_parameter(name, _default(spec), parameter_descriptor(name, spec))
         self.add_post_set_parameters_callback(self._apply_parameters)
+        self._warn_unknown_overrides(qos=False)
         self._config = EstimatorConfig.from_mapping(
             {name: self._value(name) for name in ESTIMATOR_PARAMETERS})
         # robot_localization's answer to a bag loop or a simulator restart: a backwards
@@ -365,6 +511,23 @@ class _Shell:
     # --- parameters -------------------------------------------------------------------
     def _value(self, name: str) -> Any:
         return _coerced(name, self.get_parameter(name).value)
+
+    def _warn_unknown_overrides(self, qos: bool) -> None:
+        """
+        Warn once per name about a given parameter the node does not have (a typo).
+
+        rclpy ignores them silently. ``qos``: the ``qos_overrides.*`` names, known
+        once the topics exist (after activation); else the others.
+        """
+        declared = [name for name in self._parameters if name.startswith('qos_overrides.') == qos]
+        for name in self._parameter_overrides:
+            if name.startswith('qos_overrides.') != qos or name in self._parameters \
+                    or name in self._warned_unknown:
+                continue
+            self._warned_unknown.add(name)
+            close = difflib.get_close_matches(name, declared, n=1)
+            self.get_logger().warning(f'unknown parameter {name} ignored'
+                                      + (f'; did you mean {close[0]}?' if close else ''))
 
     def _validate_parameters(self, parameters: list) -> 'SetParametersResult':
         """Accept or reject a change (on-set callback: no side effects here)."""
@@ -466,6 +629,7 @@ class _Shell:
         replaced = self._estimator is not None
         self._estimator = estimator
         self._nominal_robot, self.payload, self._payload_window = nominal, payload, window
+        self._resets_seen = estimator.clock_resets
         self._robot_source = source
         self._model_error = None
         self.get_logger().info(
@@ -547,6 +711,11 @@ class _Shell:
         text = string_from_ros(msg)
         if text == self._description_text:
             return  # republished unchanged: keep the estimator's state
+        if not text.lstrip().startswith('<'):
+            # A message must never make the node open a path on its disk.
+            self._reject('malformed', f'robot_description message is not URDF XML '
+                                      f'({text[:40]!r}): ignored')
+            return
         self._description_text = text
         self._set_robot(text, f'the {self.resolve_topic_name(ROBOT_DESCRIPTION_TOPIC)} topic')
 
@@ -571,6 +740,7 @@ class _Shell:
             self._types.get('std_srvs/srv/Trigger'), IDENTIFY_PAYLOAD_SERVICE,
             self._on_identify_payload)
         self._publish_payload()
+        self._warn_unknown_overrides(qos=True)
         self._worker = _PredictionWorker(self._publish_prediction, self._on_worker_error)
         self._shell_active = True
         self._restart_watchdog()
@@ -793,6 +963,8 @@ class _Shell:
         if sum(estimator.rejected.values()) != rejected_before and estimator.last_rejection:
             reason = estimator.last_rejection.partition(':')[0]
             self._warn_throttled(reason, f'input rejected: {estimator.last_rejection}')
+        if estimator.clock_resets != self._resets_seen:
+            self._on_stamp_reset(estimator)
         for output in outputs:
             self._publish(output)
 
@@ -805,6 +977,14 @@ class _Shell:
         # An estimator failure is this package's fault, not the input's: log an error.
         self._warn_throttled(reason, f'input rejected ({reason}): {detail}', error)
 
+    def _on_stamp_reset(self, estimator: Estimator) -> None:
+        """Log and count a restart of the estimator's clock that the stamps caused."""
+        self.stamp_resets += estimator.clock_resets - self._resets_seen
+        self._resets_seen = estimator.clock_resets
+        self.get_logger().warning(
+            f'input stamps jumped back while ROS time did not ({estimator.last_reset}): '
+            f'estimator clock restarted (stamp reset {self.stamp_resets})')
+
     def _on_time_jump(self, jump: Any) -> None:
         """Reset the estimator when ROS time went backwards (bag loop, simulator restart)."""
         delta_ns = jump.delta.nanoseconds
@@ -815,7 +995,9 @@ class _Shell:
         self.get_logger().warning(
             f'ROS time jumped back {-delta_ns * 1e-9:.6g} s: estimator reset '
             f'(reset {self.time_resets})')
-        for output in self._estimator.reset(f'ROS time jumped back {-delta_ns * 1e-9:.6g} s'):
+        outputs = self._estimator.reset(f'ROS time jumped back {-delta_ns * 1e-9:.6g} s')
+        self._resets_seen = self._estimator.clock_resets
+        for output in outputs:
             self._publish(output)
 
     # --- outputs ----------------------------------------------------------------------
@@ -890,7 +1072,8 @@ class _Shell:
                   'processed': str(processed),
                   'rejected_total': str(sum(rejected.values())),
                   'predictions_pending': str(self.predictions_pending),
-                  'time_resets': str(self.time_resets)}
+                  'time_resets': str(self.time_resets),
+                  'stamp_resets': str(self.stamp_resets)}
         lost = 0
         for kind, stats in self.input_stats.items():
             window = stats.window()
@@ -979,6 +1162,23 @@ class ReducedDynamicsLifecycleNode(_Shell, LifecycleNode):
         """Create the node unconfigured; ``node_options`` go to rclpy's LifecycleNode."""
         LifecycleNode.__init__(self, NODE_NAME, **node_options)
         self._init_shell()
+        # rclpy's change_state service raises on a transition the current state does not
+        # have ("Transition is not registered"), which ends the executor: answer failure.
+        service = self._service_change_state
+        change_state = service.callback
+
+        def refuse_invalid(request: Any, response: Any) -> Any:
+            try:
+                return change_state(request, response)
+            except _rclpy.RCLError as error:
+                transition = request.transition
+                self.get_logger().warning(
+                    f'lifecycle transition {transition.label or transition.id} refused in '
+                    f'state {self._state_machine.current_state[1]}: '
+                    f'{str(error).splitlines()[0]}')
+                response.success = False
+                return response
+        service.callback = refuse_invalid
 
     def on_configure(self, state: Any) -> 'TransitionCallbackReturn':
         """Load and check the robot model."""
@@ -1066,15 +1266,83 @@ def spin_until_signal(node: Any, stopper: '_StopOnSignal') -> None:
         executor.shutdown(timeout_sec=1.0)
 
 
+def usage_text() -> str:
+    """Return the parameters (with defaults) and the topics, as ``--help`` prints them."""
+    def entry(head: str, text: str) -> list[str]:
+        indent = ' ' * 6
+        return ['  ' + head] + textwrap.wrap(text, 92, initial_indent=indent,
+                                             subsequent_indent=indent)
+
+    lines = ['parameters (--ros-args -p NAME:=VALUE, or --ros-args --params-file FILE):']
+    for name, spec in ALL_PARAMETERS.items():
+        default = spec.default if spec.default != '' else "''"
+        changes = 'at run time' if name in RUNTIME_PARAMETERS else 'at start-up'
+        lines += entry(f'{name} (default: {default}; set {changes})', spec.description)
+    lines += ['', 'inputs (topic names are the parameters named; relative to the namespace):']
+    for head, text in (
+            ('joint_states_topic: sensor_msgs/msg/JointState', 'shape joint states'),
+            ('odom_topic: nav_msgs/msg/Odometry', 'base state (base_input odom)'),
+            ('base_pose_topic: geometry_msgs/msg/PoseStamped', 'base pose (base_input pose)'),
+            ('trajectory_topic: trajectory_msgs/msg/JointTrajectory',
+             'planned arm motion (prediction_mode planned)'),
+            ('commanded_wrench_topic: geometry_msgs/msg/WrenchStamped',
+             'commanded body wrench (empty: off)'),
+            (f'{ROBOT_DESCRIPTION_TOPIC}: std_msgs/msg/String (latched)',
+             'URDF XML, when the robot_description and urdf_path parameters are empty'),
+            (f'{PREDICT_REQUEST_TOPIC}: trajectory_msgs/msg/JointTrajectory',
+             'where does the base go if the arm executes this plan (answered on '
+             f'{PREDICT_PATH_TOPIC}, nav_msgs/msg/Path, and {PREDICT_RESULT_TOPIC}, '
+             'diagnostic_msgs/msg/DiagnosticArray)')):
+        lines += entry(head, text)
+    lines += ['', 'outputs:']
+    for topic in OUTPUT_TOPICS:
+        name = topic.name if topic.name.startswith('/') else '~/' + topic.name
+        lines += entry(f'{name}: {topic.msgtype}', topic.meaning)
+    return '\n'.join(lines)
+
+
+def _argument_parser(lifecycle: bool) -> argparse.ArgumentParser:
+    """Return the parser of the executable's own arguments (ROS arguments are rclpy's)."""
+    prog = 'reduced_dynamics_lifecycle_node' if lifecycle else 'reduced_dynamics_node'
+    parser = argparse.ArgumentParser(
+        prog=prog, allow_abbrev=False, formatter_class=argparse.RawDescriptionHelpFormatter,
+        usage='%(prog)s [-h] [--lifecycle] [--ros-args -p NAME:=VALUE ... '
+              '--params-file FILE ...]',
+        description='ROS 2 node: momentum, shape state, drift and predictions of a '
+                    'free-floating robot from its joint states and base state.',
+        epilog=usage_text())
+    parser.add_argument('--lifecycle', action='store_true',
+                        help='run as a managed (lifecycle) node')
+    return parser
+
+
+def _own_args(argv: Sequence[str]) -> list[str]:
+    """Return the arguments outside ``--ros-args ... [--]`` (the program name dropped)."""
+    own, in_ros = [], False
+    for arg in argv[1:]:
+        if arg == '--ros-args':
+            in_ros = True
+        elif in_ros and arg == '--':
+            in_ros = False
+        elif not in_ros:
+            own.append(arg)
+    return own
+
+
 def main(args: Optional[Sequence[str]] = None, lifecycle: bool = False) -> int:
     """Run the node until Ctrl-C, SIGTERM or an external shutdown; ``--lifecycle``: managed."""
+    argv = list(sys.argv if args is None else args)
+    try:
+        # Unknown arguments are left to rclpy, as before (launch adds its own).
+        options, _ = _argument_parser(lifecycle).parse_known_args(_own_args(argv))
+    except SystemExit as done:  # --help (exit 0) or a malformed option (exit 2)
+        return int(done.code or 0)
     if rclpy is None:
         print(ROS_NOT_SOURCED, file=sys.stderr)
         return 1
     stopper = _StopOnSignal()  # first: a signal during start-up also ends cleanly
     try:
-        argv = list(sys.argv if args is None else args)
-        if '--lifecycle' in argv:
+        if options.lifecycle:
             argv.remove('--lifecycle')
             lifecycle = True
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
@@ -1083,6 +1351,10 @@ def main(args: Optional[Sequence[str]] = None, lifecycle: bool = False) -> int:
             node = node_class()
         except ParameterException as error:  # bad params file / -p value: one line
             print(f'reduced_dynamics_node: invalid parameters: {error}', file=sys.stderr)
+            rclpy.try_shutdown()
+            return 2
+        except InvalidQosOverridesError as error:
+            print(f'reduced_dynamics_node: invalid QoS override: {error}', file=sys.stderr)
             rclpy.try_shutdown()
             return 2
         try:

@@ -166,6 +166,53 @@ def test_follow_releases_the_other_streams_new_clock():
     assert gate.offer(5 * S + 10 * MS, None, 'new1') is ACCEPTED
 
 
+def _details(gate, stamps, receives):
+    """Offer stamps in order; return (accepted stamps, [(stamp, reason, detail)] dropped)."""
+    accepted, dropped = [], []
+    for stamp, receive in zip(stamps, receives):
+        result = gate.offer(stamp, receive, stamp)
+        if result is ACCEPTED:
+            accepted.append(stamp)
+            continue
+        dropped += result.dropped
+        accepted += result.accepted
+    return accepted, dropped + gate.finish()
+
+
+def test_a_sample_after_a_late_one_is_not_an_outlier():
+    """Issue 21.2: on a loaded machine the reference arrived late; the next is on time."""
+    period, latency, late = 5 * MS, 2 * MS, 80 * MS
+    stamps = [k * period for k in range(40)]
+    receives = [s + latency for s in stamps]
+    a = stamps[-1] + period                 # taken 80 ms late
+    b = a + 85 * MS                         # the publisher stalled; taken on time
+    stamps += [a, b] + [b + k * period for k in range(1, 30)]
+    receives += [a + late, b + latency] + [b + k * period + late for k in range(1, 30)]
+    accepted, dropped = _details(StampGate('joint state', S, 3), stamps, receives)
+    assert dropped == [] and accepted == stamps
+
+
+@pytest.mark.parametrize('with_receive', [True, False])
+def test_an_outlier_names_the_rule_that_fired(with_receive):
+    """Issue 21.2: a stamp 85 ms ahead is refused by the cadence rule, and says so."""
+    stamps = [k * 5 * MS for k in range(60)]
+    bad = list(stamps)
+    bad[30] += 85 * MS
+    receives = [s + 2 * MS for s in stamps] if with_receive else [None] * len(stamps)
+    accepted, dropped = _details(StampGate('joint state', S, 3), bad, receives)
+    assert accepted == stamps[:30] + stamps[31:]
+    (item, reason, detail), = dropped
+    assert (item, reason) == (bad[30], 'outlier')
+    assert detail.startswith(f'joint state stamp {bad[30]} is +0.09 s from its stream')
+    assert 'cadence rule' in detail and 'tolerance' not in detail
+    assert '0.02 s, 4 local periods' in detail
+    # A stamp an hour ahead of its receive time breaks the offset rule instead.
+    if with_receive:
+        bad[30] = stamps[30] + 3600 * S
+        _, dropped = _details(StampGate('joint state', S, 3), bad, receives)
+        assert 'offset rule' in dropped[0][2] and 'tolerance 1 s' in dropped[0][2]
+
+
 # --- the estimator with the gates ---------------------------------------------------------
 def _good(robot, stamp, receive=None, q=None):
     joint = JointStateSample(stamp, '', robot.shape_joint_names,

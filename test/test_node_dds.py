@@ -407,3 +407,72 @@ def test_lifecycle_configure_fails_on_an_unusable_model(install, client):
             proc.kill()
     assert code == 0
     assert 'URDF file not found' in output
+
+
+# ------------------------------------------------------------------ issue 21: start-up seams
+def run_executable(install, *args, executable='reduced_dynamics_node', timeout=60):
+    """Run the installed executable with ``args`` to its end; return the CompletedProcess."""
+    script = (f'set +u; source {install}/setup.bash; set -u\n'
+              f'exec {install}/{PKG}/lib/{PKG}/{executable} '
+              + ' '.join(shlex.quote(arg) for arg in args))
+    env = dict(os.environ, ROS_DOMAIN_ID=DOMAIN_ID, PYTHONUNBUFFERED='1')
+    return subprocess.run(['bash', '-c', script], env=env, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+@pytest.mark.parametrize('executable', ['reduced_dynamics_node',
+                                        'reduced_dynamics_lifecycle_node'])
+def test_help_prints_usage_and_exits_0(install, executable):
+    """Issue 21.6: --help does not start the node."""
+    proc = run_executable(install, '--help', executable=executable)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith(f'usage: {executable}')
+    assert 'prediction_rate (default: 1.0' in proc.stdout and '~/momentum' in proc.stdout
+
+
+def test_bad_qos_override_exits_2_with_one_line(install):
+    """Issue 21.5: as a bad parameter does."""
+    proc = run_executable(install, '--ros-args', '-p',
+                          'qos_overrides./joint_states.subscription.reliability:=bogus')
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        'reduced_dynamics_node: invalid QoS override: qos_overrides./joint_states.subscription.'
+        "reliability is 'bogus', must be one of: reliable, best_effort, best_available, "
+        'system_default']
+
+
+def test_invalid_lifecycle_transition_is_refused_and_the_node_stays(install, client):
+    """Issue 21.4: `ros2 lifecycle set /reduced_dynamics activate` while unconfigured."""
+    from lifecycle_msgs.msg import State, Transition
+    from lifecycle_msgs.srv import ChangeState, GetState
+    node, executor = client
+    proc = start_node(install, '-p', f'urdf_path:={paper_robot_urdf()}',
+                      executable='reduced_dynamics_lifecycle_node')
+    try:
+        get_state = node.create_client(GetState, '/reduced_dynamics/get_state')
+        change = node.create_client(ChangeState, '/reduced_dynamics/change_state')
+        assert spin_until(executor, lambda: get_state.service_is_ready()
+                          and change.service_is_ready(), 30)
+
+        def call(client_, request):
+            future = client_.call_async(request)
+            assert spin_until(executor, future.done, 20), 'no answer: the node died'
+            return future.result()
+
+        def transition(transition_id):
+            return call(change, ChangeState.Request(
+                transition=Transition(id=transition_id))).success
+
+        assert not transition(Transition.TRANSITION_ACTIVATE)
+        assert not transition(Transition.TRANSITION_DEACTIVATE)
+        assert call(get_state, GetState.Request()).current_state.id == \
+            State.PRIMARY_STATE_UNCONFIGURED
+        assert transition(Transition.TRANSITION_CONFIGURE)
+        assert transition(Transition.TRANSITION_ACTIVATE)
+        assert proc.poll() is None
+        code, output = stop(proc)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert code == 0 and 'Traceback' not in output, output
+    assert 'refused in state unconfigured' in output

@@ -63,6 +63,13 @@ class BaseMotionAnswer:
     failure: Optional[str] = None
 
 
+#: A request is answered once, not every prediction period, so its wall time need not fit
+#: half a period: it gets this many times the periodic budget (scaled to the plan's length),
+#: a margin for a loaded machine. Issue 21: the shipped 10 s example plan took 866
+#: evaluations, more than 0.5 s on a loaded machine (over 0.58 ms each; 0.04 ms idle).
+REQUEST_WALL_MARGIN = 4.0
+
+
 def plan_of(robot: RobotModel, trajectory: JointTrajectorySample, start_ns: int) -> Plan:
     """Return the plan of a trajectory in model joint order (ValueError for bad joints)."""
     index = {name: i for i, name in enumerate(robot.shape_joint_names)}
@@ -79,19 +86,41 @@ def plan_of(robot: RobotModel, trajectory: JointTrajectorySample, start_ns: int)
                 trajectory.velocities, trajectory.accelerations, robot.m)
 
 
+def request_budget(horizon: float, budget_horizon: Optional[float],
+                   max_evaluations: Optional[float], max_wall_time: Optional[float]
+                   ) -> Budget:
+    """
+    Return the budget of one request for a plan ``horizon`` seconds long.
+
+    ``max_evaluations`` and ``max_wall_time`` are the budget of a prediction
+    ``budget_horizon`` seconds long (the periodic predictions'; None or 0: taken
+    as they are). A longer plan gets proportionally more of both, and the wall
+    time REQUEST_WALL_MARGIN on top: evaluations bound the work the same on any
+    machine, the wall time only caps a machine too loaded to answer.
+    """
+    if not budget_horizon or budget_horizon <= 0.0:
+        return Budget(max_evaluations, max_wall_time)
+    scale = max(1.0, horizon / budget_horizon)
+    return Budget(None if max_evaluations is None else max_evaluations * scale,
+                  None if max_wall_time is None else
+                  max_wall_time * scale * REQUEST_WALL_MARGIN)
+
+
 def predict_base_motion(robot: RobotModel, trajectory: JointTrajectorySample, g0: pin.SE3,
                         mu: np.ndarray, qbar0: np.ndarray, qbar_dot0: np.ndarray,
                         start_ns: int = 0, step: float = 0.05, tolerance: float = 1e-10,
                         max_evaluations: Optional[float] = None,
                         max_wall_time: Optional[float] = None,
-                        world_frame: str = 'world') -> BaseMotionAnswer:
+                        world_frame: str = 'world',
+                        budget_horizon: Optional[float] = None) -> BaseMotionAnswer:
     """
     Predict the base path from pose ``g0`` at momentum ``mu`` while the arm follows a plan.
 
     The arm starts at (``qbar0``, ``qbar_dot0``) at ``start_ns``; the plan's
     times count from its stamp (0: from ``start_ns``). Joints outside the
     plan keep their velocities. Raises ValueError for a plan that does not
-    fit the robot or has ended before ``start_ns``.
+    fit the robot or has ended before ``start_ns``. The budgets are those of a
+    plan ``budget_horizon`` seconds long (:func:`request_budget`).
     """
     plan = plan_of(robot, trajectory, start_ns)
     path = plan.path_from(start_ns, np.asarray(qbar0, dtype=float),
@@ -102,7 +131,8 @@ def predict_base_motion(robot: RobotModel, trajectory: JointTrajectorySample, g0
     times = np.append(np.arange(0.0, horizon, step), horizon)
     if times.size > 1 and times[-1] - times[-2] < 1e-9:
         times = np.delete(times, -2)
-    budget = Budget(max_evaluations, max_wall_time or None)  # 0: no wall-time budget
+    # 0 or None: no wall-time budget (replay: outputs must not depend on the machine's load)
+    budget = request_budget(horizon, budget_horizon, max_evaluations, max_wall_time or None)
     system = PrescribedReconstruction(robot, mu, g0, path)
     try:
         trajectory_out = system.propagate(times, tolerance, tolerance, path.breakpoints, budget)

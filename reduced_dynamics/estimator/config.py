@@ -155,13 +155,15 @@ PARAMETERS: dict[str, ParameterSpec] = {
         20000.0, 10.0, 1e8, (),
         'budget of right-hand-side evaluations of one prediction (a 2 s horizon at '
         'tolerance 1e-10 takes 100-600); a prediction that exceeds it stops with the reason '
-        'in diagnostics'),
+        'in diagnostics; a ~/predict_base_motion request gets it per prediction_horizon of '
+        'its plan'),
     'prediction_max_wall_time': ParameterSpec(
         0.5, 0.0, 600.0, (),
         'budget of wall time [s] of one prediction (half the default prediction period); '
         'a prediction that exceeds it stops with the reason in diagnostics (0: none, only '
         'the evaluation budget; replay always runs so, its outputs must not depend on the '
-        'machine\'s load)'),
+        'machine\'s load); a ~/predict_base_motion request gets 4 times it per '
+        'prediction_horizon of its plan'),
     'diagnostics_rate': ParameterSpec(1.0, 0.0, 100.0, (),
                                       'diagnostics messages per second of stamp time (0: off)'),
     # Input gates (estimator/stamps.py, estimator/plausibility.py); README "Bad input".

@@ -1191,7 +1191,8 @@ class Estimator:
                                    self.filter.mu.copy(), qbar, qbar_dot, stamp,
                                    config.prediction_step, config.prediction_tolerance,
                                    config.prediction_max_evaluations,
-                                   config.prediction_max_wall_time, config.world_frame)
+                                   config.prediction_max_wall_time, config.world_frame,
+                                   budget_horizon=config.prediction_horizon)
 
     def add_trajectory(self, sample: JointTrajectorySample) -> None:
         """

@@ -20,8 +20,10 @@ it advances by at most the stream's cadence (4 local periods: 4 x the larger of
 the upper quartile and the mean of its last 16 accepted steps, so that bursts do
 not shrink it; ``stamp_outlier_tolerance`` until they are known), or, with a
 receive time (the bag's record time, rclpy's ``received_timestamp``) on both
-this sample and the reference, it advances further while the receive time
-moved at least half as far (the stream paused). With receive times the offset
+this sample and the reference, it advances further while it runs ahead of its
+receive time by at most half the step, against the stream's smallest recent
+latency (the stream paused; a reference that itself arrived late does not make
+the next sample look ahead). With receive times the offset
 ``stamp - receive`` must also stay within the tolerance of the reference's
 offset (transport latency varies by milliseconds, a wrong clock by much more). The tolerance is
 ``max(stamp_outlier_tolerance, cadence)``. A stamp running ahead of the
@@ -110,6 +112,9 @@ class StampGate:
         self.last_ns: Optional[int] = None
         self.last_receive_ns: Optional[int] = None
         self._steps: deque[int] = deque(maxlen=PERIOD_WINDOW)
+        # Latencies (receive - stamp) of the last accepted samples: the smallest is the
+        # transport's own; a sample that arrived late has a larger one, never a smaller.
+        self._latencies: deque[int] = deque(maxlen=PERIOD_WINDOW)
         # PERIOD_FACTOR local periods (tolerance_ns until the period is known), refreshed
         # every few accepted steps: the per-sample check compares with it.
         self._cadence = self.tolerance_ns
@@ -176,7 +181,8 @@ class StampGate:
             if mode in ('window', 'chain') and step > 0 or mode == 'window':
                 return 'forward'
             if step > 0:
-                if mode == 'chain' or step <= self._cadence or 2 * deviation <= step:
+                if mode == 'chain' or step <= self._cadence or \
+                        2 * self._ahead(stamp, receive, deviation) <= step:
                     return 'forward'
                 return 'far'
             return 'jump' if -step > tolerance else 'backwards'
@@ -187,6 +193,18 @@ class StampGate:
         if -tolerance <= step <= 0:
             return 'backwards'
         return 'far'
+
+    def _ahead(self, stamp: int, receive: int, deviation: int) -> int:
+        """
+        Return how far [ns] a stamp runs ahead of its receive time, beyond the stream's.
+
+        Against the smallest latency of the recent accepted samples, not the
+        reference's: a reference that arrived late (a loaded machine) must not make
+        a sample that arrived on time look ahead. ``deviation`` without latencies.
+        """
+        if not self._latencies:
+            return deviation
+        return min(self._latencies) - (receive - stamp)
 
     def offer(self, stamp: int, receive: Optional[int], item: Any) -> StampResult:
         """
@@ -205,6 +223,8 @@ class StampGate:
                     or abs(step - (receive - rx)) <= self.tolerance_ns):
                 self._step(step)
                 self.last_ns, self.last_receive_ns = stamp, receive
+                if receive is not None:
+                    self._latencies.append(receive - stamp)
                 return ACCEPTED
         result = self._judge(stamp, receive, item)
         if result.jump is None and not result.dropped and len(result.accepted) == 1 \
@@ -217,6 +237,8 @@ class StampGate:
         if last is not None and stamp > last:
             self._step(stamp - last)
         self.last_ns, self.last_receive_ns = stamp, receive
+        if receive is not None:
+            self._latencies.append(receive - stamp)
 
     def _judge(self, stamp: int, receive: Optional[int], item: Any) -> StampResult:
         last = self.last_ns
@@ -246,6 +268,7 @@ class StampGate:
             result.dropped = self._drop_held()
             result.jump = ClockJump(self.stream, last, stamp, receive, True)
             self.last_ns, self.last_receive_ns = stamp, receive
+            self._latencies.clear()
             result.accepted.append(item)
             return result
         return self._candidate(stamp, receive, item, result)
@@ -274,7 +297,8 @@ class StampGate:
                     held = self._held
                 else:
                     # A chain is establishing itself: this one is the odd one out.
-                    result.dropped.append((item, 'outlier', self._outlier_text(stamp)))
+                    result.dropped.append((item, 'outlier',
+                                           self._outlier_text(stamp, receive)))
                     return result
         held.append((stamp, receive, item))
         if len(held) >= self.jump_samples:
@@ -287,6 +311,7 @@ class StampGate:
             self._anchor = None
             # The stream's rate is unchanged: its local period stays.
             self.last_ns = None
+            self._latencies.clear()
             for stamp_k, receive_k, item_k in held:
                 self._accept(stamp_k, receive_k)
                 result.accepted.append(item_k)
@@ -301,18 +326,38 @@ class StampGate:
             return peer.last_ns, peer.last_receive_ns
         return None
 
-    def _outlier_text(self, stamp: int) -> str:
+    def _outlier_text(self, stamp: int, receive: Optional[int]) -> str:
+        """Say why a stamp is an outlier: the rule that fired, with its numbers."""
         anchor = self._reference_anchor()
-        reference = self.last_ns if self.last_ns is not None else \
-            (anchor[0] if anchor is not None else None)
-        if reference is None:
+        if self.last_ns is not None:
+            reference, ref_rx = self.last_ns, self.last_receive_ns
+        elif anchor is not None:
+            reference, ref_rx = anchor
+        else:
             return f'{self.stream} stamp {stamp} inconsistent with its neighbours'
-        return (f'{self.stream} stamp {stamp} is {(stamp - reference) * 1e-9:+.6g} s from '
-                f'its stream (tolerance {self.tolerance() * 1e-9:.3g} s)')
+        step = stamp - reference
+        head = f'{self.stream} stamp {stamp} is {step * 1e-9:+.6g} s from its stream'
+        tolerance = self.tolerance()
+        if receive is not None and ref_rx is not None:
+            moved = receive - ref_rx
+            if abs(step - moved) > tolerance:
+                return (f'{head} while its receive time moved {moved * 1e-9:+.6g} s '
+                        f'(offset rule: stamp and receive time apart by more than the '
+                        f'tolerance {tolerance * 1e-9:.3g} s)')
+            if step > self._cadence:
+                ahead = self._ahead(stamp, receive, abs(step - moved))
+                return (f'{head} (cadence rule: ahead of the cadence {self._cadence * 1e-9:.3g}'
+                        f' s, 4 local periods, and ahead of its receive time by '
+                        f'{ahead * 1e-9:.3g} s, more than half the step)')
+        elif step > self._cadence:
+            return (f'{head} (cadence rule: ahead of the cadence {self._cadence * 1e-9:.3g} s, '
+                    '4 local periods, without a receive time to show a pause)')
+        return f'{head} (tolerance {tolerance * 1e-9:.3g} s)'
 
     def _drop_held(self) -> list:
         held, self._held = self._held, []
-        return [(item, 'outlier', self._outlier_text(stamp)) for stamp, _, item in held]
+        return [(item, 'outlier', self._outlier_text(stamp, receive))
+                for stamp, receive, item in held]
 
     def follow(self, stamp: int, receive: Optional[int]) -> StampResult:
         """
@@ -323,6 +368,7 @@ class StampGate:
         """
         held, self._held = self._held, []
         self.last_ns = self.last_receive_ns = None
+        self._latencies.clear()
         self._anchor = (stamp, receive)
         result = StampResult()
         for stamp_k, receive_k, item_k in held:
@@ -341,6 +387,7 @@ class StampGate:
         held, self._held = self._held, []
         self.last_ns = self.last_receive_ns = None
         self._steps.clear()
+        self._latencies.clear()
         self._refresh_cadence()
         self._anchor = None
         return held
