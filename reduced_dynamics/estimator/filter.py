@@ -102,7 +102,7 @@ from typing import NamedTuple, Optional, Sequence
 
 import numpy as np
 import pinocchio as pin
-from scipy.stats import chi2
+from reduced_dynamics.chi_square import chi2
 
 from reduced_dynamics.estimator.events import StepDetection, WrenchStepTest
 from reduced_dynamics.geometry.lie_group import BaseGroup
