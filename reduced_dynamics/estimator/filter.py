@@ -98,7 +98,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
-from typing import NamedTuple, Optional, Sequence
+from typing import Iterator, NamedTuple, Optional, Sequence
 
 import numpy as np
 import pinocchio as pin
@@ -905,27 +905,37 @@ class MomentumFilter:
 
 
 def smooth(group: BaseGroup, steps: Sequence[FilterStep]) -> list[FilterState]:
+    """Return the smoothed state of every recorded step (:func:`smooth_backward`, in order)."""
+    out: list[Optional[FilterState]] = [None] * len(steps)
+    for k, state in smooth_backward(group, steps):
+        out[k] = state
+    return out  # type: ignore[return-value]
+
+
+def smooth_backward(group: BaseGroup,
+                    steps: Sequence[FilterStep]) -> Iterator[tuple[int, FilterState]]:
     """
     Run the Rauch-Tung-Striebel smoother backwards over recorded steps (error-state form).
 
     ``C_k = P_k Phi_{k+1}^T (P^-_{k+1})^-1``; the smoothed correction at k is
     ``C_k (x^s_{k+1} - x^-_{k+1})`` with the pose difference taken as
     ``log(g^-_{k+1}^-1 g^s_{k+1})``; ``P^s_k = P_k + C_k (P^s_{k+1} - P^-_{k+1}) C_k^T``.
+    Yield (k, smoothed state) from the last step to the first; ``steps`` is read
+    by index, backwards (a list, or the disk-backed store of .smoother).
     """
     count = len(steps)
     if not count:
-        return []
+        return
     n = group.dim
     last = steps[-1]
-    out: list[Optional[FilterState]] = [None] * count
-    out[-1] = FilterState(last.g, last.x.copy(), last.p.copy())
-    g_s, x_s, p_s = out[-1]
+    g_s, x_s, p_s = state = FilterState(last.g, last.x.copy(), last.p.copy())
+    yield count - 1, state
     for k in range(count - 2, -1, -1):
         step, after = steps[k], steps[k + 1]
         if after.transition is None:
             # A restart: the next step does not depend on this one.
-            out[k] = FilterState(step.g, step.x.copy(), step.p.copy())
-            g_s, x_s, p_s = out[k]
+            g_s, x_s, p_s = state = FilterState(step.g, step.x.copy(), step.p.copy())
+            yield k, state
             continue
         cross = step.p @ after.transition.T
         try:
@@ -938,5 +948,4 @@ def smooth(group: BaseGroup, steps: Sequence[FilterStep]) -> list[FilterState]:
         x_k = step.x + dx[n:]
         p_k = step.p + gain @ (p_s - after.p_pred) @ gain.T
         g_s, x_s, p_s = g_k, x_k, 0.5 * (p_k + p_k.T)
-        out[k] = FilterState(g_s, x_s, p_s)
-    return out  # type: ignore[return-value]
+        yield k, FilterState(g_s, x_s, p_s)

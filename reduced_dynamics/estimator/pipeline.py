@@ -46,7 +46,7 @@ from collections import Counter, deque
 from dataclasses import dataclass
 from itertools import chain
 import math
-from typing import Iterable, Optional, Sequence, Union
+from typing import Any, Iterable, Iterator, Optional, Sequence, Union
 
 import numpy as np
 import pinocchio as pin
@@ -57,10 +57,11 @@ from reduced_dynamics.estimator.cyclic import (CYCLIC_OFF, CyclicColumns, Cyclic
                                                resolve_cyclic_joints)
 from reduced_dynamics.estimator.kernel import UpdateKernel
 from reduced_dynamics.estimator.events import EventDetector, MomentumEvent
-from reduced_dynamics.estimator.filter import (Command, Linearisation, Measurement,
-                                               MomentumFilter, NoiseModel, smooth)
+from reduced_dynamics.estimator.filter import (Command, FilterState, Linearisation,
+                                               Measurement, MomentumFilter, NoiseModel)
 from reduced_dynamics.estimator.plausibility import BaseBounds, JointBounds
 from reduced_dynamics.estimator.retiming import FrameRetimer
+from reduced_dynamics.estimator.smoother import smooth_rows, SmootherFiles, StepStore
 from reduced_dynamics.estimator.prediction import (
     FinishedPrediction, Plan, PredictionJob, PredictionMessages, Predictor, PRESCRIBED_MODES)
 from reduced_dynamics.estimator.stamps import ACCEPTED, ClockJump, StampGate, StampResult
@@ -374,8 +375,9 @@ class Estimator:
         # (a failed prediction must not hide a later rejection, nor the reverse).
         self._rejected_at = 0
         self._done: list[OutputChunk] = []
-        #: keep the filter's steps for :meth:`smoothed` (see :meth:`enable_smoothing`)
+        #: keep the filter's steps for :meth:`smoothed_rows` (see :meth:`enable_smoothing`)
         self.record_steps = False
+        self.smoother_files: Optional[SmootherFiles] = None
         # Input gates (estimator/stamps.py, estimator/plausibility.py).
         self._joint_gate = StampGate('joint state', NS, 3)
         self._base_gate = StampGate('base', NS, 3)
@@ -1253,63 +1255,83 @@ class Estimator:
                 'retiming_restarts': self._retimer.restarts}
 
     # --- smoothing (replay) -----------------------------------------------------------
-    def enable_smoothing(self) -> None:
-        """Record the filter's steps from now on, for :meth:`smooth_outputs` (replay)."""
+    def enable_smoothing(self, files: Optional[SmootherFiles] = None) -> None:
+        """
+        Record the filter's steps from now on, for :meth:`smoothed_rows` (replay).
+
+        The steps go to disk (:mod:`.smoother`) in ``files`` (default: a
+        temporary directory of the estimator's own, removed when it is collected).
+        """
         self.record_steps = True
+        self.smoother_files = files if files is not None else SmootherFiles()
         self.filter.record = True
+        self.filter.steps = StepStore(self.smoother_files, self.robot.n, self.filter.dim,
+                                      self.commanded_wrench)
+
+    def smoothed_rows(self) -> Iterator[dict[str, Any]]:
+        """
+        Yield, per output since :meth:`enable_smoothing`, its RTS-smoothed fields.
+
+        Each a dict of :class:`EstimatorOutput` fields: ``mu``, ``momentum``,
+        ``body_momentum``, ``momentum_rate``, ``drift_twist``, ``momentum_covariance``,
+        ``wrench_covariance`` (and ``disturbance`` with a commanded wrench); the
+        shape state, predictions, diagnostics and events stay those of the causal
+        run. Memory stays a block of rows whatever the length (:mod:`.smoother`).
+        """
+        flt, n, group, kernel = self.filter, self.robot.n, self.robot.group, self.kernel
+        command = self.commanded_wrench
+
+        def wrench(state: FilterState, held: Optional[np.ndarray]) -> tuple:
+            if command:
+                total, cov = flt._total(state.g, state.x, state.p, held)
+                return total, cov, state.x[n:2 * n]
+            return state.x[n:], state.p[2 * n:, 2 * n:], None
+
+        rows = smooth_rows(group, flt.steps, self.smoother_files, wrench)
+        world, base = self.config.world_frame, self.robot.base_link
+        wrench_sample, twist_sample = WrenchSample, TwistSample
+        try:
+            for block in rows.blocks():
+                mu = np.ascontiguousarray(block['mu'])
+                momentum = kernel.wrenches(mu)
+                body = kernel.wrenches(np.ascontiguousarray(block['pi']))
+                rate = kernel.wrenches(np.ascontiguousarray(block['rate']))
+                drift = kernel.twists(np.ascontiguousarray(block['drift']))
+                disturbance = kernel.wrenches(np.ascontiguousarray(block['disturbance'])) \
+                    if command else None
+                mu_cov, w_cov = block['mu_cov'], block['w_cov']
+                for k, stamp in enumerate(block['stamp_ns'].tolist()):
+                    fields = {
+                        'mu': mu[k],
+                        'momentum': trusted_sample(wrench_sample, stamp, world,
+                                                   momentum[k, :3], momentum[k, 3:]),
+                        'body_momentum': trusted_sample(wrench_sample, stamp, base,
+                                                        body[k, :3], body[k, 3:]),
+                        'momentum_rate': trusted_sample(wrench_sample, stamp, world,
+                                                        rate[k, :3], rate[k, 3:]),
+                        'drift_twist': trusted_sample(twist_sample, stamp, base,
+                                                      drift[k, :3], drift[k, 3:]),
+                        'momentum_covariance': mu_cov[k], 'wrench_covariance': w_cov[k]}
+                    if disturbance is not None:
+                        fields['disturbance'] = trusted_sample(
+                            wrench_sample, stamp, world, disturbance[k, :3], disturbance[k, 3:])
+                    yield fields
+        finally:
+            rows.close()
 
     def smooth_outputs(self, outputs: Sequence[EstimatorOutput]) -> None:
         """
         Replace the filtered estimates of ``outputs`` by the RTS-smoothed ones, in place.
 
         ``outputs`` are all outputs since :meth:`enable_smoothing`, in order (one
-        recorded filter row each). Momentum, body momentum, momentum rate, drift
-        twist, mu and the covariances change; the shape state, predictions,
-        diagnostics and events stay those of the causal run.
+        recorded filter row each); :meth:`smoothed_rows` says what changes.
         """
-        recorded = self.filter.steps
-        # The steps of the rows; base measurements between rows are steps of their own.
-        rows = [k for k, step in enumerate(recorded) if step.output]
-        if len(rows) != len(outputs):
-            raise ValueError(f'{len(outputs)} outputs for {len(rows)} recorded filter rows')
-        if not outputs:
-            return
-        n, group, kernel = self.robot.n, self.robot.group, self.kernel
-        smoothed = smooth(group, recorded)
-        states = [smoothed[k] for k in rows]
-        steps = [recorded[k] for k in rows]
-        flt = self.filter
-        mu = np.array([state.x[:n] for state in states])
-        if self.commanded_wrench:
-            totals = [flt._total(state.g, state.x, state.p, step.command)
-                      for state, step in zip(states, steps)]
-            rate = np.array([total for total, _ in totals])
-            disturbance = kernel.wrenches(np.array([state.x[n:2 * n] for state in states]))
-        else:
-            rate = np.array([state.x[n:] for state in states])
-        pi = np.array([group.Ad(state.g).T @ state.x[:n] for state in states])
-        drift = np.array([step.locked_inverse @ row for step, row in zip(steps, pi)])
-        momentum, body = kernel.wrenches(mu), kernel.wrenches(pi)
-        wrench, twist = kernel.wrenches(rate), kernel.twists(drift)
-        world, base = self.config.world_frame, self.robot.base_link
-        for k, output in enumerate(outputs):
-            stamp = output.stamp_ns
-            output.mu = mu[k]
-            output.momentum = trusted_sample(WrenchSample, stamp, world, momentum[k, :3],
-                                             momentum[k, 3:])
-            output.body_momentum = trusted_sample(WrenchSample, stamp, base, body[k, :3],
-                                                  body[k, 3:])
-            output.momentum_rate = trusted_sample(WrenchSample, stamp, world, wrench[k, :3],
-                                                  wrench[k, 3:])
-            output.drift_twist = trusted_sample(TwistSample, stamp, base, twist[k, :3],
-                                                twist[k, 3:])
-            output.momentum_covariance = states[k].p[n:2 * n, n:2 * n]
-            if self.commanded_wrench:
-                output.wrench_covariance = totals[k][1]
-                output.disturbance = trusted_sample(WrenchSample, stamp, world,
-                                                    disturbance[k, :3], disturbance[k, 3:])
-            else:
-                output.wrench_covariance = states[k].p[2 * n:, 2 * n:]
+        recorded = self.filter.steps.outputs
+        if recorded != len(outputs):
+            raise ValueError(f'{len(outputs)} outputs for {recorded} recorded filter rows')
+        for output, fields in zip(outputs, self.smoothed_rows()):
+            for name, value in fields.items():
+                setattr(output, name, value)
 
     # --- reporting -------------------------------------------------------------------
     def diagnostics(self, stamp_ns: int) -> Diagnostics:
