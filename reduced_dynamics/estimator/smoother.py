@@ -37,13 +37,14 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-from typing import Callable, Iterator, Optional
+from typing import Any, Callable, Iterator, Optional, Sequence
 import weakref
 
 import numpy as np
 import pinocchio as pin
 
 from reduced_dynamics.estimator.filter import FilterState, FilterStep, smooth_backward
+from reduced_dynamics.estimator.outputs import EstimatorOutput, smoothed_fields
 from reduced_dynamics.geometry.lie_group import BaseGroup
 
 #: Steps per block: ~8 MiB for the paper robot (3n = 18), big enough for large writes.
@@ -260,3 +261,58 @@ def smooth_rows(group: BaseGroup, steps: StepStore, files: SmootherFiles,
             record['disturbance'] = disturbance
     rows.write(start, buffer[:end - start])
     return rows
+
+
+class Smoothing:
+    """Fixed-interval smoothing of a whole run (a part of :class:`~.pipeline.Estimator`)."""
+
+    def enable_smoothing(self, files: Optional[SmootherFiles] = None) -> None:
+        """
+        Record the filter's steps from now on, for :meth:`smoothed_rows` (replay).
+
+        The steps go to disk in ``files`` (default: a temporary directory of the
+        estimator's own, removed when it is collected).
+        """
+        self.record_steps = True
+        self.smoother_files = files if files is not None else SmootherFiles()
+        self.filter.record = True
+        self.filter.steps = StepStore(self.smoother_files, self.robot.n, self.filter.dim,
+                                      self.commanded_wrench)
+
+    def smoothed_rows(self) -> Iterator[dict[str, Any]]:
+        """
+        Yield, per output since :meth:`enable_smoothing`, its RTS-smoothed fields.
+
+        :func:`~.outputs.smoothed_fields` lists them; the shape state,
+        predictions, diagnostics and events stay those of the causal run.
+        Memory stays a block of rows whatever the length.
+        """
+        flt, n, group = self.filter, self.robot.n, self.robot.group
+        command = self.commanded_wrench
+
+        def wrench(state: FilterState, held: Optional[np.ndarray]) -> tuple:
+            if command:
+                total, cov = flt._total(state.g, state.x, state.p, held)
+                return total, cov, state.x[n:2 * n]
+            return state.x[n:], state.p[2 * n:, 2 * n:], None
+
+        rows = smooth_rows(group, flt.steps, self.smoother_files, wrench)
+        try:
+            yield from smoothed_fields(self.kernel, rows.blocks(), self.config.world_frame,
+                                       self.robot.base_link, command)
+        finally:
+            rows.close()
+
+    def smooth_outputs(self, outputs: Sequence[EstimatorOutput]) -> None:
+        """
+        Replace the filtered estimates of ``outputs`` by the RTS-smoothed ones, in place.
+
+        ``outputs`` are all outputs since :meth:`enable_smoothing`, in order (one
+        recorded filter row each); :meth:`smoothed_rows` says what changes.
+        """
+        recorded = self.filter.steps.outputs
+        if recorded != len(outputs):
+            raise ValueError(f'{len(outputs)} outputs for {recorded} recorded filter rows')
+        for output, fields in zip(outputs, self.smoothed_rows()):
+            for name, value in fields.items():
+                setattr(output, name, value)
