@@ -94,11 +94,11 @@ class StepStore:
     """
 
     def __init__(self, files: SmootherFiles, n: int, dim: int, command: bool,
-                 name: str = 'steps.bin', block: int = BLOCK_STEPS) -> None:
+                 name: str = 'steps.bin', block: Optional[int] = None) -> None:
         """Open an empty store for steps of a filter of algebra dimension n, error dim."""
         self.n, self.dim, self.command = n, dim, command
         self.dtype = _step_dtype(n, dim, command)
-        self._block = block
+        self._block = block = block or BLOCK_STEPS
         self._path = files.file(name)
         self._file = open(self._path, 'w+b')
         self._buffer = np.zeros(block, self.dtype)
@@ -200,11 +200,11 @@ class RowStore:
     """Smoothed output rows on disk: written backwards by index, read forwards in blocks."""
 
     def __init__(self, files: SmootherFiles, n: int, rows: int,
-                 name: str = 'rows.bin', block: int = BLOCK_ROWS) -> None:
+                 name: str = 'rows.bin', block: Optional[int] = None) -> None:
         """Open a store of ``rows`` rows for an algebra of dimension n."""
         self.dtype = _row_dtype(n)
         self.rows = rows
-        self._block = block
+        self._block = block or BLOCK_ROWS
         self._file = open(files.file(name), 'w+b')
         self._file.truncate(rows * self.dtype.itemsize)
 
@@ -226,7 +226,7 @@ class RowStore:
 
 
 def smooth_rows(group: BaseGroup, steps: StepStore, files: SmootherFiles,
-                wrench: RowWrench, block: int = BLOCK_ROWS) -> RowStore:
+                wrench: RowWrench, block: Optional[int] = None) -> RowStore:
     """
     Run the backward pass over ``steps``; return the smoothed rows (one per output step).
 
@@ -235,6 +235,7 @@ def smooth_rows(group: BaseGroup, steps: StepStore, files: SmootherFiles,
     :meth:`Estimator.smooth_outputs` reports them.
     """
     n = group.dim
+    block = block or BLOCK_ROWS
     rows = RowStore(files, n, steps.outputs, block=block)
     buffer = np.zeros(block, rows.dtype)
     row = steps.outputs  # rows still to fill: row - 1 is the next, going backwards
