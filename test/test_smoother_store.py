@@ -22,13 +22,13 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.bench import replay_memory, tile_bag
 from reduced_dynamics.estimator import smoother
 from reduced_dynamics.estimator.filter import FilterStep, smooth
 from reduced_dynamics.estimator.pipeline import Estimator
 from reduced_dynamics.estimator.smoother import SmootherFiles, StepStore
 from reduced_dynamics.messages.convert import joint_state_from_ros, odometry_from_ros
-from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.robot.model import load_robot
 from reduced_dynamics.simulator import (simulate_bag, SimulationOptions, TOPIC_JOINT_STATES,
                                         TOPIC_ODOM)

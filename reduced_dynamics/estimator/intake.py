@@ -38,6 +38,7 @@ from reduced_dynamics.estimator.stamps import ACCEPTED
 from reduced_dynamics.messages.samples import (BaseStateSample, CommandSample, JointStateSample,
                                                JointTrajectorySample)
 
+
 class _Identity:
     """Name-mapping marker: the joint state lists the joints in model order."""
 

@@ -68,6 +68,10 @@ class RowChunk:
 class ChunkProcessing:
     """
     The update of a chunk of rows (a part of :class:`~.pipeline.Estimator`).
+
+    ``_process_chunk`` turns the open :class:`RowChunk` into an
+    :class:`~.outputs.OutputChunk` in ``_done``; predictions start from the
+    filter's pose and momentum where they are due.
     """
 
     def _process_chunk(self) -> None:

@@ -42,6 +42,10 @@ COMMAND_GAIN_WARN = 0.1
 class Reporting:
     """
     Statistics, summary and diagnostics (a part of :class:`~.pipeline.Estimator`).
+
+    Reads the counters of :mod:`.intake`, the filter, the detector and the
+    predictor; writes nothing but the running mu statistics and the diagnostics
+    period.
     """
 
     def _accumulate_statistics(self, mu: np.ndarray) -> None:

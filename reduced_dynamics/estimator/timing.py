@@ -46,6 +46,10 @@ RETIMED_KEEP = 4096
 class Timing:
     """
     Synchronisation, re-timing and clock restarts (a part of :class:`~.pipeline.Estimator`).
+
+    Accepted samples queue here (``_pending``, the base buffer, the held
+    commands) until a row is resolved; resolved rows go to the open chunk
+    (:mod:`.processing`).
     """
 
     def _accept_joint(self, pending: tuple) -> None:
