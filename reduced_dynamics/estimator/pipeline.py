@@ -37,6 +37,19 @@ one message released); ``add_samples`` closes it every few hundred samples
 (batched). A chunk is also closed where a diagnostics message is due, so that its
 counters are those a sample-by-sample run would report; the two paths give
 bit-identical outputs.
+
+This module is the orchestration; each concern is a module of its own, a part
+of :class:`Estimator` whose state :meth:`Estimator.__init__` sets up, and one
+sample travels down through them:
+
+* :mod:`.intake`: validation of every input, rejections counted by reason;
+* :mod:`.timing`: stamp policy decisions, re-timing, joint/base pairing into
+  rows, held commands, clock restarts;
+* :mod:`.processing`: a chunk of rows through the kernel, the filter, the event
+  detector and the predictor;
+* :mod:`.outputs`: the outputs, per sample and per chunk;
+* :mod:`.reporting`: statistics, summary and diagnostics;
+* :mod:`.smoother`: the fixed-interval smoother's disk-backed store (replay).
 """
 
 from __future__ import annotations
