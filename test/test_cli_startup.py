@@ -91,3 +91,9 @@ def _required(name: str) -> list[str]:
     return {'simulate': ['-o', 'x'], 'replay': ['bag', '-o', 'x'],
             'predict': ['--trajectory', 'x'], 'tune': ['bag', '-o', 'x'],
             'bench': []}[name]
+
+
+def test_validate_loads_only_the_model_and_the_integrators():
+    loaded = _loaded_after('import reduced_dynamics.validation\n'
+                           'import reduced_dynamics.robot.symmetry')
+    assert loaded == ['pinocchio']
