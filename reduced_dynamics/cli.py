@@ -24,11 +24,10 @@ One subcommand per task; ``--help`` on each lists its options.
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import sys
 from typing import Optional, Sequence
-
-import numpy as np
 
 
 def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
@@ -48,6 +47,8 @@ def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
 
 def load_robot_from_args(args: argparse.Namespace):
     """Return the robot model the arguments describe."""
+    import numpy as np
+
     from reduced_dynamics.robot.model import load_robot
     from reduced_dynamics.robot.xacro_file import parse_xacro_args
     gravity = None if args.gravity is None else np.array(args.gravity)
@@ -95,8 +96,29 @@ def _symmetries(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """Return the argument parser of every subcommand."""
+#: Subcommands defined in their own modules: name -> (module, one-line help). Only
+#: the module of the subcommand being run is imported (``--help`` imports none).
+LAZY_COMMANDS = {
+    'simulate': ('simulator', 'simulate full dynamics and write a rosbag2 (MCAP) bag'),
+    'replay': ('replay', 'run the estimator over a recorded bag'),
+    'replay-many': ('fleet', 'replay many bags (a test campaign) on a process pool, Ray '
+                             'or Dask; one table of all bags'),
+    'predict': ('predict', 'base motion for a planned joint trajectory (YAML/CSV file)'),
+    'tune': ('tune', 'estimate the filter\'s noise parameters from a bag (maximum '
+                     'innovation likelihood)'),
+    'bench': ('bench', 'benchmark the estimator, prediction, replay and scaling'),
+    'identify': ('identify', 'identify a grasped payload\'s inertial parameters from a bag'),
+}
+
+
+def build_parser(command: Optional[str] = '') -> argparse.ArgumentParser:
+    """
+    Return the argument parser.
+
+    ``command``: the subcommand whose full options are wanted (its module is
+    imported); ``''``: every subcommand in full; None: none (the others appear
+    with their one-line help only, enough for ``reduced-dynamics --help``).
+    """
     parser = argparse.ArgumentParser(
         prog='reduced-dynamics',
         description='Symplectically reduced dynamics of free-floating robots '
@@ -121,21 +143,23 @@ def build_parser() -> argparse.ArgumentParser:
                             help='random configurations tested besides the home pose')
     symmetries.add_argument('--seed', type=int, default=0)
     symmetries.set_defaults(func=_symmetries)
-    for register in _extra_commands():
-        register(commands)
+    for name, (module, summary) in LAZY_COMMANDS.items():
+        if command == '' or command == name:
+            imported = importlib.import_module(f'reduced_dynamics.{module}')
+            imported.register_command(commands)
+        else:
+            commands.add_parser(name, help=summary)
     return parser
 
 
-def _extra_commands() -> list:
-    registrars = []
-    for module in ('simulator', 'replay', 'fleet', 'predict', 'tune', 'bench', 'identify'):
-        try:
-            imported = __import__(f'reduced_dynamics.{module}', fromlist=['register_command'])
-        except ImportError:
-            continue
-        if hasattr(imported, 'register_command'):
-            registrars.append(imported.register_command)
-    return registrars
+def _command_of(argv: Sequence[str]) -> Optional[str]:
+    """Return the subcommand named in ``argv`` (None: none, e.g. ``--help`` alone)."""
+    for arg in argv:
+        if not arg.startswith('-'):
+            return arg
+        if arg in ('-h', '--help'):
+            return None
+    return None
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -154,9 +178,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 
 def _main(argv: Optional[Sequence[str]]) -> int:
-    from reduced_dynamics.robot.model import ModelError
-    parser = build_parser()
+    if argv is None:
+        argv = sys.argv[1:]
+    parser = build_parser(_command_of(argv))
     args = parser.parse_args(argv)
+    from reduced_dynamics.robot.model import ModelError
     try:
         return int(args.func(args) or 0)
     except (ModelError, FileNotFoundError, ValueError) as error:

@@ -30,13 +30,41 @@ Integrators for systems that live partly on Lie groups through re-centred charts
 from __future__ import annotations
 
 from dataclasses import dataclass
+import importlib.util
+import os
+import sys
 import time
+from types import ModuleType
 from typing import Callable, Optional, Protocol, Sequence
 
 import numpy as np
-# The published DOP853 tableau (Hairer, Norsett & Wanner; Fortran DOP853) as scipy
-# ships it: reused rather than retyped, so the two implementations cannot differ.
-from scipy.integrate._ivp import dop853_coefficients as _dop853
+import scipy
+
+
+def _dop853_tableau() -> ModuleType:
+    """
+    Return scipy's module of the DOP853 tableau without importing ``scipy.integrate``.
+
+    The published tableau (Hairer, Norsett & Wanner; Fortran DOP853) as scipy ships
+    it: reused rather than retyped, so the two implementations cannot differ. Its
+    package's ``__init__`` imports all of scipy.integrate (a third of a second, most
+    of ``reduced-dynamics predict``); the module itself needs only numpy.
+    """
+    name = 'scipy.integrate._ivp.dop853_coefficients'
+    loaded = sys.modules.get(name)
+    if loaded is not None:
+        return loaded
+    path = os.path.join(os.path.dirname(scipy.__file__), 'integrate', '_ivp',
+                        'dop853_coefficients.py')
+    spec = importlib.util.spec_from_file_location('_reduced_dynamics_dop853', path)
+    if spec is None or spec.loader is None:  # an unexpected scipy layout: the package way
+        return importlib.import_module(name)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+_dop853 = _dop853_tableau()
 
 ADAPTIVE_METHODS = ('DOP853',)
 

@@ -43,6 +43,7 @@ from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.bag.writer import BagWriter
 from reduced_dynamics.estimator.config import EstimatorConfig
 from reduced_dynamics.estimator.pipeline import Estimator, EstimatorOutput
+from reduced_dynamics.estimator.smoother import SmootherFiles
 from reduced_dynamics.bag.reader import BagReader
 from reduced_dynamics.messages import cdr
 from reduced_dynamics.messages.convert import (
@@ -50,6 +51,7 @@ from reduced_dynamics.messages.convert import (
     pose_stamped_from_ros)
 from reduced_dynamics.messages.samples import JointTrajectorySample, with_receive_time
 from reduced_dynamics.messages.types import RosbagsTypes
+from reduced_dynamics.output_spool import OutputSpool, SMOOTHED_FIELDS
 from reduced_dynamics.params import defaults, load_params_file
 from reduced_dynamics.plot_marks import draw_marks, read_marks
 from reduced_dynamics.robot.model import load_robot, RobotModel
@@ -318,8 +320,6 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
         estimator = Estimator(robot, config, use_odometry=is_odom, base_driven=base_driven,
                               cyclic_joints=options.params.get('cyclic_joints', ''),
                               commanded_wrench=bool(command_topic))
-        if options.smooth:
-            estimator.enable_smoothing()
         start_ns = None if options.start is None else reader.start_ns + int(options.start * 1e9)
         end_ns = None if options.end is None else reader.start_ns + int(options.end * 1e9)
         trajectory_topic = _topic(options.trajectory_topic
@@ -357,17 +357,27 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
         last_report = started
         with BagWriter(out_path, out_topics, overwrite=options.overwrite) as writer:
             write = writer.write_raw
-
-            held: list[EstimatorOutput] = []
+            spool = None
+            if options.smooth:
+                # The smoother's steps and the causal messages wait on disk, beside the
+                # output bag (estimator/smoother.py, output_spool.py): memory stays flat.
+                out = os.path.abspath(out_path)
+                files = SmootherFiles(os.path.dirname(out),
+                                      f'.{os.path.basename(out)}.smoothing-')
+                estimator.enable_smoothing(files)
+                spool = OutputSpool(files.file('outputs.bin'), encoders)
 
             def emit(outputs: list[EstimatorOutput], final: bool = False) -> None:
-                if options.smooth:
-                    # The smoother needs the whole bag: outputs are written at the end.
-                    held.extend(outputs)
-                    if not final:
-                        return
-                    estimator.smooth_outputs(held)
-                    outputs = held
+                if spool is not None:
+                    for output in outputs:
+                        spool.hold(output)
+                        if options.plots_dir:
+                            series['shape'].add((output.stamp_ns, *output.shape_state.position))
+                    if final:
+                        _write_smoothed(spool, estimator, write, series, options.plots_dir)
+                        spool.close()
+                        files.close()
+                    return
                 for output in outputs:
                     stamp = output.stamp_ns
                     for name, topic, encode in encoders:
@@ -464,6 +474,31 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                                   for a, b in marks['pulses']],
             'pulse_topic': marks['pulse_topic']}
     return summary
+
+
+def _write_smoothed(spool: OutputSpool, estimator: Estimator, write: Callable,
+                    series: dict, plots: Optional[str]) -> None:
+    """Write the held outputs in order, their smoothed fields from the estimator."""
+    recorded = estimator.filter.steps.outputs
+    if recorded != spool.count:
+        raise ValueError(f'{spool.count} outputs for {recorded} recorded filter rows')
+    encoders = spool.encoders
+    for (stamp, causal), smoothed in zip(spool.rows(), estimator.smoothed_rows()):
+        for index, (name, topic, encode) in enumerate(encoders):
+            if name in SMOOTHED_FIELDS:
+                sample = smoothed.get(name)
+                if sample is not None:
+                    write(topic, stamp, encode(sample))
+            else:
+                data = causal.get(index)
+                if data is not None:
+                    write(topic, stamp, data)
+        if plots:
+            rate, disturbance = smoothed['momentum_rate'], smoothed.get('disturbance')
+            series['mu'].add((stamp, *smoothed['mu']))
+            series['rate'].add((stamp, *rate.force, *rate.torque))
+            if disturbance is not None:
+                series['disturbance'].add((stamp, *disturbance.force, *disturbance.torque))
 
 
 def damage_report(reader: BagReader, topics: list[str], read: Counter,

@@ -14,7 +14,19 @@
 
 """The estimator pipeline shared by the replay tool and the node (ROS-free)."""
 
-from reduced_dynamics.estimator.config import EstimatorConfig
-from reduced_dynamics.estimator.pipeline import Estimator, EstimatorOutput
+from typing import Any
 
 __all__ = ['Estimator', 'EstimatorConfig', 'EstimatorOutput']
+
+#: Names re-exported from their modules, imported on first use: a submodule (e.g.
+#: base_motion for ``reduced-dynamics predict``) must not pull in the whole pipeline.
+_EXPORTS = {'Estimator': 'pipeline', 'EstimatorOutput': 'pipeline', 'EstimatorConfig': 'config'}
+
+
+def __getattr__(name: str) -> Any:
+    """Import ``Estimator``, ``EstimatorConfig`` and ``EstimatorOutput`` on first use."""
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
+    from importlib import import_module
+    return getattr(import_module(f'{__name__}.{module}'), name)

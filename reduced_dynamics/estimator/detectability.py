@@ -36,7 +36,7 @@ import math
 from typing import Optional, Sequence
 
 import numpy as np
-from scipy.stats import chi2
+from reduced_dynamics.chi_square import chi2
 
 
 def step_information(acceleration: Sequence[float], tau: float, rate: float,

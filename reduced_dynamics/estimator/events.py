@@ -69,7 +69,7 @@ import math
 from typing import NamedTuple, Optional
 
 import numpy as np
-from scipy.stats import chi2
+from reduced_dynamics.chi_square import chi2
 
 #: Seconds after an event's end during which its mu_after follows the filter.
 SETTLE = 1.0

@@ -110,10 +110,10 @@ from typing import Optional, Sequence
 
 import numpy as np
 import pinocchio as pin
-from scipy.stats import chi2
+from reduced_dynamics.chi_square import chi2
 
 from reduced_dynamics.estimator.core import kernels
-from reduced_dynamics.estimator.core.smoother import smooth
+from reduced_dynamics.estimator.core.smoother import smooth, smooth_backward
 from reduced_dynamics.estimator.core.stalls import StallDetector
 from reduced_dynamics.estimator.core.state import (Command, FilterState, FilterStep,
                                                    Linearisation, Measurement, NoiseModel,
@@ -122,7 +122,7 @@ from reduced_dynamics.estimator.events import StepDetection, WrenchStepTest
 from reduced_dynamics.geometry.lie_group import BaseGroup
 
 __all__ = ['Command', 'FilterState', 'FilterStep', 'Linearisation', 'Measurement',
-           'MomentumFilter', 'NoiseModel', 'between', 'smooth']
+           'MomentumFilter', 'NoiseModel', 'between', 'smooth', 'smooth_backward']
 
 LOG = logging.getLogger(__name__)
 

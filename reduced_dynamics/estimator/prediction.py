@@ -43,7 +43,7 @@ the prescribed path; torque modes compare the shape.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import threading
 from typing import NamedTuple, Optional
 
@@ -388,10 +388,15 @@ class Predictor:
         # next stamp at which the history is trimmed (per-sample work stays O(1)).
         self._next_end = _NEVER
         self._trim_at = -1
+        # Finished predictions keep their sampled paths only while they are the last
+        # compared one (diagnostics read it): a node or replay of hours holds one.
+        self._kept: Optional[FinishedPrediction] = None
+        self._thinned = 0
 
     def adopt(self, old: 'Predictor') -> None:
         """Take over another predictor's open jobs, results, history and plan."""
         self.active, self.finished, self.made = old.active, old.finished, old.made
+        self._kept, self._thinned = old._kept, old._thinned
         self.plan, self._history = old.plan, old._history
         self._next_end, self._trim_at = old._next_end, old._trim_at
 
@@ -465,6 +470,23 @@ class Predictor:
         self._trim_at = -1
 
     def _close(self, job: PredictionJob) -> None:
+        try:
+            self._compare(job)
+        finally:
+            self._thin()
+
+    def _thin(self) -> None:
+        """Drop the sampled paths of finished predictions but the last compared one."""
+        last = self.last_finished
+        for done in self.finished[self._thinned:]:
+            if done is not last:
+                done.result = _summary_only(done.result)
+        if self._kept is not None and self._kept is not last:
+            self._kept.result = _summary_only(self._kept.result)
+        self._kept, self._thinned = last, len(self.finished)
+
+    def _compare(self, job: PredictionJob) -> None:
+        """Record ``job`` as finished, with its residuals against the measured history."""
         result = job.result
         done = FinishedPrediction(job.start_ns, job.mode, job.requested_mode, result)
         self.finished.append(done)
@@ -507,6 +529,12 @@ class Predictor:
         """Return the shape residual of the most recently finished prediction."""
         done = self.last_finished
         return None if done is None else done.shape_residual
+
+
+def _summary_only(result: PredictionResult) -> PredictionResult:
+    """Return ``result`` without its sampled paths (mode, cost and failure stay)."""
+    return replace(result, times=result.times[:0].copy(), poses=None, qbar=None,
+                   qbar_dot=None, phase_poses=None, drift=None, phase=None)
 
 
 def _interpolate(result: PredictionResult, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

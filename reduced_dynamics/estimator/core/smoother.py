@@ -29,7 +29,7 @@ list-of-:class:`~.state.FilterStep` form.
 
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from typing import Iterator, Optional, Sequence
 
 import numpy as np
 from numba import njit
@@ -52,6 +52,27 @@ def _gain(p: np.ndarray, transition: np.ndarray, p_pred: np.ndarray) -> np.ndarr
 
 
 @njit(cache=True)
+def backward_step(g_k: np.ndarray, x_k: np.ndarray, p_k: np.ndarray, transition: np.ndarray,
+                  pose_pred: np.ndarray, x_pred: np.ndarray, p_pred: np.ndarray,
+                  g_s: np.ndarray, x_s: np.ndarray, p_s: np.ndarray, basis: np.ndarray,
+                  pinv: np.ndarray, whole: bool) -> tuple:
+    """
+    Return the smoothed (pose, x, P) of step k from its filtered state and step k + 1.
+
+    ``transition``, ``pose_pred``, ``x_pred``, ``p_pred``: step k + 1's; ``g_s``,
+    ``x_s``, ``p_s``: its smoothed state.
+    """
+    n = p_k.shape[0] - x_k.shape[0]
+    gain = _gain(p_k, transition, p_pred)
+    diff = np.empty(p_k.shape[0])
+    diff[:n] = group_log(compose(inverse(pose_pred), g_s), pinv, whole)
+    diff[n:] = x_s - x_pred
+    dx = gain @ diff
+    return (compose(g_k, group_exp(dx[:n], basis, whole)), x_k + dx[n:],
+            symmetric(p_k + gain @ (p_s - p_pred) @ gain.T))
+
+
+@njit(cache=True)
 def backward(restart: np.ndarray, transitions: np.ndarray, pose_pred: np.ndarray,
              x_pred: np.ndarray, p_pred: np.ndarray, pose: np.ndarray, x: np.ndarray,
              p: np.ndarray, basis: np.ndarray, pinv: np.ndarray, whole: bool,
@@ -64,24 +85,18 @@ def backward(restart: np.ndarray, transitions: np.ndarray, pose_pred: np.ndarray
     (K, 4, 4); x_pred, x, x_out (K, d - n).
     """
     count = restart.shape[0]
-    n = p.shape[1] - x.shape[1]
     pose_out[count - 1] = pose[count - 1]
     x_out[count - 1] = x[count - 1]
     p_out[count - 1] = p[count - 1]
     g_s, x_s, p_s = pose[count - 1].copy(), x[count - 1].copy(), p[count - 1].copy()
-    dim = p.shape[1]
     for k in range(count - 2, -1, -1):
-        g_k, x_k, p_k = pose[k].copy(), x[k].copy(), p[k].copy()
-        if not restart[k + 1]:
-            gain = _gain(p_k, transitions[k + 1].copy(), p_pred[k + 1].copy())
-            diff = np.empty(dim)
-            diff[:n] = group_log(compose(inverse(pose_pred[k + 1].copy()), g_s), pinv, whole)
-            diff[n:] = x_s - x_pred[k + 1]
-            dx = gain @ diff
-            g_k = compose(g_k, group_exp(dx[:n], basis, whole))
-            x_k = x_k + dx[n:]
-            p_k = symmetric(p_k + gain @ (p_s - p_pred[k + 1]) @ gain.T)
-        g_s, x_s, p_s = g_k, x_k, p_k
+        if restart[k + 1]:
+            g_s, x_s, p_s = pose[k].copy(), x[k].copy(), p[k].copy()
+        else:
+            g_s, x_s, p_s = backward_step(
+                pose[k].copy(), x[k].copy(), p[k].copy(), transitions[k + 1].copy(),
+                pose_pred[k + 1].copy(), x_pred[k + 1].copy(), p_pred[k + 1].copy(),
+                g_s, x_s, p_s, basis, pinv, whole)
         pose_out[k] = g_s
         x_out[k] = x_s
         p_out[k] = p_s
@@ -102,6 +117,36 @@ def smooth_arrays(group: BaseGroup, restart: np.ndarray, transitions: np.ndarray
         backward(np.asarray(restart, dtype=np.bool_), transitions, pose_pred, x_pred, p_pred,
                  pose, x, p, group.algebra_basis, group.algebra_pinv, group.is_whole, *out)
     return out
+
+
+def smooth_backward(group: BaseGroup,
+                    steps: Sequence[FilterStep]) -> Iterator[tuple[int, FilterState]]:
+    """
+    Yield (k, smoothed state) from the last step to the first (:func:`backward_step`).
+
+    ``steps`` is read by index, backwards, two at a time: a list, or the disk-backed
+    store of :mod:`reduced_dynamics.estimator.smoother` (memory bounded by the store).
+    Equal to :func:`smooth` (the same compiled step).
+    """
+    count = len(steps)
+    if not count:
+        return
+    basis, pinv, whole = group.algebra_basis, group.algebra_pinv, group.is_whole
+    after = steps[count - 1]
+    g_s, x_s, p_s = after.pose.copy(), after.x.copy(), after.p.copy()
+    yield count - 1, FilterState(pin.SE3(g_s), x_s, p_s)
+    for k in range(count - 2, -1, -1):
+        step = steps[k]
+        if after.transition is None:
+            g_s, x_s, p_s = step.pose.copy(), step.x.copy(), step.p.copy()
+        else:
+            g_s, x_s, p_s = backward_step(
+                np.ascontiguousarray(step.pose), np.ascontiguousarray(step.x),
+                np.ascontiguousarray(step.p), np.ascontiguousarray(after.transition),
+                np.ascontiguousarray(after.pose_pred), np.ascontiguousarray(after.x_pred),
+                np.ascontiguousarray(after.p_pred), g_s, x_s, p_s, basis, pinv, whole)
+        yield k, FilterState(pin.SE3(g_s), x_s, p_s)
+        after = step
 
 
 def smooth(group: BaseGroup, steps: Sequence[FilterStep]) -> list[FilterState]:

@@ -1,0 +1,222 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+What the estimator produces: one output per sample, and chunks of them column-wise.
+
+:class:`EstimatorOutput` is the message-ready output of one processed sample (the
+node's and replay's topics); :class:`OutputChunk` holds a processed chunk's
+columns and makes the outputs on demand; :class:`EstimatorBatch` is what a call
+of ``Estimator.add_samples`` returns; :func:`smoothed_fields` turns rows of the
+smoother (:mod:`.smoother`) into the fields they replace.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Iterable, Iterator, Optional
+
+import numpy as np
+
+from reduced_dynamics.estimator.cyclic import CyclicColumns
+from reduced_dynamics.estimator.kernel import UpdateKernel
+from reduced_dynamics.estimator.prediction import PredictionJob
+from reduced_dynamics.messages.samples import (Diagnostics, JointStateSample, PosePath,
+                                               ShapePrediction, trusted_sample, TwistSample,
+                                               WrenchSample)
+
+
+@dataclass
+class EstimatorOutput:
+    """What one processed sample produces (the node's and replay's output topics)."""
+
+    stamp_ns: int
+    momentum: WrenchSample
+    body_momentum: WrenchSample
+    shape_state: JointStateSample
+    momentum_rate: WrenchSample
+    drift_twist: TwistSample
+    mu: np.ndarray
+    energy: float
+    prediction: Optional[ShapePrediction] = None
+    prediction_path: Optional[PosePath] = None
+    diagnostics: Optional[Diagnostics] = None
+    #: second stage on: the cyclic joints' angles, rates and momenta theta (effort)
+    cyclic_state: Optional[JointStateSample] = None
+    #: prescribed prediction modes: the base path under the geometric phase alone
+    prediction_phase_path: Optional[PosePath] = None
+    #: ``Estimator(defer_predictions=True)``: the prediction started at this sample, to
+    #: be computed off the input path (``job.run()`` returns its messages, see
+    #: :class:`~reduced_dynamics.estimator.prediction.PredictionJob`)
+    prediction_job: Optional[PredictionJob] = None
+    #: covariance (n x n, algebra coordinates) of mu and of the wrench w
+    momentum_covariance: Optional[np.ndarray] = None
+    wrench_covariance: Optional[np.ndarray] = None
+    #: commanded wrench on: the disturbance beyond the command (world frame); then
+    #: ``momentum_rate`` is the total external wrench (disturbance + delivered command)
+    disturbance: Optional[WrenchSample] = None
+
+
+class OutputChunk:
+    """
+    The outputs of one processed chunk, column-wise: row k is the k-th sample.
+
+    ``mu``, ``pi``, ``momentum_rate``, ``drift`` (K, n) in algebra coordinates;
+    ``qbar``, ``qbar_dot``, ``pbar`` (K, m); ``energy`` (K,); ``extras`` maps a
+    row to its prediction, prediction path and diagnostics, where there are any.
+    """
+
+    __slots__ = ('stamps_ns', 'mu', 'pi', 'momentum_rate', 'drift', 'qbar', 'qbar_dot',
+                 'pbar', 'energy', 'extras', 'cyclic', '_kernel', '_world', '_base',
+                 '_names', 'mu_cov', 'w_cov', 'disturbance')
+
+    def __init__(self, estimator: Any, stamps_ns: np.ndarray, mu: np.ndarray,
+                 pi: np.ndarray, rate: np.ndarray, drift: np.ndarray, qbar: np.ndarray,
+                 qbar_dot: np.ndarray, pbar: np.ndarray, energy: np.ndarray,
+                 extras: dict, cyclic: Optional[CyclicColumns] = None) -> None:
+        """
+        Hold the columns of a chunk (the arrays are owned by the chunk).
+
+        ``cyclic`` (second stage): the kept-shape and cyclic columns that replace
+        the shape state in :meth:`outputs`.
+        """
+        self.stamps_ns, self.mu, self.pi, self.momentum_rate = stamps_ns, mu, pi, rate
+        self.drift, self.qbar, self.qbar_dot, self.pbar = drift, qbar, qbar_dot, pbar
+        self.energy, self.extras = energy, extras
+        self._kernel = estimator.kernel
+        self._world = estimator.config.world_frame
+        self._base = estimator.robot.base_link
+        self._names = estimator.robot.shape_joint_names
+        self.cyclic = cyclic
+        #: covariances (K, n, n) of mu and w (set by the estimator)
+        self.mu_cov: Optional[np.ndarray] = None
+        self.w_cov: Optional[np.ndarray] = None
+        #: commanded wrench on: the disturbance w beyond the command (K, n)
+        self.disturbance: Optional[np.ndarray] = None
+
+    def __len__(self) -> int:
+        """Return the number of samples."""
+        return len(self.stamps_ns)
+
+    def outputs(self) -> list[EstimatorOutput]:
+        """Return one :class:`EstimatorOutput` per row (message-ready samples)."""
+        kernel = self._kernel
+        # Rows of the chunk's own contiguous float64 arrays: the samples skip their
+        # validation (hot path).
+        momentum = kernel.wrenches(self.mu)
+        body = kernel.wrenches(self.pi)
+        rate = kernel.wrenches(self.momentum_rate)
+        drift = kernel.twists(self.drift)
+        world, base, names = self._world, self._base, self._names
+        wrench, twist, joint = WrenchSample, TwistSample, JointStateSample
+        extras = self.extras
+        out = []
+        disturbance = None if self.disturbance is None else kernel.wrenches(self.disturbance)
+        cyclic = self.cyclic
+        shape_columns = (self.qbar, self.qbar_dot, self.pbar) if cyclic is None \
+            else (cyclic.qhat, cyclic.qhat_dot, cyclic.phat)
+        if cyclic is not None:
+            names = cyclic.kept_names
+        # Row views by iteration: cheaper than indexing each column per sample.
+        rows = zip(self.stamps_ns.tolist(), self.energy.tolist(), self.mu,
+                   momentum[:, :3], momentum[:, 3:], body[:, :3], body[:, 3:],
+                   *shape_columns, rate[:, :3], rate[:, 3:],
+                   drift[:, :3], drift[:, 3:])
+        for k, (stamp, energy, mu, force, torque, body_force, body_torque, qbar, qbar_dot,
+                pbar, rate_force, rate_torque, linear, angular) in enumerate(rows):
+            output = EstimatorOutput(
+                stamp,
+                trusted_sample(wrench, stamp, world, force, torque),
+                trusted_sample(wrench, stamp, base, body_force, body_torque),
+                trusted_sample(joint, stamp, '', names, qbar, qbar_dot, pbar),
+                trusted_sample(wrench, stamp, world, rate_force, rate_torque),
+                trusted_sample(twist, stamp, base, linear, angular),
+                mu, energy)
+            extra = extras.get(k) if extras else None
+            if extra:
+                output.prediction, output.prediction_path, output.diagnostics = extra[:3]
+                if len(extra) > 3:
+                    output.prediction_phase_path, output.prediction_job = extra[3]
+            if cyclic is not None:
+                output.cyclic_state = cyclic.sample(k, stamp)
+            if self.mu_cov is not None:
+                output.momentum_covariance = self.mu_cov[k]
+                output.wrench_covariance = self.w_cov[k]
+            if disturbance is not None:
+                output.disturbance = trusted_sample(wrench, stamp, world, disturbance[k, :3],
+                                                    disturbance[k, 3:])
+            out.append(output)
+        return out
+
+
+class EstimatorBatch:
+    """The outputs of a call of :meth:`Estimator.add_samples`: a list of chunks."""
+
+    __slots__ = ('chunks',)
+
+    def __init__(self, chunks: list[OutputChunk]) -> None:
+        """Hold the processed chunks in order."""
+        self.chunks = chunks
+
+    def __len__(self) -> int:
+        """Return the number of processed samples."""
+        return sum(len(c) for c in self.chunks)
+
+    def outputs(self) -> list[EstimatorOutput]:
+        """Return the per-sample outputs, as the streaming calls would have."""
+        return [o for chunk in self.chunks for o in chunk.outputs()]
+
+    def column(self, name: str) -> np.ndarray:
+        """Return one column over all chunks, by name: ``'mu'``, ``'stamps_ns'``..."""
+        parts = [getattr(c, name) for c in self.chunks]
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+
+def smoothed_fields(kernel: UpdateKernel, blocks: Iterable[np.ndarray], world: str, base: str,
+                    command: bool) -> Iterator[dict[str, Any]]:
+    """
+    Yield per smoothed row (blocks of :class:`~.smoother.RowStore` records) its fields.
+
+    Each a dict of :class:`EstimatorOutput` fields: ``mu``, ``momentum``,
+    ``body_momentum``, ``momentum_rate``, ``drift_twist``, ``momentum_covariance``,
+    ``wrench_covariance`` (and ``disturbance`` with a commanded wrench), the
+    samples stamped and framed as the causal ones.
+    """
+    wrench_sample, twist_sample = WrenchSample, TwistSample
+    for block in blocks:
+        # Contiguous columns: the kernel's row products are then those of the causal run.
+        mu = np.ascontiguousarray(block['mu'])
+        momentum = kernel.wrenches(mu)
+        body = kernel.wrenches(np.ascontiguousarray(block['pi']))
+        rate = kernel.wrenches(np.ascontiguousarray(block['rate']))
+        drift = kernel.twists(np.ascontiguousarray(block['drift']))
+        disturbance = kernel.wrenches(np.ascontiguousarray(block['disturbance'])) \
+            if command else None
+        mu_cov, w_cov = block['mu_cov'], block['w_cov']
+        for k, stamp in enumerate(block['stamp_ns'].tolist()):
+            fields = {
+                'mu': mu[k],
+                'momentum': trusted_sample(wrench_sample, stamp, world,
+                                           momentum[k, :3], momentum[k, 3:]),
+                'body_momentum': trusted_sample(wrench_sample, stamp, base,
+                                                body[k, :3], body[k, 3:]),
+                'momentum_rate': trusted_sample(wrench_sample, stamp, world,
+                                                rate[k, :3], rate[k, 3:]),
+                'drift_twist': trusted_sample(twist_sample, stamp, base,
+                                              drift[k, :3], drift[k, 3:]),
+                'momentum_covariance': mu_cov[k], 'wrench_covariance': w_cov[k]}
+            if disturbance is not None:
+                fields['disturbance'] = trusted_sample(
+                    wrench_sample, stamp, world, disturbance[k, :3], disturbance[k, 3:])
+            yield fields

@@ -1,0 +1,317 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The fixed-interval smoother's memory: recorded filter steps and smoothed rows on disk.
+
+A smoothed replay needs every filter step for the backward (Rauch-Tung-Striebel)
+pass: at ~8 KiB a step (three 3n x 3n matrices), an hour at 1 kHz joint states
+plus 200 Hz odometry is ~35 GB, so the steps go to files, not lists:
+
+* :class:`StepStore` takes :class:`~.filter.FilterStep` s in time order (the
+  filter's ``steps``), writes them a block at a time and reads them back by
+  index, holding two blocks (:func:`~.filter.smooth_backward` reads k and k + 1,
+  backwards);
+* :func:`smooth_rows` runs the backward pass over it and writes, per output row,
+  what replaces the causal estimate (:class:`RowStore`), which is then read
+  forwards a block at a time.
+
+Memory stays a few blocks whatever the length; the files live in a directory
+(beside the output bag in replay) removed by :meth:`SmootherFiles.close`. Values
+round-trip exactly (float64 bytes, poses as rotation and translation).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from typing import Any, Callable, Iterator, Optional, Sequence
+import weakref
+
+import numpy as np
+
+from reduced_dynamics.estimator.filter import FilterState, FilterStep, smooth_backward
+from reduced_dynamics.estimator.outputs import EstimatorOutput, smoothed_fields
+from reduced_dynamics.geometry.lie_group import BaseGroup
+
+#: Steps per block: ~8 MiB for the paper robot (3n = 18), big enough for large writes.
+BLOCK_STEPS = 1024
+#: Output rows per block of the smoothed rows.
+BLOCK_ROWS = 4096
+
+
+class SmootherFiles:
+    """A private directory for the smoother's files, removed on :meth:`close` (or exit)."""
+
+    def __init__(self, directory: Optional[str] = None, prefix: str = '.smoother-') -> None:
+        """Create it inside ``directory`` (default: the system's temporary directory)."""
+        self.path = tempfile.mkdtemp(prefix=prefix, dir=directory)
+        self._finalizer = weakref.finalize(self, shutil.rmtree, self.path, True)
+
+    def file(self, name: str) -> str:
+        """Return the path of ``name`` inside the directory."""
+        return os.path.join(self.path, name)
+
+    def close(self) -> None:
+        """Remove the directory and its files (idempotent)."""
+        self._finalizer()
+
+
+def _step_dtype(n: int, dim: int, command: bool) -> np.dtype:
+    """Return the record of one step: stamp, flags, matrices and vectors (float64)."""
+    fields = [('stamp_ns', '<i8'), ('has_transition', '?'), ('output', '?'),
+              ('transition', '<f8', (dim, dim)),
+              ('pose_pred', '<f8', (4, 4)),
+              ('x_pred', '<f8', (dim - n,)), ('p_pred', '<f8', (dim, dim)),
+              ('pose', '<f8', (4, 4)),
+              ('x', '<f8', (dim - n,)), ('p', '<f8', (dim, dim)),
+              ('locked_inverse', '<f8', (n, n))]
+    if command:
+        fields.append(('command', '<f8', (n,)))
+    return np.dtype(fields)
+
+
+class StepStore:
+    """
+    Filter steps on disk: ``append`` in time order, ``len`` and ``store[k]`` to read.
+
+    The list interface :class:`~.filter.MomentumFilter` records into and
+    :func:`~.filter.smooth_backward` reads from; ``outputs`` counts the steps
+    that are rows (``FilterStep.output``).
+    """
+
+    def __init__(self, files: SmootherFiles, n: int, dim: int, command: bool,
+                 name: str = 'steps.bin', block: Optional[int] = None) -> None:
+        """Open an empty store for steps of a filter of algebra dimension n, error dim."""
+        self.n, self.dim, self.command = n, dim, command
+        self.dtype = _step_dtype(n, dim, command)
+        self._block = block = block or BLOCK_STEPS
+        self._path = files.file(name)
+        self._file = open(self._path, 'w+b')
+        self._buffer = np.zeros(block, self.dtype)
+        self._filled = 0  # records in _buffer (not yet written)
+        self._written = 0  # records in the file
+        self.outputs = 0
+        # Two blocks read back (k and k + 1 may straddle a boundary): index -> records.
+        self._cache: dict[int, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        """Return the number of steps."""
+        return self._written + self._filled
+
+    def append(self, step: FilterStep) -> None:
+        """Store ``step`` (its arrays are copied)."""
+        record = self._buffer[self._filled]
+        record['stamp_ns'] = step.stamp_ns
+        record['output'] = step.output
+        if step.transition is None:
+            record['has_transition'] = False
+        else:
+            record['has_transition'] = True
+            record['transition'] = step.transition
+        record['pose_pred'] = step.pose_pred
+        record['x_pred'], record['p_pred'] = step.x_pred, step.p_pred
+        record['pose'] = step.pose
+        record['x'], record['p'] = step.x, step.p
+        record['locked_inverse'] = step.locked_inverse
+        if self.command:
+            record['command'] = step.command
+        self.outputs += bool(step.output)
+        self._filled += 1
+        if self._filled == self._block:
+            self._flush()
+
+    def _flush(self) -> None:
+        self._file.seek(self._written * self.dtype.itemsize)
+        self._file.write(self._buffer[:self._filled].tobytes())
+        self._written += self._filled
+        self._filled = 0
+
+    def _records(self, index: int) -> np.ndarray:
+        """Return the block of records holding step ``index`` (read from disk if needed)."""
+        block = index // self._block
+        records = self._cache.get(block)
+        if records is None:
+            if len(self._cache) >= 2:
+                self._cache.pop(max(self._cache, key=lambda b: abs(b - block)))
+            self._file.flush()
+            self._file.seek(block * self._block * self.dtype.itemsize)
+            count = min(self._block, self._written - block * self._block)
+            records = np.fromfile(self._file, self.dtype, count)
+            self._cache[block] = records
+        return records
+
+    def record(self, index: int) -> np.void:
+        """Return the raw record of step ``index`` (negative: from the end)."""
+        if index < 0:
+            index += len(self)
+        if not 0 <= index < len(self):
+            raise IndexError(f'step {index} of {len(self)}')
+        if index >= self._written:
+            return self._buffer[index - self._written]
+        return self._records(index)[index % self._block]
+
+    def __getitem__(self, index: int) -> FilterStep:
+        """Return step ``index`` as a :class:`~.filter.FilterStep` (copies)."""
+        record = self.record(index)
+        return FilterStep(
+            int(record['stamp_ns']),
+            record['transition'].copy() if record['has_transition'] else None,
+            record['pose_pred'].copy(), record['x_pred'].copy(), record['p_pred'].copy(),
+            record['pose'].copy(),
+            record['x'].copy(), record['p'].copy(), record['locked_inverse'].copy(),
+            bool(record['output']), record['command'].copy() if self.command else None)
+
+    def close(self) -> None:
+        """Close the file (the directory's owner removes it)."""
+        self._file.close()
+        self._cache.clear()
+
+
+def _row_dtype(n: int) -> np.dtype:
+    """Return the record of one smoothed row (world-frame momentum and wrench, covariances)."""
+    return np.dtype([('stamp_ns', '<i8'), ('mu', '<f8', (n,)), ('pi', '<f8', (n,)),
+                     ('rate', '<f8', (n,)), ('drift', '<f8', (n,)),
+                     ('disturbance', '<f8', (n,)), ('mu_cov', '<f8', (n, n)),
+                     ('w_cov', '<f8', (n, n))])
+
+
+#: (smoothed state, the command held at its step or None) -> the row's total wrench,
+#: its covariance, and the disturbance beyond the command (None without a command)
+RowWrench = Callable[[FilterState, Optional[np.ndarray]],
+                     tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]]
+
+
+class RowStore:
+    """Smoothed output rows on disk: written backwards by index, read forwards in blocks."""
+
+    def __init__(self, files: SmootherFiles, n: int, rows: int,
+                 name: str = 'rows.bin', block: Optional[int] = None) -> None:
+        """Open a store of ``rows`` rows for an algebra of dimension n."""
+        self.dtype = _row_dtype(n)
+        self.rows = rows
+        self._block = block or BLOCK_ROWS
+        self._file = open(files.file(name), 'w+b')
+        self._file.truncate(rows * self.dtype.itemsize)
+
+    def write(self, first: int, records: np.ndarray) -> None:
+        """Write ``records`` as rows ``first``, ``first + 1``..."""
+        self._file.seek(first * self.dtype.itemsize)
+        self._file.write(records.tobytes())
+
+    def blocks(self) -> Iterator[np.ndarray]:
+        """Yield the rows in order, a block of records at a time."""
+        self._file.flush()
+        for first in range(0, self.rows, self._block):
+            self._file.seek(first * self.dtype.itemsize)
+            yield np.fromfile(self._file, self.dtype, min(self._block, self.rows - first))
+
+    def close(self) -> None:
+        """Close the file."""
+        self._file.close()
+
+
+def smooth_rows(group: BaseGroup, steps: StepStore, files: SmootherFiles,
+                wrench: RowWrench, block: Optional[int] = None) -> RowStore:
+    """
+    Run the backward pass over ``steps``; return the smoothed rows (one per output step).
+
+    Per row: mu, pi = Ad_g^T mu, the drift twist I^-1 pi, the wrench (``wrench``:
+    total, covariance, disturbance) and the covariance of mu, as
+    :meth:`Estimator.smooth_outputs` reports them.
+    """
+    n = group.dim
+    block = block or BLOCK_ROWS
+    rows = RowStore(files, n, steps.outputs, block=block)
+    buffer = np.zeros(block, rows.dtype)
+    row = steps.outputs  # rows still to fill: row - 1 is the next, going backwards
+    end = row  # rows [row, end) are in buffer[row - start:]
+    start = max(end - block, 0)
+    for k, state in smooth_backward(group, steps):
+        step = steps.record(k)
+        if not step['output']:
+            continue
+        row -= 1
+        if row < start:
+            rows.write(start, buffer[:end - start])
+            end, start = row + 1, max(row + 1 - block, 0)
+        record = buffer[row - start]
+        mu = state.x[:n]
+        pi = group.Ad(state.g).T @ mu
+        total, total_cov, disturbance = wrench(
+            state, step['command'] if steps.command else None)
+        record['stamp_ns'] = step['stamp_ns']
+        record['mu'], record['pi'], record['rate'] = mu, pi, total
+        record['drift'] = step['locked_inverse'] @ pi
+        record['mu_cov'], record['w_cov'] = state.p[n:2 * n, n:2 * n], total_cov
+        if disturbance is not None:
+            record['disturbance'] = disturbance
+    rows.write(start, buffer[:end - start])
+    return rows
+
+
+class Smoothing:
+    """Fixed-interval smoothing of a whole run (a part of :class:`~.pipeline.Estimator`)."""
+
+    def enable_smoothing(self, files: Optional[SmootherFiles] = None) -> None:
+        """
+        Record the filter's steps from now on, for :meth:`smoothed_rows` (replay).
+
+        The steps go to disk in ``files`` (default: a temporary directory of the
+        estimator's own, removed when it is collected).
+        """
+        self.record_steps = True
+        self.smoother_files = files if files is not None else SmootherFiles()
+        self.filter.record = True
+        self.filter.steps = StepStore(self.smoother_files, self.robot.n, self.filter.dim,
+                                      self.commanded_wrench)
+
+    def smoothed_rows(self) -> Iterator[dict[str, Any]]:
+        """
+        Yield, per output since :meth:`enable_smoothing`, its RTS-smoothed fields.
+
+        :func:`~.outputs.smoothed_fields` lists them; the shape state,
+        predictions, diagnostics and events stay those of the causal run.
+        Memory stays a block of rows whatever the length.
+        """
+        flt, n, group = self.filter, self.robot.n, self.robot.group
+        command = self.commanded_wrench
+
+        def wrench(state: FilterState, held: Optional[np.ndarray]) -> tuple:
+            if command:
+                total, cov = flt._total(state.g, state.x, state.p, held)
+                return total, cov, state.x[n:2 * n]
+            return state.x[n:], state.p[2 * n:, 2 * n:], None
+
+        rows = smooth_rows(group, flt.steps, self.smoother_files, wrench)
+        try:
+            yield from smoothed_fields(self.kernel, rows.blocks(), self.config.world_frame,
+                                       self.robot.base_link, command)
+        finally:
+            rows.close()
+
+    def smooth_outputs(self, outputs: Sequence[EstimatorOutput]) -> None:
+        """
+        Replace the filtered estimates of ``outputs`` by the RTS-smoothed ones, in place.
+
+        ``outputs`` are all outputs since :meth:`enable_smoothing`, in order (one
+        recorded filter row each); :meth:`smoothed_rows` says what changes.
+        """
+        recorded = self.filter.steps.outputs
+        if recorded != len(outputs):
+            raise ValueError(f'{len(outputs)} outputs for {recorded} recorded filter rows')
+        for output, fields in zip(outputs, self.smoothed_rows()):
+            for name, value in fields.items():
+                setattr(output, name, value)
