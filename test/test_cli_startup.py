@@ -90,7 +90,8 @@ def _required(name: str) -> list[str]:
     """Return the least arguments ``name`` parses with."""
     return {'simulate': ['-o', 'x'], 'replay': ['bag', '-o', 'x'],
             'predict': ['--trajectory', 'x'], 'tune': ['bag', '-o', 'x'],
-            'bench': []}[name]
+            'bench': [], 'replay-many': ['bag', '-o', 'x'],
+            'identify': ['bag', '--link', 'l']}[name]
 
 
 def test_validate_loads_only_the_model_and_the_integrators():

@@ -156,7 +156,7 @@ def test_manifest_options_apply_per_bag_over_the_command_line(tmp_path):
     manifest = _manifest(tmp_path, f'  - path: {DATA / "paper_constant"}\n    start: 1.0\n')
     jobs = {job.name: job for job in plan_jobs([str(DATA)], str(tmp_path / 'o'),
                                                {'end': 2.5, 'urdf': None}, str(manifest))}
-    # every rosbag2 bag under test/data (a folder with metadata.yaml, nested ones too), nothing else
+    # every rosbag2 bag under test/data (a folder with metadata.yaml, nested ones too)
     assert len(jobs) == len(list(DATA.rglob('metadata.yaml')))
     assert jobs['paper_constant'].options == {'end': 2.5, 'start': 1.0}
     assert jobs['freeflyer_testbed'].options['urdf'] == FREEFLYER_URDF
