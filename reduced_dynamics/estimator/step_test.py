@@ -71,36 +71,80 @@ class StepDetection(NamedTuple):
 
 
 @njit(cache=True)
-def _cholesky_quad(j: np.ndarray, b: np.ndarray, out: np.ndarray) -> float:
-    """Return b^T j^-1 b and j^-1 b in ``out``; NaN when j is not positive definite."""
-    n = len(b)
-    low = np.zeros((n, n))
+def _cholesky(a: np.ndarray, low: np.ndarray) -> bool:
+    """Write the Cholesky factor of the symmetric ``a`` into ``low``; False if not definite."""
+    n = a.shape[0]
     for r in range(n):
         for c in range(r + 1):
-            acc = j[r, c]
+            acc = a[r, c]
             for k in range(c):
                 acc -= low[r, k] * low[c, k]
             if r == c:
-                if not acc > 1e-300:
-                    return math.nan
+                if not acc > 0.0:
+                    return False
                 low[r, r] = math.sqrt(acc)
             else:
                 low[r, c] = acc / low[c, c]
+    return True
+
+
+@njit(cache=True)
+def _solve_in_place(low: np.ndarray, rhs: np.ndarray) -> None:
+    """Overwrite the columns of ``rhs`` with (L L^T)^-1 rhs (forward, then back)."""
+    n, cols = rhs.shape
+    for r in range(n):
+        for k in range(r):
+            f = low[r, k]
+            for c in range(cols):
+                rhs[r, c] -= f * rhs[k, c]
+        d = 1.0 / low[r, r]
+        for c in range(cols):
+            rhs[r, c] *= d
+    for r in range(n - 1, -1, -1):
+        for k in range(r + 1, n):
+            f = low[k, r]
+            for c in range(cols):
+                rhs[r, c] -= f * rhs[k, c]
+        d = 1.0 / low[r, r]
+        for c in range(cols):
+            rhs[r, c] *= d
+
+
+@njit(cache=True)
+def _quadratic(j: np.ndarray, b: np.ndarray) -> float:
+    """Return b^T j^-1 b; NaN when j is not positive definite."""
+    n = len(b)
+    low = np.zeros((n, n))
+    if not _cholesky(j, low):
+        return math.nan
+    quad = 0.0
     y = np.empty(n)
     for r in range(n):
         acc = b[r]
         for k in range(r):
             acc -= low[r, k] * y[k]
         y[r] = acc / low[r, r]
-    quad = 0.0
-    for r in range(n):
         quad += y[r] * y[r]
-    for r in range(n - 1, -1, -1):
-        acc = y[r]
-        for k in range(r + 1, n):
-            acc -= low[k, r] * out[k]
-        out[r] = acc / low[r, r]
     return quad
+
+
+@njit(cache=True)
+def _information(c: np.ndarray, omega: np.ndarray, j0: np.ndarray, out: np.ndarray) -> None:
+    """Write J0 + C^T Omega C into ``out`` (S6); C is dim x n."""
+    dim, n = c.shape
+    oc = np.zeros((dim, n))
+    for r in range(dim):
+        for k in range(dim):
+            o = omega[r, k]
+            if o != 0.0:
+                for col in range(n):
+                    oc[r, col] += o * c[k, col]
+    for a in range(n):
+        for b in range(n):
+            acc = j0[a, b]
+            for r in range(dim):
+                acc += c[r, a] * oc[r, b]
+            out[a, b] = acc
 
 
 @njit(cache=True)
@@ -110,22 +154,42 @@ def _absorb(h: np.ndarray, s: np.ndarray, gain: np.ndarray, nu: np.ndarray,
     Take one update into Psi, Omega and beta (S5); return the innovation's NIS.
 
     Psi follows the update whatever the NIS (the filter took it); an outlier
-    (NIS above ``outlier``) adds no evidence.
+    (NIS above ``outlier``) adds no evidence. NaN: S is not positive definite.
     """
     m, dim = h.shape
-    lower = h @ psi                      # L = H Psi^-: every onset's G is L C_i
-    psi -= gain @ lower
-    rhs = np.empty((m, dim + 1))
-    rhs[:, 0] = nu
-    rhs[:, 1:] = lower
-    solved = np.linalg.solve(s, rhs)
+    lower = np.zeros((m, dim))           # L = H Psi^-: every onset's G is L C_i
+    for r in range(m):
+        for k in range(dim):
+            f = h[r, k]
+            if f != 0.0:                 # a pose's H is mostly zeros
+                for c in range(dim):
+                    lower[r, c] += f * psi[k, c]
+    for r in range(dim):
+        for k in range(m):
+            f = gain[r, k]
+            for c in range(dim):
+                psi[r, c] -= f * lower[k, c]
+    low = np.zeros((m, m))
+    if not _cholesky(s, low):
+        return math.nan
+    solved = np.empty((m, dim + 1))      # S^-1 [L, nu]
+    for r in range(m):
+        for c in range(dim):
+            solved[r, c] = lower[r, c]
+        solved[r, dim] = nu[r]
+    _solve_in_place(low, solved)
     nis = 0.0
     for r in range(m):
-        nis += nu[r] * solved[r, 0]
+        nis += nu[r] * solved[r, dim]
     if nis > outlier:
         return nis
-    omega += lower.T @ np.ascontiguousarray(solved[:, 1:])
-    beta += lower.T @ np.ascontiguousarray(solved[:, 0])
+    for k in range(m):
+        for a in range(dim):
+            f = lower[k, a]
+            if f != 0.0:
+                beta[a] += f * solved[k, dim]
+                for b in range(dim):
+                    omega[a, b] += f * solved[k, b]
     return nis
 
 
@@ -141,25 +205,38 @@ def _evaluate(c: np.ndarray, b0: np.ndarray, j0: np.ndarray, bound_inv: np.ndarr
     and the best statistic found: the maximiser above the threshold, if any,
     is then the explicit bank's.
     """
-    n = b0.shape[1]
+    dim, n = c.shape[1], c.shape[2]
     bounds = np.empty(count)
-    fit = np.empty(n)
+    candidates = 0
     top = 0.0
     for i in range(count):
-        score[i] = b0[i] + c[i].T @ beta
+        for a in range(n):
+            score[i, a] = b0[i, a]
+        for r in range(dim):
+            f = beta[r]
+            for a in range(n):
+                score[i, a] += c[i, r, a] * f
+        bound = math.inf
         if bounded[i]:
-            bound = score[i] @ (bound_inv[i] @ score[i]) / scale
-        else:
-            bound = math.inf
+            bound = 0.0
+            for a in range(n):
+                acc = 0.0
+                for b in range(n):
+                    acc += bound_inv[i, a, b] * score[i, b]
+                bound += score[i, a] * acc
+            bound /= scale
         bounds[i] = bound
         top = max(top, bound)
-    order = np.argsort(-bounds)
+        candidates += bound > threshold
+    # Only onsets whose bound passes the threshold can be detected: best bound first.
+    order = np.argsort(-bounds)[:candidates]
     best, best_index, evaluated = -math.inf, -1, 0
+    information = np.empty((n, n))
     for index in order:
         if not bounds[index] > max(best, threshold):
             break
-        information = j0[index] + c[index].T @ (omega @ c[index])
-        statistic = _cholesky_quad(information, score[index], fit) / scale
+        _information(c[index], omega, j0[index], information)
+        statistic = _quadratic(information, score[index]) / scale
         evaluated += 1
         if statistic > best:
             best, best_index = statistic, index
@@ -171,22 +248,27 @@ def _fold(c: np.ndarray, b0: np.ndarray, j0: np.ndarray, bound_inv: np.ndarray,
           bounded: np.ndarray, count: int, psi: np.ndarray, omega: np.ndarray,
           beta: np.ndarray) -> None:
     """Move the anchor to now (S7): each onset absorbs the segment's Omega, beta and Psi."""
-    n = b0.shape[1]
-    fit = np.empty(n)
-    unit = np.zeros(n)
+    dim, n = c.shape[1], c.shape[2]
+    low = np.zeros((n, n))
+    moved = np.empty((dim, n))
     for i in range(count):
-        b0[i] += c[i].T @ beta
-        j0[i] += c[i].T @ (omega @ c[i])
-        c[i] = psi @ c[i]
-        # J0^-1 column by column for the bound (S8); none while J0 is singular.
-        bounded[i] = True
-        for col in range(n):
-            unit[:] = 0.0
-            unit[col] = 1.0
-            if math.isnan(_cholesky_quad(j0[i], unit, fit)):
-                bounded[i] = False
-                break
-            bound_inv[i, :, col] = fit
+        for a in range(n):
+            for r in range(dim):
+                b0[i, a] += c[i, r, a] * beta[r]
+        _information(c[i], omega, j0[i], j0[i])
+        for r in range(dim):
+            for col in range(n):
+                acc = 0.0
+                for k in range(dim):
+                    acc += psi[r, k] * c[i, k, col]
+                moved[r, col] = acc
+        c[i] = moved
+        # J0^-1 for the bound (S8); none while J0 is singular (no evidence yet).
+        bounded[i] = _cholesky(j0[i], low)
+        if bounded[i]:
+            inverse = np.eye(n)
+            _solve_in_place(low, inverse)
+            bound_inv[i] = inverse
 
 
 class WrenchStepTest:
@@ -213,7 +295,7 @@ class WrenchStepTest:
         self._spacing_ns = int(round(spacing * 1e9))
         self._window_ns = int(round(window * 1e9))
         capacity = int(math.ceil(window / spacing)) + 2
-        self._onsets = np.zeros(capacity, dtype=np.int64)
+        self._onset_list: list[int] = []
         self._count = 0
         self._c = np.zeros((capacity, dim, n))
         self._b0 = np.zeros((capacity, n))
@@ -264,6 +346,7 @@ class WrenchStepTest:
         if settle_from_ns is not None:
             self._settle_until = settle_from_ns + self._window_ns
         self._count = 0
+        self._onset_list.clear()
         self._recent.clear()
         self._since = self._identity
         # nis_scale stays: it describes the sensors, not the hypotheses.
@@ -277,24 +360,28 @@ class WrenchStepTest:
         if self._count:
             self._psi = transition @ self._psi
         if self._recent:
-            self._since = transition @ self._since
+            # The first step since a measurement: Phi itself (no product with 1).
+            self._since = transition if self._since is self._identity \
+                else transition @ self._since
         # Expire hypotheses older than the window.
         count = self._count
-        expired = int(np.searchsorted(self._onsets[:count], stamp_ns - self._window_ns,
-                                      side='left'))
+        expired = 0
+        oldest = stamp_ns - self._window_ns
+        while expired < count and self._onset_list[expired] < oldest:
+            expired += 1
         if expired:
+            del self._onset_list[:expired]
             keep = slice(expired, count)
-            for array in (self._onsets, self._c, self._b0, self._j0, self._bound_inv,
-                          self._bounded):
+            for array in (self._c, self._b0, self._j0, self._bound_inv, self._bounded):
                 array[:count - expired] = array[keep]
             self._count = count = count - expired
         if self._settle_until is not None and stamp_ns < self._settle_until:
             return
-        if not count or stamp_ns - self._onsets[count - 1] >= self._spacing_ns:
+        if not count or stamp_ns - self._onset_list[-1] >= self._spacing_ns:
             if count:
                 _fold(self._c, self._b0, self._j0, self._bound_inv, self._bounded, count,
                       self._psi, self._omega, self._beta)
-            self._onsets[count] = stamp_ns
+            self._onset_list.append(stamp_ns)
             self._c[count] = self._e
             self._b0[count] = 0.0
             self._j0[count] = 0.0
@@ -316,12 +403,10 @@ class WrenchStepTest:
         m = len(nu)
         outlier = self._outlier.get(m, math.inf)
         if self._count:
-            nis_total = _absorb(np.ascontiguousarray(h), np.ascontiguousarray(s),
-                                np.ascontiguousarray(gain), np.ascontiguousarray(nu),
-                                self._psi, self._omega, self._beta, outlier)
+            nis_total = _absorb(h, s, gain, nu, self._psi, self._omega, self._beta, outlier)
         else:
             nis_total = float(nu @ np.linalg.solve(s, nu))
-        if nis_total > outlier:
+        if not nis_total <= outlier:
             # One improbable innovation is an outlier (a pose stamped tens of ms off),
             # not the growing drift a step makes: it carries no evidence here.
             return None
