@@ -75,6 +75,7 @@ setup(
         'mcap',
         'pyyaml',
         'matplotlib',
+        'numba',
     ],
     extras_require={
         'test': ['pytest', 'hypothesis'],

@@ -392,7 +392,9 @@ def time_step_calls(test: Any, calls: list, from_ns: int) -> tuple[float, int]:
 
 def bench_step_test(report: Report, robot, settings: Settings) -> None:
     """
-    The wrench-step test alone, explicit bank against anchored signatures (docs/step_test.md).
+    Time the wrench-step test alone: explicit bank against anchored signatures.
+
+    docs/step_test.md describes both.
 
     Both are fed the calls one streaming run made (1 kHz pose and twist), timed once
     every onset is open (from 2 s: 1 s settling, 1 s window); the estimator update

@@ -62,7 +62,7 @@ def _replay(test, calls: list) -> list:
 def _record(group_name: str, twist: bool, rate: float, force: float, seconds: float,
             seed: int) -> tuple[MomentumFilter, list]:
     """
-    A body whose wrench steps on at 1.5 s and off at 3 s; the filter's step-test calls.
+    Run a body whose wrench steps on at 1.5 s and off at 3 s; return its step-test calls.
 
     Planar: 16 kg, pose only, 1 mm / 2 mrad. SE(3): a rigid body with pose and twist
     (the paper robot's measurement layout), 1 mm / 0.5 mrad, 2e-3 m/s and rad/s. The
