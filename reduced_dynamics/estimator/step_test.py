@@ -249,20 +249,30 @@ def _fold(c: np.ndarray, b0: np.ndarray, j0: np.ndarray, bound_inv: np.ndarray,
           beta: np.ndarray) -> None:
     """Move the anchor to now (S7): each onset absorbs the segment's Omega, beta and Psi."""
     dim, n = c.shape[1], c.shape[2]
+    # Every C_i side by side (dim x count n): Omega C and Psi C as two matrix products.
+    stacked = np.empty((dim, count * n))
+    for i in range(count):
+        for r in range(dim):
+            for a in range(n):
+                stacked[r, i * n + a] = c[i, r, a]
+    weighted = omega @ stacked
+    moved = psi @ stacked
     low = np.zeros((n, n))
-    moved = np.empty((dim, n))
     for i in range(count):
         for a in range(n):
+            col = i * n + a
+            acc = 0.0
             for r in range(dim):
-                b0[i, a] += c[i, r, a] * beta[r]
-        _information(c[i], omega, j0[i], j0[i])
-        for r in range(dim):
-            for col in range(n):
+                acc += stacked[r, col] * beta[r]
+            b0[i, a] += acc
+            for b in range(n):
                 acc = 0.0
-                for k in range(dim):
-                    acc += psi[r, k] * c[i, k, col]
-                moved[r, col] = acc
-        c[i] = moved
+                for r in range(dim):
+                    acc += stacked[r, col] * weighted[r, i * n + b]
+                j0[i, a, b] += acc
+        for r in range(dim):
+            for a in range(n):
+                c[i, r, a] = moved[r, i * n + a]
         # J0^-1 for the bound (S8); none while J0 is singular (no evidence yet).
         bounded[i] = _cholesky(j0[i], low)
         if bounded[i]:
