@@ -108,7 +108,7 @@ class Settings:
                    full_rtols=(1e-6, 1e-8, 1e-10, 1e-12), reduced_rtols=(1e-8, 1e-10),
                    dg_steps=(0.05, 0.025), replay_seconds=3.0, memory_short_seconds=5.0,
                    memory_long_seconds=20.0, scaling_samples=200, scaling_evaluations=60,
-                   planned_bag_seconds=20.0, node_seconds=2.0,
+                   planned_bag_seconds=20.0, node_seconds=2.0, step_test_samples=2200,
                    node_warmup=1.0, node_sweep_seconds=1.0, quick=True)
 
 
@@ -394,11 +394,9 @@ def bench_step_test(report: Report, robot, settings: Settings) -> None:
     """
     Time the wrench-step test alone: explicit bank against anchored signatures.
 
-    docs/step_test.md describes both.
-
-    Both are fed the calls one streaming run made (1 kHz pose and twist), timed once
-    every onset is open (from 2 s: 1 s settling, 1 s window); the estimator update
-    with each, streaming, in the same repeats gives the test's share of an update.
+    Both (docs/step_test.md) are fed the calls one streaming run made (1 kHz pose and
+    twist), timed once every onset is open (from 2 s: 1 s settling, 1 s window); the
+    estimator update with each, streaming, in the same repeats gives the test's share.
     """
     from reduced_dynamics.estimator import filter as filter_module
     from reduced_dynamics.estimator.config import EstimatorConfig

@@ -57,6 +57,7 @@ def test_bench_sections_tiny(tmp_path):
             assert math.isfinite(figure.ratio)
     names = [f.name for f in report.figures]
     assert 'estimator update (paper robot)' in names
+    assert 'wrench step test, anchored vs explicit (paper robot)' in names
     assert any(n.startswith('reduced dop853') for n in names)
     assert any(n.startswith('reduced discrete_gradient') for n in names)
     assert 'replay throughput (prediction off)' in names

@@ -121,7 +121,7 @@ def test_few_onsets_are_evaluated_exactly() -> None:
     On noise, the bound of (S8) rules out almost every onset without forming its J.
 
     60 s of pose-only samples at 120 Hz, no step: the 40 onsets' information is
-    formed exactly for ~1.6 of them per update (measured; the newest onset, whose J0
+    formed exactly for 1.5 of them per update (measured; the newest onset, whose J0
     is zero, is always one): the cost per update does not scale with the onsets.
     """
     group = SUBGROUPS['SE(2)']
