@@ -106,7 +106,7 @@ def _information(c: np.ndarray, omega: np.ndarray, j0: np.ndarray, out: np.ndarr
 
 @njit(cache=True)
 def absorb(h: np.ndarray, s: np.ndarray, gain: np.ndarray, nu: np.ndarray,
-            psi: np.ndarray, omega: np.ndarray, beta: np.ndarray, outlier: float) -> float:
+           psi: np.ndarray, omega: np.ndarray, beta: np.ndarray, outlier: float) -> float:
     """
     Take one update into Psi, Omega and beta (S5); return the innovation's NIS.
 
@@ -152,8 +152,8 @@ def absorb(h: np.ndarray, s: np.ndarray, gain: np.ndarray, nu: np.ndarray,
 
 @njit(cache=True)
 def evaluate(c: np.ndarray, b0: np.ndarray, j0: np.ndarray, bound_inv: np.ndarray,
-              bounded: np.ndarray, count: int, omega: np.ndarray, beta: np.ndarray,
-              scale: float, threshold: float, score: np.ndarray) -> tuple:
+             bounded: np.ndarray, count: int, omega: np.ndarray, beta: np.ndarray,
+             scale: float, threshold: float, score: np.ndarray) -> tuple:
     """
     Return (best onset or -1, its statistic, the largest bound, onsets evaluated exactly).
 
@@ -202,8 +202,8 @@ def evaluate(c: np.ndarray, b0: np.ndarray, j0: np.ndarray, bound_inv: np.ndarra
 
 @njit(cache=True)
 def fold(c: np.ndarray, b0: np.ndarray, j0: np.ndarray, bound_inv: np.ndarray,
-          bounded: np.ndarray, count: int, psi: np.ndarray, omega: np.ndarray,
-          beta: np.ndarray) -> None:
+         bounded: np.ndarray, count: int, psi: np.ndarray, omega: np.ndarray,
+         beta: np.ndarray) -> None:
     """Move the anchor to now (S7): each onset absorbs the segment's Omega, beta and Psi."""
     dim, n = c.shape[1], c.shape[2]
     # Every C_i side by side (dim x count n): Omega C and Psi C as two matrix products.
