@@ -20,7 +20,7 @@ Delta in w at onset theta leaves ``D_k Delta`` in the error state, with
 ``D_k = Psi(k, theta) E`` (S2), ``E = [0; 0; I]`` and Psi the filter's closed-loop
 transition (``Phi`` at a propagation, ``I - K H`` at an update). Every onset's
 signature is the *same* Psi applied to a different matrix: with the newest onset
-A as anchor, ``D_i(k) = Psi(k, A) C_i`` and ``C_i = D_i(A)`` (S4). So per sample
+A as anchor, ``D_i(k) = Psi(k, A) C_i`` and ``C_i = D^-_i(A)`` (S4). So per sample
 only Psi (dim x dim) and the anchor's information ``Omega = sum L^T S^-1 L`` and
 score ``beta = sum L^T S^-1 nu``, ``L = H Psi``, are propagated (S5), whatever
 the number of onsets; each onset's score is ``b_i = b0_i + C_i^T beta`` (S6).
@@ -31,6 +31,14 @@ the step chosen are those of the explicit bank (estimator/step_reference.py),
 which the tests check. When a new onset opens, the anchor moves to it: every
 C_i, J0_i, b0_i absorbs the segment (S7, the only hypotheses x state cost, once
 per ``spacing``).
+
+What is tested is unchanged: onsets from ``window`` s after a (re)start (the prior
+being forgotten is not the linear-Gaussian error assumed); T divided by the
+innovations' mean NIS per coordinate when it exceeds 1 (noisier sensors than
+assumed do not read as steps); an innovation beyond the chi2_m 1e-3 quantile left
+out of the evidence (a pose stamped tens of ms off); and a detection taken only if
+no step of the measured pose (a mocap re-fit, (S9)) explains the innovations
+better, else counted in ``pose_steps``.
 """
 
 from __future__ import annotations
