@@ -100,6 +100,8 @@ class Settings:
     memory_short_seconds: float = 60.0
     memory_long_seconds: float = 600.0
     scaling_samples: int = 600
+    #: 1 kHz samples of the step-test rows: 1 s settling, 1 s to open every onset, then timed
+    step_test_samples: int = 3000
     scaling_evaluations: int = 300
     shape_joints: tuple = SHAPE_JOINTS
     #: the torque-varying 200 Hz bag of section planned (issue 13: 60 s)
@@ -123,7 +125,7 @@ class Settings:
                    full_rtols=(1e-6, 1e-8, 1e-10, 1e-12), reduced_rtols=(1e-8, 1e-10),
                    dg_steps=(0.05, 0.025), replay_seconds=3.0, memory_short_seconds=5.0,
                    memory_long_seconds=20.0, scaling_samples=200, scaling_evaluations=60,
-                   planned_bag_seconds=20.0, node_seconds=2.0,
+                   planned_bag_seconds=20.0, node_seconds=2.0, step_test_samples=2200,
                    node_warmup=1.0, node_sweep_seconds=1.0, payload_seconds=6.0,
                    fleet_bag_seconds=1.0,
                    quick=True)
@@ -413,6 +415,98 @@ def bench_first_call(report: Report, settings: Settings) -> None:
     report.add(make_figure('update', 'filter kernels: first call, compiling', 's', cold,
                            note='fresh process with an empty NUMBA_CACHE_DIR: the one-off '
                                 'compilation after an install'))
+
+
+def record_step_calls(robot, joints: list, bases: list) -> list:
+    """Run the streaming estimator; return its step test's calls (name, arguments)."""
+    from reduced_dynamics.estimator import filter as filter_module
+    from reduced_dynamics.estimator.step_test import WrenchStepTest
+    calls: list = []
+
+    class Recording(WrenchStepTest):
+        def reset(self, settle_from_ns: Optional[int] = None) -> None:
+            calls.append(('reset', settle_from_ns))
+            super().reset(settle_from_ns)
+
+        def propagate(self, stamp_ns: int, transition: np.ndarray) -> None:
+            calls.append(('propagate', stamp_ns, transition.copy()))
+            super().propagate(stamp_ns, transition)
+
+        def update(self, *args: np.ndarray):
+            calls.append(('update',) + tuple(a.copy() for a in args))
+            return super().update(*args)
+
+    original = filter_module.WrenchStepTest
+    filter_module.WrenchStepTest = Recording
+    try:
+        time_update(robot, joints, bases, warmup=1)
+    finally:
+        filter_module.WrenchStepTest = original
+    return calls
+
+
+def time_step_calls(test: Any, calls: list, from_ns: int) -> tuple[float, int]:
+    """Feed ``calls`` to ``test``; return the seconds spent from stamp ``from_ns`` and the rows."""
+    start, rows, timed = 0.0, 0, False
+    for call in calls:
+        if call[0] == 'propagate' and not timed and call[1] >= from_ns:
+            timed, start = True, time.perf_counter()
+        if call[0] == 'reset':
+            test.reset(call[1])
+        elif call[0] == 'propagate':
+            rows += timed
+            test.propagate(call[1], call[2])
+        else:
+            test.update(*call[1:])
+    return time.perf_counter() - start, rows
+
+
+def bench_step_test(report: Report, robot, settings: Settings) -> None:
+    """
+    Time the wrench-step test alone: explicit bank against anchored signatures.
+
+    Both (docs/step_test.md) are fed the calls one streaming run made (1 kHz pose and
+    twist), timed once every onset is open (from 2 s: 1 s settling, 1 s window); the
+    estimator update with each, streaming, in the same repeats gives the test's share.
+    """
+    from reduced_dynamics.estimator import filter as filter_module
+    from reduced_dynamics.estimator.config import EstimatorConfig
+    from reduced_dynamics.estimator.step_reference import ExplicitStepTest
+    from reduced_dynamics.estimator.step_test import GLR_WINDOW, WrenchStepTest
+    significance = EstimatorConfig().event_significance
+    joints, bases = update_samples(robot, settings.step_test_samples)
+    full = int(2 * GLR_WINDOW * 1000) + 10     # samples at 1 kHz until every onset is open
+    calls = record_step_calls(robot, joints, bases)
+    from_ns = joints[full].stamp_ns
+    kinds = {'explicit': ExplicitStepTest, 'anchored': WrenchStepTest}
+    tests: dict = {kind: [] for kind in kinds}
+    updates: dict = {kind: [] for kind in kinds}
+    original = filter_module.WrenchStepTest
+    for _ in range(settings.repeats):
+        for kind, cls in kinds.items():
+            test = cls(robot.n, significance, 3 * robot.n)
+            seconds, rows = time_step_calls(test, calls, from_ns)
+            tests[kind].append(seconds / rows)
+            filter_module.WrenchStepTest = cls
+            try:
+                updates[kind].append(time_update(robot, joints, bases, warmup=full))
+            finally:
+                filter_module.WrenchStepTest = original
+    for kind, label in (('explicit', 'explicit bank, 40 onsets x dim'),
+                        ('anchored', 'anchored signatures')):
+        report.add(make_figure(
+            'update', f'wrench step test, {label} (paper robot)', 'us/sample',
+            [1e6 * t for t in tests[kind]], 'estimator update with it',
+            [1e6 * u for u in updates[kind]],
+            [t / u for t, u in zip(tests[kind], updates[kind])],
+            note='the test alone on one run\'s recorded calls, every onset open; ratio: '
+                 'its share of a streaming update (1 kHz pose + twist)'))
+    report.add(make_figure(
+        'update', 'wrench step test, anchored vs explicit (paper robot)', 'us/sample',
+        [1e6 * t for t in tests['anchored']], 'explicit bank',
+        [1e6 * t for t in tests['explicit']],
+        [a / e for a, e in zip(tests['anchored'], tests['explicit'])],
+        note='same detections (test_step_test.py)'))
 
 
 # --------------------------------------------------------------------------- 2. prediction
@@ -1239,6 +1333,7 @@ def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
     if 'update' in sections:
         say('update...')
         bench_update(report, robot, settings)
+        bench_step_test(report, robot, settings)
     if 'prediction' in sections:
         say('prediction...')
         bench_prediction(report, robot, settings)
