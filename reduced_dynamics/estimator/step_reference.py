@@ -30,7 +30,7 @@ import math
 from typing import Optional
 
 import numpy as np
-from scipy.stats import chi2
+from reduced_dynamics.chi_square import chi2
 
 from reduced_dynamics.estimator.step_test import (
     fit_steps, GLR_SPACING, GLR_WINDOW, NIS_TIME, OUTLIER, pose_statistic,

@@ -48,7 +48,7 @@ import math
 from typing import NamedTuple, Optional
 
 import numpy as np
-from scipy.stats import chi2
+from reduced_dynamics.chi_square import chi2
 
 #: Seconds between hypothesised step onsets of the GLR test, and how long each is followed.
 #: An onset hypothesised delta after the true one misses the information of the first
