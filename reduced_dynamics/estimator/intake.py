@@ -19,8 +19,8 @@ Part of :class:`~.pipeline.Estimator` (its state is set up there): joint states
 are mapped onto the model's joints and checked (finite, URDF limits and bounds,
 :mod:`.plausibility`), base states normalised and projected onto the base group,
 commanded wrenches bounded, planned trajectories checked; then the stamp policy
-(:mod:`.stamps`) decides, and :mod:`.timing` takes what it accepts. Bad input is
-rejected with a reason and counted; it never raises.
+(:mod:`~reduced_dynamics.estimator.stamps`) decides, and :mod:`.timing` takes
+what it accepts. Bad input is rejected with a reason and counted; it never raises.
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ What the estimator produces: one output per sample, and chunks of them column-wi
 node's and replay's topics); :class:`OutputChunk` holds a processed chunk's
 columns and makes the outputs on demand; :class:`EstimatorBatch` is what a call
 of ``Estimator.add_samples`` returns; :func:`smoothed_fields` turns rows of the
-smoother (:mod:`.smoother`) into the fields they replace.
+smoother (:mod:`~reduced_dynamics.estimator.smoother`) into the fields they replace.
 """
 
 from __future__ import annotations

@@ -49,7 +49,8 @@ sample travels down through them:
   detector and the predictor;
 * :mod:`.outputs`: the outputs, per sample and per chunk;
 * :mod:`.reporting`: statistics, summary and diagnostics;
-* :mod:`.smoother`: the fixed-interval smoother's disk-backed store (replay).
+* :mod:`~reduced_dynamics.estimator.smoother`: the fixed-interval smoother's disk-backed
+  store (replay).
 """
 
 from __future__ import annotations

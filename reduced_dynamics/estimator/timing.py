@@ -22,7 +22,7 @@ then known, whatever the order in which the two inputs arrived). The row carries
 the base samples stamped since the previous row, with the frame times and stamp
 sigmas of re-timed poses (:mod:`.retiming`), and, with a commanded wrench, the
 held command over each filter step (a zero-order hold). Clock jumps the stamp
-policy confirms (:mod:`.stamps`) restart the clock here.
+policy confirms (:mod:`~reduced_dynamics.estimator.stamps`) restart the clock here.
 """
 
 from __future__ import annotations
