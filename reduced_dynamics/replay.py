@@ -479,7 +479,7 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
 def _write_smoothed(spool: OutputSpool, estimator: Estimator, write: Callable,
                     series: dict, plots: Optional[str]) -> None:
     """Write the held outputs in order, their smoothed fields from the estimator."""
-    recorded = estimator.filter.steps.outputs
+    recorded = estimator.step_store.outputs
     if recorded != spool.count:
         raise ValueError(f'{spool.count} outputs for {recorded} recorded filter rows')
     encoders = spool.encoders
