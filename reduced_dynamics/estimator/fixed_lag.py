@@ -16,16 +16,20 @@
 Online fixed-lag smoothing: the RTS backward pass over the last ``lag`` seconds of steps.
 
 The filter's recorded steps (:class:`~.core.state.FilterStep`) go into a ring
-buffer of stacked arrays. Once a row's stamp is ``lag`` behind the newest step,
-the compiled backward pass (:func:`~.core.smoother.backward`, the full
-smoother's own step) runs from the newest step back to the oldest row still
-waiting, and every row at least ``lag`` old is emitted with its smoothed
-momentum and momentum rate, stamped with the row's own time.
+buffer of stacked arrays, each with its smoother gain C_k (computed once, when
+step k + 1 comes: it depends on filtered quantities alone). Once a row's stamp
+is ``lag`` behind the newest step, the compiled backward pass of the means
+(:func:`~.core.smoother.backward_mean`, the full smoother's arithmetic) runs
+from the newest step back to the oldest row still waiting, and every row at
+least ``lag`` old is emitted with its smoothed momentum and momentum rate,
+stamped with the row's own time. The topics carry no covariance, so none is
+propagated.
 
 The pass runs at most once per ``PASS_FRACTION * lag`` of stamp time, so a row
 is smoothed over between ``lag`` and ``(1 + PASS_FRACTION) lag`` of later data
 and the pass costs ``(1 + PASS_FRACTION) / PASS_FRACTION`` backward steps per
-filter step. Memory is the steps of that window (the buffer drops every step
+filter step (mean only, the gains cached). Memory is the steps of that window
+(one d x d gain, two poses and two states a step; the buffer drops every step
 before the oldest waiting row). A restart step (no transition) makes the past
 independent of what follows: everything waiting is emitted at once. At lag 0
 each row is emitted at its own step (the causal estimate); with a lag beyond
@@ -39,7 +43,7 @@ from typing import Any, Callable, NamedTuple, Optional
 import numpy as np
 import pinocchio as pin
 
-from reduced_dynamics.estimator.core.smoother import backward
+from reduced_dynamics.estimator.core.smoother import backward_mean, smoother_gain
 from reduced_dynamics.estimator.core.state import FilterStep
 from reduced_dynamics.geometry.lie_group import BaseGroup
 from reduced_dynamics.messages.samples import trusted_sample, WrenchSample
@@ -50,8 +54,8 @@ PASS_FRACTION = 0.5
 #: Initial buffer capacity in steps (it doubles when the window needs more).
 INITIAL_CAPACITY = 256
 
-#: (smoothed pose 4 x 4, x, P, command held or None) -> the momentum rate (n,)
-RateOf = Callable[[np.ndarray, np.ndarray, np.ndarray, Optional[np.ndarray]], np.ndarray]
+#: (smoothed pose 4 x 4, x, command held or None) -> the momentum rate (n,)
+RateOf = Callable[[np.ndarray, np.ndarray, Optional[np.ndarray]], np.ndarray]
 
 
 class FixedLagRow(NamedTuple):
@@ -91,6 +95,7 @@ class FixedLagSmoother:
         self._last_pass_ns: Optional[int] = None
         self._ready: list[FixedLagRow] = []
         self._first_waiting: Optional[int] = None  # buffer index of the oldest waiting row
+        self._last_p: Optional[np.ndarray] = None  # the newest step's filtered covariance
         #: backward passes run, and the most steps the buffer held (memory bound)
         self.passes = 0
         self.peak_steps = 0
@@ -101,19 +106,16 @@ class FixedLagSmoother:
         d, xd, n = self.dim, self.dim - self.n, self.n
         old = getattr(self, '_arrays', None)
         arrays = {'stamp': np.zeros(capacity, np.int64), 'output': np.zeros(capacity, bool),
-                  'restart': np.zeros(capacity, bool),
-                  'transition': np.zeros((capacity, d, d)),
+                  'restart': np.zeros(capacity, bool), 'gain': np.zeros((capacity, d, d)),
                   'pose_pred': np.zeros((capacity, 4, 4)), 'x_pred': np.zeros((capacity, xd)),
-                  'p_pred': np.zeros((capacity, d, d)), 'pose': np.zeros((capacity, 4, 4)),
-                  'x': np.zeros((capacity, xd)), 'p': np.zeros((capacity, d, d)),
+                  'pose': np.zeros((capacity, 4, 4)), 'x': np.zeros((capacity, xd)),
                   'command': np.zeros((capacity, n))}
         count = self._end - self._start
         if old is not None:
             for name, array in arrays.items():
                 array[:count] = old[name][self._start:self._end]
         self._arrays = arrays
-        self._out = (np.zeros((capacity, 4, 4)), np.zeros((capacity, xd)),
-                     np.zeros((capacity, d, d)))
+        self._out = (np.zeros((capacity, 4, 4)), np.zeros((capacity, xd)))
         if self._first_waiting is not None:
             self._first_waiting -= self._start
         self._start, self._end = 0, count
@@ -142,11 +144,14 @@ class FixedLagSmoother:
         a['stamp'][k] = step.stamp_ns
         a['output'][k] = step.output
         a['restart'][k] = step.transition is None
-        if step.transition is not None:
-            a['transition'][k] = step.transition
-        a['pose_pred'][k], a['x_pred'][k], a['p_pred'][k] = \
-            step.pose_pred, step.x_pred, step.p_pred
-        a['pose'][k], a['x'][k], a['p'][k] = step.pose, step.x, step.p
+        if step.transition is not None and k > self._start:
+            # C of the step before (still needed: it is in the window).
+            a['gain'][k - 1] = smoother_gain(
+                np.ascontiguousarray(self._last_p), np.ascontiguousarray(step.transition),
+                np.ascontiguousarray(step.p_pred))
+        self._last_p = step.p
+        a['pose_pred'][k], a['x_pred'][k] = step.pose_pred, step.x_pred
+        a['pose'][k], a['x'][k] = step.pose, step.x
         if self.command:
             a['command'][k] = step.command
         self._end += 1
@@ -167,11 +172,10 @@ class FixedLagSmoother:
         first, end = self._first_waiting, self._end
         a = self._arrays
         count = end - first
-        pose_out, x_out, p_out = (o[:count] for o in self._out)
-        backward(a['restart'][first:end], a['transition'][first:end],
-                 a['pose_pred'][first:end], a['x_pred'][first:end], a['p_pred'][first:end],
-                 a['pose'][first:end], a['x'][first:end], a['p'][first:end],
-                 self._basis, self._pinv, self._whole, pose_out, x_out, p_out)
+        pose_out, x_out = (o[:count] for o in self._out)
+        backward_mean(a['restart'][first:end], a['gain'][first:end],
+                      a['pose_pred'][first:end], a['x_pred'][first:end], a['pose'][first:end],
+                      a['x'][first:end], self._basis, self._pinv, self._whole, pose_out, x_out)
         self.passes += 1
         if count:
             self._last_pass_ns = int(a['stamp'][end - 1])
@@ -179,7 +183,7 @@ class FixedLagSmoother:
         if until_ns is not None:
             rows &= a['stamp'][first:end] <= until_ns
         chosen = np.flatnonzero(rows)
-        self._emit(chosen, first, pose_out, x_out, p_out)
+        self._emit(chosen, first, pose_out, x_out)
         waiting = np.flatnonzero(a['output'][first:end] & ~rows)
         if len(waiting):
             self._first_waiting = first + int(waiting[0])
@@ -189,7 +193,7 @@ class FixedLagSmoother:
             self._start = end
 
     def _emit(self, chosen: np.ndarray, first: int, pose_out: np.ndarray,
-              x_out: np.ndarray, p_out: np.ndarray) -> None:
+              x_out: np.ndarray) -> None:
         if not len(chosen):
             return
         n, a = self.n, self._arrays
@@ -197,7 +201,7 @@ class FixedLagSmoother:
         if self.rate_of is None:
             rate = np.ascontiguousarray(x_out[chosen, n:2 * n])
         else:
-            rate = np.array([self.rate_of(pose_out[i], x_out[i], p_out[i],
+            rate = np.array([self.rate_of(pose_out[i], x_out[i],
                                           a['command'][first + i] if self.command else None)
                              for i in chosen])
         momentum, wrench = self.wrenches(mu), self.wrenches(rate)
@@ -244,9 +248,10 @@ class FixedLagSmoothing:
             # A new lag starts afresh (rows waiting under the old one are dropped).
             estimator = self
 
-            def total(pose: np.ndarray, x: np.ndarray, p: np.ndarray,
-                      held: Optional[np.ndarray]) -> np.ndarray:
-                return estimator.filter._total(pin.SE3(pose), x, p, held)[0]
+            unknown = np.zeros((flt.dim, flt.dim))  # the mean does not depend on P
+
+            def total(pose: np.ndarray, x: np.ndarray, held: Optional[np.ndarray]) -> np.ndarray:
+                return estimator.filter._total(pin.SE3(pose), x, unknown, held)[0]
 
             self.fixed_lag = FixedLagSmoother(
                 self.robot.group, lag, flt.dim, self.commanded_wrench, self.kernel.wrenches,
