@@ -14,6 +14,7 @@
 
 """Online fixed-lag smoothing: its limits, its stamps, its memory, node and replay."""
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -233,3 +234,20 @@ def test_node_publishes_what_replay_fixed_lag_writes(tmp_path):
             assert mine == replayed[:len(mine)], topic.name
         else:
             assert mine == replayed, topic.name
+
+
+def test_changing_the_lag_at_run_time_starts_afresh_and_zero_stops_recording():
+    estimator, outputs, emitted = _run(0.2)
+    assert estimator.filter.record and estimator.filter.steps is estimator.fixed_lag
+    estimator.apply_config(estimator.config.replaced(smoothing_lag=0.0))
+    assert estimator.fixed_lag is None and not estimator.filter.record
+    assert estimator.filter.steps == []
+    estimator.apply_config(estimator.config.replaced(smoothing_lag=0.3))
+    smoother = estimator.fixed_lag
+    assert smoother is not None and smoother.lag_ns == int(0.3 * NS) and len(smoother) == 0
+    # The same motion again, 10 ms after the first run's end.
+    shift = outputs[-1].stamp_ns - SAMPLES[0].stamp_ns + 10_000_000
+    later = [replace(sample, stamp_ns=sample.stamp_ns + shift) for sample in SAMPLES[:200]]
+    more = estimator.add_samples(later).outputs()
+    rows = [row for output in more for row in output.fixed_lag or ()]
+    assert rows and all(row.stamp_ns > outputs[-1].stamp_ns for row in rows)
