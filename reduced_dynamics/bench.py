@@ -259,7 +259,10 @@ def time_crba(robot, calls: int) -> float:
     return (time.perf_counter() - start) / calls
 
 
-UPDATE_PATHS = ('streaming', 'batched', 'batched+outputs', 'streaming, odometry 200 Hz')
+UPDATE_PATHS = ('streaming', 'batched', 'batched+outputs', 'streaming, odometry 200 Hz',
+                'streaming, fixed-lag')
+#: smoothing_lag [s] of the fixed-lag path (the node's default); the others run without.
+BENCH_FIXED_LAG = 0.5
 #: The node bench's mix: every 5th base sample, stamped 0.3 ms after its joint state.
 ODOMETRY_EVERY, ODOMETRY_OFFSET_NS = 5, 300_000
 
@@ -276,12 +279,14 @@ def time_update(robot, joints: list, bases: list, warmup: int = 20,
     ``streaming, odometry 200 Hz``: streaming with every fifth base sample only,
     stamped 0.3 ms after its joint state (1 kHz joint states + 200 Hz odometry on
     their own clocks, as in the node bench): a base measurement updates the filter
-    at its own stamp, the rows between only propagate.
+    at its own stamp, the rows between only propagate. ``streaming, fixed-lag``:
+    streaming with fixed-lag smoothing at :data:`BENCH_FIXED_LAG` (the others: off).
     """
     from reduced_dynamics.estimator.config import EstimatorConfig
     from reduced_dynamics.estimator.pipeline import Estimator
     from reduced_dynamics.messages.samples import BaseStateSample
-    estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0))
+    lag = BENCH_FIXED_LAG if path == 'streaming, fixed-lag' else 0.0
+    estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0, smoothing_lag=lag))
     if path == 'streaming, odometry 200 Hz':
         shifted = [BaseStateSample(b.stamp_ns + ODOMETRY_OFFSET_NS, b.frame_id,
                                    b.child_frame_id, b.position, b.orientation_xyzw,
@@ -303,7 +308,7 @@ def time_update(robot, joints: list, bases: list, warmup: int = 20,
         for call, sample in zip(calls[split:], samples[split:]):
             call(sample)
         elapsed = time.perf_counter() - start
-    elif path == 'streaming':
+    elif path in ('streaming', 'streaming, fixed-lag'):
         add_joint, add_base = estimator.add_joint_state, estimator.add_base_state
         for joint, base in zip(joints[:warmup], bases[:warmup]):
             add_joint(joint)
@@ -378,15 +383,21 @@ def bench_update(report: Report, robot, settings: Settings) -> None:
              'batched': 'estimator update, batched (paper robot)',
              'batched+outputs': 'estimator update, batched + outputs (paper robot)',
              'streaming, odometry 200 Hz':
-                 'estimator update, 1 kHz joints + 200 Hz odometry (paper robot)'}
+                 'estimator update, 1 kHz joints + 200 Hz odometry (paper robot)',
+             'streaming, fixed-lag':
+                 f'estimator update, fixed-lag smoothing {BENCH_FIXED_LAG:g} s (paper robot)'}
     notes = {'streaming': 'add_joint_state/add_base_state per sample, outputs built; '
                           'joint and base stamps equal: an update every sample',
              'batched': f'add_samples, {UPDATE_FEED} messages per call, column outputs',
              'batched+outputs': 'as batched, then EstimatorOutput per sample',
              'streaming, odometry 200 Hz': 'streaming; odometry every 5th sample, 0.3 ms '
-                                           'later: an update per odometry sample'}
+                                           'later: an update per odometry sample',
+             'streaming, fixed-lag': 'streaming, smoothing_lag = '
+                                     f'{BENCH_FIXED_LAG:g} s (the node\'s default; the other '
+                                     'rows 0): the backward passes and the lagged rows'}
     # Targets of issue 19: streaming <= 20 x crba, batched <= 10 x crba.
-    targets = {'streaming': 20.0, 'streaming, odometry 200 Hz': 20.0}
+    targets = {'streaming': 20.0, 'streaming, odometry 200 Hz': 20.0,
+               'streaming, fixed-lag': 20.0}
     steady = f'; timed after {settings.update_warmup:g} s of samples' + (
         ' (step test full)' if settings.update_warmup >= STEADY_SECONDS else '')
     for path, values in updates.items():
@@ -396,6 +407,14 @@ def bench_update(report: Report, robot, settings: Settings) -> None:
                                [1e6 * u for u in values], 'crba',
                                [1e6 * c for c in crbas], ratios, f'ratio <= {bound:g}',
                                lambda r, bound=bound: r <= bound, note=notes[path] + steady))
+    lagged, plain = updates.get('streaming, fixed-lag'), updates.get('streaming')
+    if lagged and plain:
+        report.add(make_figure(
+            'update', 'fixed-lag smoothing: update with it / without (paper robot)', 'us/sample',
+            [1e6 * u for u in lagged], 'estimator update (streaming, without)',
+            [1e6 * u for u in plain], [a / b for a, b in zip(lagged, plain)],
+            'ratio <= 2', lambda r: r <= 2.0,
+            note='the same samples and repeats; estimator/fixed_lag.py'))
     report.add(make_figure('update', 'crba (paper robot)', 'us/call',
                            [1e6 * c for c in crbas], note='baseline'))
     bench_first_call(report, settings)

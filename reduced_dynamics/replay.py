@@ -41,7 +41,7 @@ from reduced_dynamics.bag.damage import Damage
 from reduced_dynamics.bag.errors import BagError
 from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.bag.writer import BagWriter
-from reduced_dynamics.estimator.config import EstimatorConfig
+from reduced_dynamics.estimator.config import check_parameter, EstimatorConfig
 from reduced_dynamics.estimator.pipeline import Estimator, EstimatorOutput
 from reduced_dynamics.estimator.smoother import SmootherFiles
 from reduced_dynamics.bag.reader import BagReader
@@ -55,7 +55,7 @@ from reduced_dynamics.output_spool import OutputSpool, SMOOTHED_FIELDS
 from reduced_dynamics.params import defaults, load_params_file
 from reduced_dynamics.plot_marks import draw_marks, read_marks
 from reduced_dynamics.robot.model import load_robot, RobotModel
-from reduced_dynamics.topics import active_topics, cdr_encoder, resolved_name
+from reduced_dynamics.topics import active_topics, cdr_encoder, FIXED_LAG_TOPICS, resolved_name
 
 JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
 #: Input messages handed to the estimator at once (its batched path).
@@ -96,6 +96,9 @@ class ReplayOptions:
     base_driven: bool = False
     #: where the robot model came from, for messages (see :func:`robot_source`)
     robot_source: str = ''
+    #: fixed-lag smoothing [s] as the node's smoothing_lag (0: off, the default here
+    #: whatever the params say: a replay writes the fixed-lag topics only when asked)
+    fixed_lag: float = 0.0
 
 
 class _Series:
@@ -300,7 +303,8 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
     options = options or ReplayOptions()
     # Offline, a prediction's budget is its evaluations alone: a wall-time budget would
     # make the output depend on the machine's load (the node keeps its own).
-    config = EstimatorConfig.from_mapping(options.params).replaced(prediction_max_wall_time=0.0)
+    config = EstimatorConfig.from_mapping(options.params).replaced(
+        prediction_max_wall_time=0.0, smoothing_lag=options.fixed_lag)
     types = RosbagsTypes()
     started = time.perf_counter()
     with open_bag(bag_path, strict=options.strict) as reader:
@@ -334,6 +338,10 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
         out_topics = {resolved_name(t): t.msgtype for t in outputs}
         # Per output: sample field, bag topic, sample -> CDR bytes (no message objects).
         encoders = [(t.field, resolved_name(t), cdr_encoder(t, types)) for t in outputs]
+        lagged = [(t.field, resolved_name(t), cdr_encoder(t, types))
+                  for t in (FIXED_LAG_TOPICS if options.fixed_lag > 0.0 else ())]
+        out_topics.update({topic: t.msgtype for t, (_, topic, _) in zip(FIXED_LAG_TOPICS,
+                                                                        lagged)})
         base_type = ODOMETRY_TYPE if is_odom else POSE_TYPE
         inputs = {}
         for topic, msgtype in reader.connection_types(wanted):
@@ -367,7 +375,23 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                 estimator.enable_smoothing(files)
                 spool = OutputSpool(files.file('outputs.bin'), encoders)
 
+            def write_lagged(rows: list, record_ns: int) -> None:
+                # Recorded when the node would publish them, stamped with their own time
+                # (not spooled: smoothing does not change them).
+                for row in rows:
+                    for name, topic, encode in lagged:
+                        write(topic, record_ns, encode(getattr(row, name)))
+
             def emit(outputs: list[EstimatorOutput], final: bool = False) -> None:
+                if lagged:
+                    for output in outputs:
+                        if output.fixed_lag:
+                            write_lagged(output.fixed_lag, output.stamp_ns)
+                        last_ns[0] = output.stamp_ns
+                    if final:
+                        rows = estimator.flush_fixed_lag()
+                        if rows:
+                            write_lagged(rows, max(last_ns[0], rows[-1].stamp_ns))
                 if spool is not None:
                     for output in outputs:
                         spool.hold(output)
@@ -395,6 +419,7 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                                                        *output.disturbance.torque))
 
             batch: list = []
+            last_ns = [0]  # stamp of the last output
             for count, message in enumerate(reader.raw_messages(wanted, start_ns, end_ns)):
                 decode = inputs[message.topic, message.msgtype]
                 sample = None
@@ -479,7 +504,7 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
 def _write_smoothed(spool: OutputSpool, estimator: Estimator, write: Callable,
                     series: dict, plots: Optional[str]) -> None:
     """Write the held outputs in order, their smoothed fields from the estimator."""
-    recorded = estimator.filter.steps.outputs
+    recorded = estimator.step_store.outputs
     if recorded != spool.count:
         raise ValueError(f'{spool.count} outputs for {recorded} recorded filter rows')
     encoders = spool.encoders
@@ -720,8 +745,14 @@ def _run(args: argparse.Namespace) -> int:
                             start=args.start, end=args.end, plots_dir=args.plots,
                             overwrite=args.overwrite, strict=args.strict,
                             smooth=not args.no_smooth, base_driven=args.base_driven,
+                            fixed_lag=args.fixed_lag,
                             robot_source=robot_source(params, args.urdf),
                             progress=None if args.quiet else sys.stderr)
+    try:
+        check_parameter('smoothing_lag', args.fixed_lag)
+    except ValueError as error:
+        print(f'reduced-dynamics replay: error: --fixed-lag: {error}', file=sys.stderr)
+        return 2
     existed = os.path.exists(args.output)
     if existed and not args.overwrite:
         # Before reading the bag; the library's own message names its Python argument.
@@ -789,4 +820,8 @@ def register_command(commands: Any) -> None:
     parser.add_argument('--no-smooth', action='store_true',
                         help='write the causal filter\'s estimates, exactly what the node '
                              'publishes (default: fixed-interval RTS smoothing over the bag)')
+    parser.add_argument('--fixed-lag', type=float, default=0.0, metavar='S',
+                        help='also write the node\'s fixed-lag smoothed topics '
+                             '(momentum_smoothed, drift/momentum_rate_smoothed) at a lag of S '
+                             'seconds, as its smoothing_lag parameter (default 0: not written)')
     parser.set_defaults(func=_run)

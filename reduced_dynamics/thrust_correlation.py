@@ -117,14 +117,15 @@ def _poses(bag: str, topic: str) -> tuple[list[int], np.ndarray]:
     return [row[0] for row in rows], np.array([row[1:] for row in rows])
 
 
-def _estimates(out_bag: str) -> tuple[list[int], np.ndarray]:
-    """Return the estimate stamps and (Fx, Fy, Tz about the origin) rows."""
+def _estimates(out_bag: str, topic: str = RATE_TOPIC) -> tuple[list[int], np.ndarray]:
+    """Return the estimate stamps and (Fx, Fy, Tz about the origin) rows, in stamp order."""
     rows = []
     with open_bag(out_bag) as reader:
-        for message in reader.messages([RATE_TOPIC]):
+        for message in reader.messages([topic]):
             msg = message.msg
             stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
             rows.append((stamp, msg.wrench.force.x, msg.wrench.force.y, msg.wrench.torque.z))
+    rows.sort(key=lambda row: row[0])  # a fixed-lag topic is recorded after the fact
     return [row[0] for row in rows], np.array([row[1:] for row in rows])
 
 
@@ -138,15 +139,17 @@ def _held(stamps: list[int], source_stamps, values: np.ndarray) -> np.ndarray:
 def thrust_correlation(bag: str, out_bag: str, pose_topic: str = POSE_TOPIC,
                        window: int = WINDOW, order: int = ORDER,
                        poses_bag: Optional[str] = None,
-                       mapping: Optional[CommandMapping] = None) -> Correlation:
+                       mapping: Optional[CommandMapping] = None,
+                       rate_topic: str = RATE_TOPIC) -> Correlation:
     """
     Return the README's correlation of ``out_bag``'s wrench estimate with ``bag``'s commands.
 
     ``poses_bag``: the bag whose poses (PoseStamped or Odometry) turn the command into
     the world frame (default ``bag``; a command twin's own, :func:`write_command_twin`).
     ``mapping``: the command message and thrusters (default freeflyer2's).
+    ``rate_topic``: the estimate (e.g. the fixed-lag ``drift/momentum_rate_smoothed``).
     """
-    stamps, estimate = _estimates(out_bag)
+    stamps, estimate = _estimates(out_bag, rate_topic)
     if len(stamps) <= 2 * window:
         raise ValueError(f'{out_bag}: {len(stamps)} wrench estimates, the correlation needs '
                          f'more than {2 * window} (the smoothing window dropped at each end)')

@@ -81,6 +81,17 @@ OUTPUT_TOPICS: tuple[OutputTopic, ...] = (
                 diagnostics_to_ros, 'estimator status'),
 )
 
+#: Fixed-lag smoothing (``smoothing_lag`` > 0, estimator/fixed_lag.py): one message per
+#: row once its lag has passed, stamped with the row's time; ``field`` is that of
+#: :class:`~reduced_dynamics.estimator.fixed_lag.FixedLagRow`.
+FIXED_LAG_TOPICS: tuple[OutputTopic, ...] = (
+    OutputTopic('momentum_smoothed', 'geometry_msgs/msg/WrenchStamped', 'momentum',
+                wrench_to_ros, 'momentum as ~/momentum, RTS-smoothed over at least '
+                'smoothing_lag of later data, stamped with the time it describes'),
+    OutputTopic('drift/momentum_rate_smoothed', 'geometry_msgs/msg/WrenchStamped',
+                'momentum_rate', wrench_to_ros, 'drift/momentum_rate RTS-smoothed over at '
+                'least smoothing_lag of later data, stamped with the time it describes'),
+)
 
 #: The output that exists only with the second-stage reduction on.
 CYCLIC_TOPIC = 'cyclic_momenta'

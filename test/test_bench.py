@@ -86,3 +86,13 @@ def test_cli_registers_bench():
                                       '--csv', 'x.csv', '--sections', 'update'])
     assert args.quick and args.repeats == 2 and args.sections == ['update']
     assert args.func is bench._run
+
+
+def test_update_section_times_fixed_lag_smoothing_against_crba_and_without():
+    report = bench.run_bench(_tiny(), ['update'])
+    figures = {f.name: f for f in report.figures}
+    lagged = figures['estimator update, fixed-lag smoothing 0.5 s (paper robot)']
+    assert lagged.baseline == 'crba' and lagged.ratio > 0.0
+    share = figures['fixed-lag smoothing: update with it / without (paper robot)']
+    assert share.baseline_median == figures['estimator update (paper robot)'].median
+    assert math.isfinite(share.ratio) and share.ratio > 0.0

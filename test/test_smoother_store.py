@@ -98,7 +98,7 @@ def test_smoothed_rows_equal_the_list_smoother_whatever_the_blocks(monkeypatch):
     estimator.enable_smoothing()
     samples = _bag_samples(DATA / 'paper_realistic')[:300]
     outputs = estimator.add_samples(samples).outputs() + estimator.flush()
-    store = estimator.filter.steps
+    store = estimator.step_store
     steps = [store[k] for k in range(len(store))]
     reference = smooth(robot.group, steps)
     rows = [state for state, step in zip(reference, steps) if step.output]

@@ -134,6 +134,12 @@ PARAMETERS: dict[str, ParameterSpec] = {
                                 'quiet time [s] with w consistent with zero (chi-square '
                                 'below its 99 % quantile) before an event ends and the model '
                                 'is re-reduced at the new momentum'),
+    'smoothing_lag': ParameterSpec(0.5, 0.0, 10.0, (),
+                                   'online fixed-lag RTS smoothing (estimator/fixed_lag.py): '
+                                   'momentum and momentum rate smoothed over at least this '
+                                   'much [s] of later data, on ~/momentum_smoothed and '
+                                   '~/drift/momentum_rate_smoothed stamped with the time '
+                                   'they describe (0: off)'),
     'prediction_rate': ParameterSpec(1.0, 0.0, 100.0, (),
                                      'predictions per second of stamp time (0: off)'),
     'prediction_horizon': ParameterSpec(2.0, 0.0, 60.0, (), 'prediction horizon [s]'),
@@ -231,6 +237,7 @@ class EstimatorConfig:
     innovation_gate: float = PARAMETERS['innovation_gate'].default
     event_significance: float = PARAMETERS['event_significance'].default
     event_hold: float = PARAMETERS['event_hold'].default
+    smoothing_lag: float = PARAMETERS['smoothing_lag'].default
     prediction_rate: float = PARAMETERS['prediction_rate'].default
     prediction_horizon: float = PARAMETERS['prediction_horizon'].default
     prediction_step: float = PARAMETERS['prediction_step'].default

@@ -66,6 +66,9 @@ class EstimatorOutput:
     #: commanded wrench on: the disturbance beyond the command (world frame); then
     #: ``momentum_rate`` is the total external wrench (disturbance + delivered command)
     disturbance: Optional[WrenchSample] = None
+    #: ``smoothing_lag`` > 0: the rows whose lag passed at this sample, oldest first
+    #: (:class:`~.fixed_lag.FixedLagRow`: each stamped with the time it describes)
+    fixed_lag: Optional[list] = None
 
 
 class OutputChunk:
@@ -79,7 +82,7 @@ class OutputChunk:
 
     __slots__ = ('stamps_ns', 'mu', 'pi', 'momentum_rate', 'drift', 'qbar', 'qbar_dot',
                  'pbar', 'energy', 'extras', 'cyclic', '_kernel', '_world', '_base',
-                 '_names', 'mu_cov', 'w_cov', 'disturbance')
+                 '_names', 'mu_cov', 'w_cov', 'disturbance', 'fixed_lag')
 
     def __init__(self, estimator: Any, stamps_ns: np.ndarray, mu: np.ndarray,
                  pi: np.ndarray, rate: np.ndarray, drift: np.ndarray, qbar: np.ndarray,
@@ -104,6 +107,8 @@ class OutputChunk:
         self.w_cov: Optional[np.ndarray] = None
         #: commanded wrench on: the disturbance w beyond the command (K, n)
         self.disturbance: Optional[np.ndarray] = None
+        #: fixed-lag smoothing on: row -> the fixed-lag rows emitted there
+        self.fixed_lag: Optional[dict] = None
 
     def __len__(self) -> int:
         """Return the number of samples."""
@@ -123,7 +128,7 @@ class OutputChunk:
         extras = self.extras
         out = []
         disturbance = None if self.disturbance is None else kernel.wrenches(self.disturbance)
-        cyclic = self.cyclic
+        cyclic, fixed_lag = self.cyclic, self.fixed_lag
         shape_columns = (self.qbar, self.qbar_dot, self.pbar) if cyclic is None \
             else (cyclic.qhat, cyclic.qhat_dot, cyclic.phat)
         if cyclic is not None:
@@ -156,6 +161,8 @@ class OutputChunk:
             if disturbance is not None:
                 output.disturbance = trusted_sample(wrench, stamp, world, disturbance[k, :3],
                                                     disturbance[k, 3:])
+            if fixed_lag:
+                output.fixed_lag = fixed_lag.get(k)
             out.append(output)
         return out
 

@@ -64,6 +64,7 @@ from reduced_dynamics.estimator.config import EstimatorConfig
 from reduced_dynamics.estimator.cyclic import CYCLIC_OFF, CyclicView, resolve_cyclic_joints
 from reduced_dynamics.estimator.events import EventDetector
 from reduced_dynamics.estimator.filter import MomentumFilter, NoiseModel
+from reduced_dynamics.estimator.fixed_lag import FixedLagSmoothing
 from reduced_dynamics.estimator.intake import InputIntake, Sample
 from reduced_dynamics.estimator.kernel import UpdateKernel
 # EstimatorOutput and the chunks are imported from here by the node, replay and tools.
@@ -73,7 +74,7 @@ from reduced_dynamics.estimator.prediction import Predictor
 from reduced_dynamics.estimator.processing import ChunkProcessing, NS, RowChunk
 from reduced_dynamics.estimator.reporting import Reporting
 from reduced_dynamics.estimator.retiming import FrameRetimer
-from reduced_dynamics.estimator.smoother import SmootherFiles, Smoothing
+from reduced_dynamics.estimator.smoother import SmootherFiles, Smoothing, StepStore
 from reduced_dynamics.estimator.stamps import StampGate
 from reduced_dynamics.estimator.sync import BaseBuffer
 from reduced_dynamics.estimator.timing import RETIMED_KEEP, Timing
@@ -106,7 +107,8 @@ def noise_model(config: EstimatorConfig) -> NoiseModel:
                       disturbance_angular=config.disturbance_jerk_angular)
 
 
-class Estimator(InputIntake, Timing, ChunkProcessing, Reporting, Smoothing):
+class Estimator(InputIntake, Timing, ChunkProcessing, Reporting, Smoothing,
+                FixedLagSmoothing):
     """
     Streaming estimator of momentum, shape state and drift for one robot.
 
@@ -195,6 +197,8 @@ class Estimator(InputIntake, Timing, ChunkProcessing, Reporting, Smoothing):
         #: keep the filter's steps for :meth:`smoothed_rows` (see :meth:`enable_smoothing`)
         self.record_steps = False
         self.smoother_files: Optional[SmootherFiles] = None
+        #: the full smoother's store of steps (:meth:`enable_smoothing`)
+        self.step_store: Optional[StepStore] = None
         # Input gates (estimator/stamps.py, estimator/plausibility.py).
         self._joint_gate = StampGate('joint state', NS, 3)
         self._base_gate = StampGate('base', NS, 3)
@@ -250,6 +254,7 @@ class Estimator(InputIntake, Timing, ChunkProcessing, Reporting, Smoothing):
                 setattr(self.filter, name, getattr(old_filter, name))
             if self.commanded_wrench:
                 self.filter._command = old_filter._command
+        self._attach_fixed_lag()
         old_detector = getattr(self, 'detector', None)
         self.detector = EventDetector(self.robot.n, config.event_significance,
                                       config.event_hold)

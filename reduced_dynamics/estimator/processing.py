@@ -107,6 +107,7 @@ class ChunkProcessing:
         rotation, translation = result.rotation, result.translation
         commands = chunk.commands if self.commanded_wrench else None
         disturbance = None if commands is None else np.empty((count, n))
+        lagged, fixed_lag = self.fixed_lag, {}
         for k in range(count):
             stamp = stamp_list[k]
             prior = None
@@ -125,6 +126,9 @@ class ChunkProcessing:
                 self._period_rejected += 1
                 self.last_rejection = (f'innovation_gate: base measurement at {gated} '
                                        f'improbable under the filter (chi-square {nis:.3g})')
+            if lagged is not None and lagged._ready:
+                # Rows whose lag passed during this row's steps go out with it.
+                fixed_lag[k] = lagged.take()
             g = flt.g
             x, p = flt.x, flt.p
             mu[k] = x[:n]
@@ -172,6 +176,7 @@ class ChunkProcessing:
                           energy, extras, cyclic)
         out.mu_cov, out.w_cov = mu_cov, w_cov
         out.disturbance = disturbance
+        out.fixed_lag = fixed_lag
         self._done.append(out)
 
     def _step_significance(self) -> float:

@@ -275,8 +275,12 @@ class Smoothing:
         self.record_steps = True
         self.smoother_files = files if files is not None else SmootherFiles()
         self.filter.record = True
-        self.filter.steps = StepStore(self.smoother_files, self.robot.n, self.filter.dim,
-                                      self.commanded_wrench)
+        self.step_store = StepStore(self.smoother_files, self.robot.n, self.filter.dim,
+                                    self.commanded_wrench)
+        if self.fixed_lag is not None:
+            self.fixed_lag.downstream = self.step_store  # the fixed-lag smoother passes it on
+        else:
+            self.filter.steps = self.step_store
 
     def smoothed_rows(self) -> Iterator[dict[str, Any]]:
         """
@@ -295,7 +299,7 @@ class Smoothing:
                 return total, cov, state.x[n:2 * n]
             return state.x[n:], state.p[2 * n:, 2 * n:], None
 
-        rows = smooth_rows(group, flt.steps, self.smoother_files, wrench)
+        rows = smooth_rows(group, self.step_store, self.smoother_files, wrench)
         try:
             yield from smoothed_fields(self.kernel, rows.blocks(), self.config.world_frame,
                                        self.robot.base_link, command)
@@ -309,7 +313,7 @@ class Smoothing:
         ``outputs`` are all outputs since :meth:`enable_smoothing`, in order (one
         recorded filter row each); :meth:`smoothed_rows` says what changes.
         """
-        recorded = self.filter.steps.outputs
+        recorded = self.step_store.outputs
         if recorded != len(outputs):
             raise ValueError(f'{len(outputs)} outputs for {recorded} recorded filter rows')
         for output, fields in zip(outputs, self.smoothed_rows()):

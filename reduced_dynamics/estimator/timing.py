@@ -217,6 +217,7 @@ class Timing:
         for name in ('steps', 'gated', 'log_likelihood', 'nis_sum', 'nis_dof', 'diverged',
                      'restart_causes', 'burst_skipped'):
             setattr(self.filter, name, getattr(old, name))
+        self.filter.record = old.record  # the fixed-lag smoother's steps too
         events = self.detector.events
         self.detector = EventDetector(self.robot.n, config.event_significance,
                                       config.event_hold)

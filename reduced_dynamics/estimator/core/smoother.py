@@ -102,6 +102,45 @@ def backward(restart: np.ndarray, transitions: np.ndarray, pose_pred: np.ndarray
         p_out[k] = p_s
 
 
+@njit(cache=True)
+def smoother_gain(p: np.ndarray, transition: np.ndarray, p_pred: np.ndarray) -> np.ndarray:
+    """Return the gain C_k of :func:`backward_step` (step k's P, step k + 1's Phi and P^-)."""
+    return _gain(p, transition, p_pred)
+
+
+@njit(cache=True)
+def backward_mean(restart: np.ndarray, gains: np.ndarray, pose_pred: np.ndarray,
+                  x_pred: np.ndarray, pose: np.ndarray, x: np.ndarray, basis: np.ndarray,
+                  pinv: np.ndarray, whole: bool, pose_out: np.ndarray,
+                  x_out: np.ndarray) -> None:
+    """
+    Run the mean part of :func:`backward` over K stacked steps, the gains given.
+
+    ``gains[k]``: C_k (:func:`smoother_gain`), which depends on the filtered steps
+    alone, so a caller smoothing the same steps again (the fixed-lag smoother)
+    computes it once. The smoothed means are :func:`backward`'s, the same
+    arithmetic; no covariance is propagated.
+    """
+    count = restart.shape[0]
+    d = gains.shape[1]
+    n = d - x.shape[1]
+    pose_out[count - 1] = pose[count - 1]
+    x_out[count - 1] = x[count - 1]
+    g_s, x_s = pose[count - 1].copy(), x[count - 1].copy()
+    diff = np.empty(d)
+    for k in range(count - 2, -1, -1):
+        if restart[k + 1]:
+            g_s, x_s = pose[k].copy(), x[k].copy()
+        else:
+            diff[:n] = group_log(compose(inverse(pose_pred[k + 1].copy()), g_s), pinv, whole)
+            diff[n:] = x_s - x_pred[k + 1]
+            dx = gains[k].copy() @ diff
+            g_s = compose(pose[k].copy(), group_exp(dx[:n], basis, whole))
+            x_s = x[k] + dx[n:]
+        pose_out[k] = g_s
+        x_out[k] = x_s
+
+
 def smooth_arrays(group: BaseGroup, restart: np.ndarray, transitions: np.ndarray,
                   pose_pred: np.ndarray, x_pred: np.ndarray, p_pred: np.ndarray,
                   pose: np.ndarray, x: np.ndarray, p: np.ndarray,
