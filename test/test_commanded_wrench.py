@@ -590,4 +590,3 @@ def test_a_still_robot_gives_an_unidentified_gain(tmp_path):
     assert command['bias'][0] == 'unidentified'
     assert all(k >= command_gain.GAIN_FLOOR for k in command['gain_estimate'])
     assert not summary['events']
-

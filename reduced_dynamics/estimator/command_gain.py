@@ -100,7 +100,7 @@ def _multiple_correlation(p: np.ndarray, target: int, others: np.ndarray) -> flo
 
 def identified(p: np.ndarray, n: int, prior_sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
-    Return per axis whether the gain and the bias are identified (two boolean arrays).
+    Return per axis whether gain and bias are identified: two boolean arrays.
 
     ``prior_sigma``: the prior sigmas of (k, b), 2n.
     """
