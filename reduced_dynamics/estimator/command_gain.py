@@ -86,7 +86,7 @@ def project_gains(x: np.ndarray, p: np.ndarray, n: int,
     return correction
 
 
-def _multiple_correlation(p: np.ndarray, target: int, others: np.ndarray) -> float:
+def _multiple_correlation(p: np.ndarray, target: int, others) -> float:
     """Return the multiple correlation of error coordinate ``target`` with ``others``."""
     index = np.concatenate(([target], others))
     block = p[np.ix_(index, index)]
@@ -98,22 +98,31 @@ def _multiple_correlation(p: np.ndarray, target: int, others: np.ndarray) -> flo
     return float(np.sqrt(min(max(r2, 0.0), 1.0)))
 
 
+def _known(p: np.ndarray, n: int, prior_sigma: np.ndarray, states: np.ndarray,
+           others: np.ndarray) -> np.ndarray:
+    """Return per state of ``states`` (error coordinates) whether it is identified."""
+    sigma = np.sqrt(np.maximum(np.diag(p)[states], 0.0))
+    wide = sigma > IDENTIFIED_SIGMA_RATIO * prior_sigma
+    tied = np.array([_multiple_correlation(p, i, others) for i in states])
+    return ~(wide | (tied > IDENTIFIED_CORRELATION))
+
+
+def gains_identified(p: np.ndarray, n: int, prior_sigma: np.ndarray) -> np.ndarray:
+    """Return per axis whether the gain is identified; ``prior_sigma``: of (k, b), 2n."""
+    return _known(p, n, prior_sigma[:n], np.arange(3 * n, 4 * n),
+                  np.arange(4 * n, 5 * n).tolist() + list(range(2 * n, 3 * n)))
+
+
 def identified(p: np.ndarray, n: int, prior_sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     Return per axis whether gain and bias are identified: two boolean arrays.
 
-    ``prior_sigma``: the prior sigmas of (k, b), 2n.
+    ``prior_sigma``: the prior sigmas of (k, b), 2n. A bias's correlation is
+    taken with the gains and the disturbance.
     """
-    sigma = np.sqrt(np.maximum(np.diag(p)[3 * n:], 0.0))
-    wide = sigma > IDENTIFIED_SIGMA_RATIO * prior_sigma
-    disturbance = np.arange(2 * n, 3 * n)
-    gains, biases = np.arange(3 * n, 4 * n), np.arange(4 * n, 5 * n)
-    tied = np.array([_multiple_correlation(p, 3 * n + i, np.concatenate((biases, disturbance)))
-                     for i in range(n)]
-                    + [_multiple_correlation(p, 4 * n + i, np.concatenate((gains, disturbance)))
-                       for i in range(n)]) > IDENTIFIED_CORRELATION
-    known = ~(wide | tied)
-    return known[:n], known[n:]
+    biases = _known(p, n, prior_sigma[n:], np.arange(4 * n, 5 * n),
+                    np.arange(2 * n, 4 * n))
+    return gains_identified(p, n, prior_sigma), biases
 
 
 def mismatch_covariance(p: np.ndarray, n: int, to_world: np.ndarray, command: np.ndarray,

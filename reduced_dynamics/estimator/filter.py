@@ -338,7 +338,8 @@ class MomentumFilter:
         its error is not an external wrench.
         """
         if self.command and self._g is not None and self._command.any():
-            unidentified = ~self.command_identified()[0] & (self._command != 0.0)
+            unidentified = ~command_gain.gains_identified(
+                self.p, self.n, self.command_prior_sigma) & (self._command != 0.0)
             if unidentified.any():
                 n = self.n
                 w = self.x[n:2 * n]
