@@ -680,7 +680,8 @@ def format_summary(summary: dict[str, Any]) -> str:
     command = summary.get('commanded_wrench')
     if command and command.get('gain') is not None:
         lines.append(f'commanded wrench {command["topic"]} ({command["samples"]} commands): '
-                     + ', '.join(f'{axis} gain {g:.4f} +- {gs:.2g} bias {b:+.3g} +- {bs:.2g}'
+                     + ', '.join(f'{axis} gain {_shown(g, ".4f")} +- {gs:.2g} '
+                                 f'bias {_shown(b, "+.3g")} +- {bs:.2g}'
                                  for axis, g, gs, b, bs in zip(
                                      command['axes'], command['gain'], command['gain_sigma'],
                                      command['bias'], command['bias_sigma'])))
@@ -825,3 +826,8 @@ def register_command(commands: Any) -> None:
                              '(momentum_smoothed, drift/momentum_rate_smoothed) at a lag of S '
                              'seconds, as its smoothing_lag parameter (default 0: not written)')
     parser.set_defaults(func=_run)
+
+
+def _shown(value, spec: str) -> str:
+    """Return a gain or bias formatted by ``spec``, or 'unidentified' as it is."""
+    return value if isinstance(value, str) else format(value, spec)

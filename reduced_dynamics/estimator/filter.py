@@ -112,6 +112,7 @@ import numpy as np
 import pinocchio as pin
 from reduced_dynamics.chi_square import chi2
 
+from reduced_dynamics.estimator import command_gain
 from reduced_dynamics.estimator.core import kernels
 from reduced_dynamics.estimator.core.smoother import smooth, smooth_backward
 from reduced_dynamics.estimator.core.stalls import StallDetector
@@ -218,6 +219,10 @@ class MomentumFilter:
                                       noise.disturbance_linear ** 2)
             self._command = np.zeros(n)
             self._command_zero = np.zeros(n)
+        #: prior sigmas of (k, b) (commanded wrench; set at initialisation)
+        self.command_prior_sigma = np.zeros(2 * n)
+        #: updates whose gain estimate was projected onto k >= command_gain.GAIN_FLOOR
+        self.gain_projections = 0
         #: sum of the innovations' log-likelihoods, of their NIS and of their dimensions
         self.log_likelihood = 0.0
         self.nis_sum = 0.0
@@ -325,7 +330,22 @@ class MomentumFilter:
         return x[n:2 * n] + to_world @ c, 0.5 * (cov + cov.T)
 
     def wrench_significance(self) -> float:
-        """Return w^T P_ww^-1 w (chi-square with n degrees of freedom when w = 0)."""
+        """
+        Return w^T P_ww^-1 w (chi-square with n degrees of freedom when w = 0).
+
+        Commanded wrench: an unidentified gain on an axis being commanded adds
+        the wrench it may be off by to P_ww (command_gain.mismatch_covariance):
+        its error is not an external wrench.
+        """
+        if self.command and self._g is not None and self._command.any():
+            unidentified = ~command_gain.gains_identified(
+                self.p, self.n, self.command_prior_sigma) & (self._command != 0.0)
+            if unidentified.any():
+                n = self.n
+                w = self.x[n:2 * n]
+                cov = self.p[2 * n:3 * n, 2 * n:3 * n] + command_gain.mismatch_covariance(
+                    self.p, n, self._adjoint_inverse(self.g).T, self._command, unidentified)
+                return float(w @ np.linalg.solve(cov, w))
         return kernels.significance(self.x, self.p, self.n)
 
     def _adjoint(self, g: pin.SE3) -> np.ndarray:
@@ -450,6 +470,7 @@ class MomentumFilter:
         self.x = np.concatenate((mu, np.zeros(n)))
         if self.command:
             p[3 * n:, 3 * n:] = self._command_prior(lin.locked)
+            self.command_prior_sigma = np.sqrt(np.diag(p[3 * n:, 3 * n:]))
             self.x = np.concatenate((self.x, np.ones(n), np.zeros(n)))
         self.p = p
         self._stamp_twist = np.zeros(n) if twist is None else np.array(twist, dtype=float)
@@ -670,7 +691,23 @@ class MomentumFilter:
             self.step_test.reset()
             self.step_detected = detection
             self.steps_taken += 1
+        if self.command:
+            self._constrain_gains()
         return True
+
+    def _constrain_gains(self) -> None:
+        """Project the gains onto k >= GAIN_FLOOR (command_gain.py: Simon & Chia)."""
+        correction = command_gain.project_gains(self.x, self.p, self.n)
+        if correction is None:
+            return
+        self._g, self.x, self.p = kernels.compensate(
+            self._g, self.x, self.p, correction, np.zeros_like(self.p), self._basis,
+            self._whole)
+        self.gain_projections += 1
+
+    def command_identified(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return per axis whether the gain and the bias are identified (command_gain.py)."""
+        return command_gain.identified(self.p, self.n, self.command_prior_sigma)
 
     def _pose_offset(self) -> Optional[np.ndarray]:
         """

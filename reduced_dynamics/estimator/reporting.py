@@ -37,6 +37,8 @@ from reduced_dynamics.messages.samples import (DIAG_OK, DIAG_WARN, Diagnostics,
 #: A gain off 1 by more than this (and by more than 3 sigma) makes the commanded-wrench
 #: status WARN: thrusters delivering 10 % less or more than commanded.
 COMMAND_GAIN_WARN = 0.1
+#: A gain or bias the data cannot separate (estimator/command_gain.py), in place of a number.
+UNIDENTIFIED = 'unidentified'
 
 
 class Reporting:
@@ -109,11 +111,21 @@ class Reporting:
         axes = _axis_names(self.robot.group)
         if flt.g is None:
             return {'axes': axes, 'samples': self._accepted_commands, 'gain': None,
-                    'gain_sigma': None, 'bias': None, 'bias_sigma': None}
+                    'gain_sigma': None, 'bias': None, 'bias_sigma': None,
+                    'gain_estimate': None, 'bias_estimate': None, 'gain_projections': 0}
         sigma = np.sqrt(np.diag(flt.p))
+        gain_known, bias_known = flt.command_identified()
         return {'axes': axes, 'samples': self._accepted_commands,
-                'gain': flt.gain.tolist(), 'gain_sigma': sigma[3 * n:4 * n].tolist(),
-                'bias': flt.bias.tolist(), 'bias_sigma': sigma[4 * n:].tolist()}
+                # What the data cannot separate is 'unidentified', not a number; the
+                # filter's estimate stays in *_estimate (command_gain.py).
+                'gain': [float(v) if ok else UNIDENTIFIED
+                         for v, ok in zip(flt.gain, gain_known)],
+                'gain_sigma': sigma[3 * n:4 * n].tolist(),
+                'bias': [float(v) if ok else UNIDENTIFIED
+                         for v, ok in zip(flt.bias, bias_known)],
+                'bias_sigma': sigma[4 * n:].tolist(),
+                'gain_estimate': flt.gain.tolist(), 'bias_estimate': flt.bias.tolist(),
+                'gain_projections': flt.gain_projections}
 
     def diagnostics(self, stamp_ns: int) -> Diagnostics:
         """Return the estimator's status (and reset the per-period rates)."""
@@ -180,12 +192,14 @@ class Reporting:
         level, message = DIAG_OK, 'no estimate yet'
         if estimate['gain'] is not None:
             flt = self.filter
-            gain, gain_sigma = np.array(estimate['gain']), np.array(estimate['gain_sigma'])
+            known = np.array([v != UNIDENTIFIED for v in estimate['gain']])
+            gain = np.array(estimate['gain_estimate'])
+            gain_sigma = np.array(estimate['gain_sigma'])
             total, total_cov = flt.total_wrench()
             values.update({
-                'gain': ' '.join(f'{v:.4g}' for v in gain),
+                'gain': ' '.join(_number(v, '.4g') for v in estimate['gain']),
                 'gain_sigma': ' '.join(f'{v:.3g}' for v in gain_sigma),
-                'bias': ' '.join(f'{v:.4g}' for v in estimate['bias']),
+                'bias': ' '.join(_number(v, '.4g') for v in estimate['bias']),
                 'bias_sigma': ' '.join(f'{v:.3g}' for v in estimate['bias_sigma']),
                 'command': ' '.join(f'{v:.4g}' for v in flt._command),
                 'disturbance': ' '.join(f'{v:.6g}' for v in flt.wrench),
@@ -194,7 +208,8 @@ class Reporting:
                 'total_wrench': ' '.join(f'{v:.6g}' for v in total),
                 'total_wrench_sigma': ' '.join(
                     f'{v:.3g}' for v in np.sqrt(np.diag(total_cov)))})
-            off = (np.abs(gain - 1.0) > 3.0 * gain_sigma) \
+            # An unidentified gain says nothing of the thrusters' health.
+            off = known & (np.abs(gain - 1.0) > 3.0 * gain_sigma) \
                 & (np.abs(gain - 1.0) > COMMAND_GAIN_WARN)
             if off.any():
                 level = DIAG_WARN
@@ -328,3 +343,8 @@ def _residuals_by_mode(finished: list[FinishedPrediction]) -> dict:
             entry[key + '_median'] = float(np.median(values)) if values else None
         out[mode] = entry
     return out
+
+
+def _number(value, spec: str) -> str:
+    """Return ``value`` formatted by ``spec``, or as it is when it is not a number."""
+    return value if isinstance(value, str) else format(value, spec)
