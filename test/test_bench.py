@@ -86,3 +86,17 @@ def test_cli_registers_bench():
                                       '--csv', 'x.csv', '--sections', 'update'])
     assert args.quick and args.repeats == 2 and args.sections == ['update']
     assert args.func is bench._run
+
+
+def test_replay_rows_against_rosbags():
+    # Issue 19's two replay targets: --no-smooth (>= 0.5) and smoothed (>= 0.4) replay,
+    # each against rosbags read+deserialize of the same bag, in the same repeats.
+    report = bench.run_bench(_tiny(), ['replay'])
+    figures = {f.name: f for f in report.figures}
+    causal = figures['replay --no-smooth, against rosbags decoding']
+    smoothed = figures['replay throughput, against rosbags decoding']
+    generic = figures['read+decode only (rosbags)']
+    for figure, target in ((causal, '>= 0.5'), (smoothed, '>= 0.4')):
+        assert figure.baseline_median == generic.median
+        assert figure.ratio is not None and 0.0 < figure.ratio < 10.0
+        assert target in figure.target and figure.met is (figure.ratio >= float(target[3:]))
