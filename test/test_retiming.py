@@ -253,3 +253,23 @@ def test_compiled_envelope_equals_the_python_reference(seed):
     want = _reference_scan(points, *expected, MAX_LATENCY * NS, BURST_STEP)
     assert (bool(got[0]), int(got[1]), int(got[2])) == want[:3]
     assert float(got[3]) == want[3]
+
+
+def test_warm_up_loads_the_envelope_kernels():
+    # The node warms the compiled kernels before its first message: the re-timer's too,
+    # with the argument types the re-timer passes (a fresh process: nothing loaded yet).
+    import os
+    import subprocess
+    import sys
+    code = ('from reduced_dynamics.estimator.core.warmup import warm_up; warm_up(); '
+            'from reduced_dynamics.estimator.core import envelope; '
+            'from reduced_dynamics.estimator.retiming import FrameRetimer; '
+            'before = (envelope.lower_line.signatures, envelope.scan.signatures); '
+            'r = FrameRetimer("on"); [r.retime(10 ** 18 + 5 * 10 ** 6 * k) for k in range(80)]; '
+            'print(min(len(before[0]), len(before[1])) > 0, '
+            'before == (envelope.lower_line.signatures, envelope.scan.signatures))')
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True,
+                         check=True, timeout=600).stdout.split()
+    assert out == ['True', 'True']
