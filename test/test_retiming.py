@@ -190,7 +190,7 @@ def test_shipped_freeflyer_bag_is_retimed_alike_on_both_paths():
 
 
 def _reference_lower_line(points):
-    """The Python envelope the compiled one replaced (exact integer geometry)."""
+    """Return the lower line as the Python code the compiled one replaced did."""
     hull = []
     for n, s in points:
         while len(hull) >= 2:
@@ -211,7 +211,7 @@ def _reference_lower_line(points):
 
 
 def _reference_scan(points, n0, s0, period, limit, burst_step):
-    """The Python window scan the compiled one replaced."""
+    """Scan the window as the Python code the compiled one replaced did."""
     bursts, previous, run, longest, latencies = 0, None, 0, 0, []
     for n, s in points:
         d = s - s0 - period * (n - n0)
