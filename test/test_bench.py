@@ -96,3 +96,17 @@ def test_update_section_times_fixed_lag_smoothing_against_crba_and_without():
     share = figures['fixed-lag smoothing: update with it / without (paper robot)']
     assert share.baseline_median == figures['estimator update (paper robot)'].median
     assert math.isfinite(share.ratio) and share.ratio > 0.0
+
+
+def test_replay_rows_against_rosbags():
+    # Issue 19's two replay targets: --no-smooth (>= 0.5) and smoothed (>= 0.4) replay,
+    # each against rosbags read+deserialize of the same bag, in the same repeats.
+    report = bench.run_bench(_tiny(), ['replay'])
+    figures = {f.name: f for f in report.figures}
+    causal = figures['replay --no-smooth, against rosbags decoding']
+    smoothed = figures['replay throughput, against rosbags decoding']
+    generic = figures['read+decode only (rosbags)']
+    for figure, target in ((causal, '>= 0.5'), (smoothed, '>= 0.4')):
+        assert figure.baseline_median == generic.median
+        assert figure.ratio is not None and 0.0 < figure.ratio < 10.0
+        assert target in figure.target and figure.met is (figure.ratio >= float(target[3:]))

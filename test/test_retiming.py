@@ -187,3 +187,89 @@ def test_shipped_freeflyer_bag_is_retimed_alike_on_both_paths():
                     base_driven=base_driven)
     assert off.add_samples(stream).outputs() + off.flush() and \
         off.filter_statistics()['poses_retimed'] == 0
+
+
+def _reference_lower_line(points):
+    """Return the lower line as the Python code the compiled one replaced did."""
+    hull = []
+    for n, s in points:
+        while len(hull) >= 2:
+            (n1, s1), (n2, s2) = hull[-2], hull[-1]
+            if (n2 - n1) * (s - s1) - (s2 - s1) * (n - n1) <= 0:
+                hull.pop()
+            else:
+                break
+        hull.append((n, s))
+    if len(hull) < 2:
+        return None
+    total = sum(n for n, _ in points)
+    for (n1, s1), (n2, s2) in zip(hull, hull[1:]):
+        if len(points) * n2 >= total:
+            return n1, s1, (s2 - s1) / (n2 - n1)
+    (n1, s1), (n2, s2) = hull[-2], hull[-1]
+    return n1, s1, (s2 - s1) / (n2 - n1)
+
+
+def _reference_scan(points, n0, s0, period, limit, burst_step):
+    """Scan the window as the Python code the compiled one replaced did."""
+    bursts, previous, run, longest, latencies = 0, None, 0, 0, []
+    for n, s in points:
+        d = s - s0 - period * (n - n0)
+        latencies.append(d)
+        if d < -0.5 * period or d > limit:
+            return False, bursts, longest, sorted(latencies)[(99 * len(latencies)) // 100]
+        if previous is not None and s - previous < burst_step * period:
+            bursts += 1
+        previous = s
+        if d >= 0.75 * period:
+            run += 1
+        else:
+            longest, run = max(longest, run), 0
+    return True, bursts, longest, sorted(latencies)[(99 * len(latencies)) // 100]
+
+
+@pytest.mark.parametrize('seed', range(40))
+def test_compiled_envelope_equals_the_python_reference(seed):
+    # Windows of polled frames (bursts, late runs, lost frames, clock jumps, stalls) on
+    # an epoch clock: the compiled kernels must give the Python code's values bit for bit.
+    from reduced_dynamics.estimator.core import envelope
+    from reduced_dynamics.estimator.retiming import BURST_STEP, MAX_LATENCY
+    rng = np.random.default_rng(seed)
+    period = int(rng.uniform(1e6, 1e7))
+    count = int(rng.integers(2, 257))
+    index = np.cumsum(rng.choice([1, 1, 1, 2, 3], count)) + int(rng.integers(0, 10 ** 6))
+    latency = rng.exponential(rng.uniform(0.05, 0.6) * period, count).astype(np.int64)
+    if seed % 3 == 0:
+        latency[rng.integers(0, count)] += int(rng.uniform(0.1, 0.5) * NS)
+    stamps = 1_700_000_000 * NS + index * period + latency
+    points = list(zip(index.tolist(), stamps.tolist()))
+    found, n1, s1, slope = envelope.lower_line(*envelope.window_arrays(points))
+    expected = _reference_lower_line(points)
+    assert envelope.optional_line(found, n1, s1, slope) == expected
+    if expected is None or expected[2] <= 0.0:
+        return
+    got = envelope.scan(*envelope.window_arrays(points), expected[0], expected[1],
+                        expected[2], MAX_LATENCY * NS, BURST_STEP)
+    want = _reference_scan(points, *expected, MAX_LATENCY * NS, BURST_STEP)
+    assert (bool(got[0]), int(got[1]), int(got[2])) == want[:3]
+    assert float(got[3]) == want[3]
+
+
+def test_warm_up_loads_the_envelope_kernels():
+    # The node warms the compiled kernels before its first message: the re-timer's too,
+    # with the argument types the re-timer passes (a fresh process: nothing loaded yet).
+    import os
+    import subprocess
+    import sys
+    code = ('from reduced_dynamics.estimator.core.warmup import warm_up; warm_up(); '
+            'from reduced_dynamics.estimator.core import envelope; '
+            'from reduced_dynamics.estimator.retiming import FrameRetimer; '
+            'before = (envelope.lower_line.signatures, envelope.scan.signatures); '
+            'r = FrameRetimer("on"); [r.retime(10 ** 18 + 5 * 10 ** 6 * k) for k in range(80)]; '
+            'print(min(len(before[0]), len(before[1])) > 0, '
+            'before == (envelope.lower_line.signatures, envelope.scan.signatures))')
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True,
+                         check=True, timeout=600).stdout.split()
+    assert out == ['True', 'True']

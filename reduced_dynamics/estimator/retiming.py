@@ -67,6 +67,8 @@ from collections import deque
 import math
 from typing import Optional
 
+from reduced_dynamics.estimator.core import envelope
+
 NS = 1_000_000_000
 #: Samples in the sliding window of the envelope: 2 s at 120 Hz, many beats of a
 #: 100 Hz poll against a 120 Hz camera (the envelope is touched every 50 ms there),
@@ -97,36 +99,6 @@ BURST_COUNT = 3
 BURST_FRACTION = 0.01
 #: The modes of ``pose_retiming``.
 MODES = ('auto', 'on', 'off')
-
-
-def _lower_line(points: deque) -> Optional[tuple[int, int, float]]:
-    """
-    Return the LP lower line (index, stamp, slope) of (n, s) points; None if degenerate.
-
-    The line below every point maximising its value at the mean index is the edge
-    of the lower convex hull spanning that mean (or the hull vertex nearest it, for
-    a window of one edge). Exact integer geometry (indices, ns): deterministic.
-    """
-    hull: list[tuple[int, int]] = []
-    for n, s in points:
-        while len(hull) >= 2:
-            (n1, s1), (n2, s2) = hull[-2], hull[-1]
-            # Keep hull[-1] only if it lies strictly below the chord hull[-2] -> (n, s).
-            if (n2 - n1) * (s - s1) - (s2 - s1) * (n - n1) <= 0:
-                hull.pop()
-            else:
-                break
-        hull.append((n, s))
-    if len(hull) < 2:
-        return None
-    total = sum(n for n, _ in points)
-    count = len(points)
-    for (n1, s1), (n2, s2) in zip(hull, hull[1:]):
-        # The edge whose span holds the mean index (count * n1 <= total <= count * n2).
-        if count * n2 >= total:
-            return n1, s1, (s2 - s1) / (n2 - n1)
-    (n1, s1), (n2, s2) = hull[-2], hull[-1]
-    return n1, s1, (s2 - s1) / (n2 - n1)
 
 
 class FrameRetimer:
@@ -186,44 +158,26 @@ class FrameRetimer:
 
     def _fit(self) -> None:
         self._since_fit = 0
-        line = _lower_line(self._points)
+        points = self._points
+        index, stamp = envelope.window_arrays(points)
+        line = envelope.optional_line(*envelope.lower_line(index, stamp))
         if line is None or line[2] <= 0.0:
             self._line, self._locked, self.period_ns = None, False, None
             return
         self._line = line
         self.period_ns = period = line[2]
-        points = self._points
         if len(points) < LOCK_SAMPLES:
             self._locked = False
             return
         n0, s0, _ = line
-        limit = MAX_LATENCY * NS
-        low, bursts = -0.5 * period, 0
-        previous: Optional[int] = None
-        consistent = True
-        late, run, longest = 0.75 * period, 0, 0
-        latencies = []
-        for n, s in points:
-            d = s - s0 - period * (n - n0)
-            latencies.append(d)
-            if d < low or d > limit:
-                consistent = False
-                break
-            if previous is not None and s - previous < BURST_STEP * period:
-                bursts += 1
-            previous = s
-            # Runs of late samples that a fresh frame ended (no frame lost in them).
-            if d >= late:
-                run += 1
-            else:
-                longest, run = max(longest, run), 0
-        # A run of late samples twice as long as any this stream ended on its own is
-        # suspect (frames may have been lost in it).
-        self._suspect_after = 2 * longest + 2
+        consistent, bursts, longest, p99 = envelope.scan(index, stamp, n0, s0, period,
+                                                         MAX_LATENCY * NS, BURST_STEP)
+        # A run of late samples (d >= 3/4 period) twice as long as any this stream ended
+        # on its own is suspect (frames may have been lost in it).
+        self._suspect_after = 2 * int(longest) + 2
         # The stream's latency range: its 99th percentile (late polls' oldest frames are
         # rarer), at least a period, with the envelope's quarter-period slack.
-        latencies.sort()
-        self._natural = max(latencies[(99 * len(latencies)) // 100], period) + 0.25 * period
+        self._natural = max(float(p99), period) + 0.25 * period
         if not consistent:
             # The count of frames is contradicted (a lost frame miscounted, a clock
             # that is not periodic): start again from the newest sample.
@@ -232,8 +186,8 @@ class FrameRetimer:
             self.restarts += 1
             points.append((0, newest[1]))
             return
-        self._locked = self.mode == 'on' or bursts >= max(BURST_COUNT,
-                                                          BURST_FRACTION * len(points))
+        self._locked = self.mode == 'on' or int(bursts) >= max(BURST_COUNT,
+                                                               BURST_FRACTION * len(points))
 
     def retime(self, stamp: int) -> tuple[int, Optional[float]]:
         """

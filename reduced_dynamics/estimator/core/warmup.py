@@ -57,3 +57,10 @@ def warm_up() -> None:
                         lin.connection_qd, flt._basis, flt._pinv, flt._whole, flt._form_rows)
         kernels.compensate(flt._g, flt.x, flt.p, np.zeros(flt.dim), np.zeros_like(flt.p),
                            flt._basis, flt._whole)
+    # The re-timer's window fit (core/envelope.py): the strided columns it is given (a
+    # window of one point is contiguous: another signature).
+    from reduced_dynamics.estimator.core import envelope
+    envelope.lower_line(*envelope.window_arrays([(0, 0)]))
+    index, stamp = envelope.window_arrays([(0, 0), (1, 10), (2, 21)])
+    found, n1, s1, slope = envelope.lower_line(index, stamp)
+    envelope.scan(index, stamp, n1, s1, slope, 1e9, 0.05)
