@@ -121,7 +121,7 @@ _PD_AMPLITUDE = 0.2
 #: incommensurate frequencies per joint turn the links about varied axes (payload
 #: identification needs that, docs/payload.md).
 _MULTISINE_COUNT = 4
-_MULTISINE_OMEGA = (0.5, 3.0)
+_MULTISINE_OMEGA = (1.0, 5.0)
 # A sample whose mass-matrix condition number grew by this factor over the initial
 # one is near a singular shape (e.g. the gimbal lock of a spherical joint as 3 revolutes).
 _SINGULAR_GROWTH = 100.0
