@@ -195,8 +195,8 @@ class SimulationOptions:
     wrenches), ``thruster_force`` (nominal N, default the layout's or 1), ``firings``,
     the delivered wrench ``thrust_gain * command + thrust_bias`` and the command topic's
     ``command_rate``. ``torque_scale`` scales the excitation (the reference amplitude
-    for ``pd``); ``torque_hold`` is how long ``constant`` torques are held before they
-    flip sign.
+    for ``pd`` and ``multisine``); ``torque_hold`` is how long ``constant`` torques
+    are held before they flip sign.
     """
 
     duration: float = 10.0
@@ -1167,7 +1167,8 @@ def register_command(subparsers: Any) -> None:
                              'about the initial shape) or multisine (PD tracking of a sum of '
                              'four sines of random frequencies per joint) (default sinusoid)')
     parser.add_argument('--torque-scale', type=_nonnegative, default=1.0,
-                        help='scale of the torques (of the reference amplitude for pd and multisine)')
+                        help='scale of the torques (of the reference amplitude for pd and '
+                             'multisine)')
     parser.add_argument('--torque-hold', type=_positive, default=2.0,
                         help='seconds each constant torque is held (default 2)')
     parser.add_argument('--thruster', type=_thruster, action='append', default=[],

@@ -28,7 +28,8 @@ from reduced_dynamics.payload_bench import (
     ACCEPTANCE_CASES, acceptance_bag, acceptance_errors, acceptance_robot)
 from reduced_dynamics.payload import load_payload, Payload, PayloadError, with_payload
 from reduced_dynamics.robot.model import load_robot
-from reduced_dynamics.simulator import simulate_bag, SimulationOptions, ThrusterPulse
+from reduced_dynamics.simulator import (
+    initial_state, make_excitation, simulate_bag, SimulationOptions, ThrusterPulse)
 
 #: The realistic sensors of test/data/paper_realistic (scripts/make_test_bags.sh).
 REALISTIC = dict(noise_position=1e-4, noise_velocity=0.005, noise_effort=0.05,
@@ -237,3 +238,27 @@ def test_replay_with_payload_file(bags, tmp_path):
                     + extra) == 0
         spreads[label] = np.linalg.norm(yaml.safe_load(summary.read_text())['mu_spread'])
     assert spreads['payload'] < 0.5 * spreads['nominal']
+
+
+def test_multisine_torques_mix_several_frequencies_per_joint():
+    """``--torque multisine``: each joint tracks several sines in 1-5 rad/s, scaled by the scale."""
+    robot = load_robot('')
+    state, scenario = initial_state(robot, 'generic', 3)
+    times = np.arange(0.0, 120.0, 0.05)
+    laws = [make_excitation(robot, state, scenario,
+                            SimulationOptions(torque='multisine', torque_scale=scale, seed=3,
+                                              duration=120.0)).law(1.0)
+            for scale in (1.0, 2.0)]
+    rest = np.zeros(robot.m)
+    torques = [np.array([law(t, state.qbar, rest) for t in times]) for law in laws]
+    assert torques[1] == pytest.approx(2.0 * torques[0], rel=1e-12, abs=1e-12)
+    power = np.abs(np.fft.rfft(torques[0], axis=0)) ** 2
+    omega = 2.0 * np.pi * np.fft.rfftfreq(len(times), 0.05)
+    band = (omega > 0.9) & (omega < 5.1)
+    for joint in range(robot.m):
+        column = power[:, joint]
+        peaks = [i for i in np.flatnonzero(band)
+                 if column[i] > 0.01 * column.max()
+                 and column[i] >= column[i - 1] and column[i] >= column[i + 1]]
+        assert len(peaks) >= 3, joint
+        assert column[band].sum() > 0.9 * column.sum()  # leakage aside
