@@ -52,12 +52,13 @@ PLANAR_TWO_LINK = """<?xml version="1.0"?>
 """
 
 #: Issue 22's acceptance robots: name -> (payload >= 20 % of the arm, arm torques, scale).
-#: The paper robot's default sinusoid torques excite its forearm enough; the random
-#: tree and the planar arm need the livelier multisine (four sines of 1-5 rad/s per
-#: joint, about 0.8-1.6 rad in all): with sinusoid torques x 3 the tree's principal
-#: inertias met 15 % in one seed of four (docs/payload.md).
+#: The paper robot's sinusoid torques x 1.5 excite its forearm enough (x 1: the smallest
+#: principal inertia missed 15 % on 2 of 12 seeds; x 2 reaches near-singular shapes);
+#: the random tree and the planar arm need the livelier multisine (four sines of
+#: 1-5 rad/s per joint, about 0.8-1.6 rad in all): with sinusoid torques x 3 the tree's
+#: principal inertias met 15 % in one seed of four (docs/payload.md).
 ACCEPTANCE_CASES = {
-    'paper': (BENCH_PAYLOAD, 'sinusoid', 1.0),
+    'paper': (BENCH_PAYLOAD, 'sinusoid', 1.5),
     'tree': ('link_4,4,0.1,-0.05,0.08,0.03,0.04,0.05', 'multisine', 8.0),
     'planar': ('link_2,1.5,0.25,0.04,0,0.004,0.01,0.012', 'multisine', 8.0),
 }
