@@ -757,14 +757,15 @@ def carrying_joints(robot: RobotModel, link: str) -> list[int]:
 
 
 def excitation_trajectory(robot: RobotModel, link: str, qbar0: np.ndarray,
-                          duration: float = 20.0, amplitude: float = 1.0,
+                          duration: float = 20.0, amplitude: float = 2.0,
                           candidates: int = 24, seed: int = 0,
                           step: float = 0.1) -> dict:
     """
     Propose a joint trajectory exciting the payload's parameters (``predict --trajectory``).
 
-    Each carrying joint follows q0 + sum_h a_h (1 - cos(h w t)), w = 2 pi / duration:
-    it starts and ends at rest at the current shape. Among ``candidates`` random
+    Each carrying joint follows q0 + sum_h a_h (1 - cos(h w t)), w = 2 pi / duration,
+    over four harmonics h of its own between about 1 and 5 rad/s: it starts and ends
+    at rest at the current shape. Among ``candidates`` random
     amplitude sets, the one whose regressor (base reacting through the connection,
     xi = -A qbar_dot) is best conditioned is kept.
     """
@@ -776,7 +777,11 @@ def excitation_trajectory(robot: RobotModel, link: str, qbar0: np.ndarray,
     structural = structural_null_space(regressor)
     times = np.arange(0.0, duration + 1e-9, step)
     omega = 2.0 * np.pi / duration
-    harmonics = np.arange(2, 6)
+    # Four harmonics per joint drawn from those of about 1-5 rad/s (at least the 2nd):
+    # distinct frequencies per joint turn the link about varied axes, and the faster
+    # ones give the inertia the angular rate it is seen through (docs/payload.md).
+    harmonics = np.arange(max(2, int(round(1.0 / omega))), max(6, int(round(5.0 / omega))) + 1)
+    per_joint = min(4, len(harmonics))
     rng = np.random.default_rng(seed)
     limits = robot.shape_joint_limits
     names = robot.shape_joint_names
@@ -785,7 +790,8 @@ def excitation_trajectory(robot: RobotModel, link: str, qbar0: np.ndarray,
     for _ in range(candidates):
         coeffs = np.zeros((robot.m, len(harmonics)))
         for j in joints:
-            coeffs[j] = rng.uniform(-1.0, 1.0, len(harmonics))
+            chosen = rng.choice(len(harmonics), per_joint, replace=False)
+            coeffs[j, chosen] = rng.uniform(-1.0, 1.0, per_joint)
             coeffs[j] *= amplitude / (2.0 * np.abs(coeffs[j]).sum())
             limit = limits.get(names[j])
             if limit is not None and limit.lower is not None:

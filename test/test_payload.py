@@ -21,8 +21,8 @@ import yaml
 
 from reduced_dynamics.cli import main
 from reduced_dynamics.identify import (
-    identify_bag, IdentificationError, log_cholesky_from_dynamic, momentum_quality,
-    MomentumRegressor, read_window)
+    excitation_trajectory, identify_bag, IdentificationError, log_cholesky_from_dynamic,
+    momentum_quality, MomentumRegressor, read_window)
 from reduced_dynamics.params import defaults
 from reduced_dynamics.payload_bench import (
     ACCEPTANCE_CASES, acceptance_bag, acceptance_errors, acceptance_robot)
@@ -262,3 +262,20 @@ def test_multisine_torques_mix_several_frequencies_per_joint():
                  and column[i] >= column[i - 1] and column[i] >= column[i + 1]]
         assert len(peaks) >= 3, joint
         assert column[band].sum() > 0.9 * column.sum()  # leakage aside
+
+
+def test_proposed_excitation_identifies_the_inertia(tmp_path):
+    """The proposal for a still arm, played for 20 s, meets the acceptance bounds."""
+    robot = case_robot('paper')
+    truth = case_payload('paper')
+    still = np.array([0.1, 0.2, 0.3, 0.5, 0.2, -0.2])
+    plan = tmp_path / 'excite.yaml'
+    plan.write_text(yaml.safe_dump(excitation_trajectory(robot, truth.link, still, 20.0)))
+    bag = tmp_path / 'excited'
+    simulate_bag(with_payload(robot, truth), bag,
+                 SimulationOptions(duration=20.0, rate=100.0, seed=1, trajectory=str(plan),
+                                   **REALISTIC))
+    estimate = identify_bag(str(bag), robot, truth.link, realistic_params())
+    errors = acceptance_errors('paper', estimate)
+    assert errors['accurate'], errors
+    assert errors['covered'], errors
