@@ -241,7 +241,7 @@ def test_replay_with_payload_file(bags, tmp_path):
 
 
 def test_multisine_torques_mix_several_frequencies_per_joint():
-    """``--torque multisine``: each joint tracks several sines in 1-5 rad/s, linear in the scale."""
+    """``--torque multisine``: several sines per joint in 1-5 rad/s, linear in the scale."""
     robot = load_robot('')
     state, scenario = initial_state(robot, 'generic', 3)
     times = np.arange(0.0, 120.0, 0.05)
