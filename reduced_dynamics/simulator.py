@@ -90,7 +90,7 @@ TOPIC_TRAJECTORY = '/joint_trajectory'
 #: Measured topics, in the order that numbers their random streams (never reorder).
 SENSOR_TOPICS = (TOPIC_JOINT_STATES, TOPIC_ODOM, TOPIC_BASE_POSE)
 
-TORQUE_MODES = ('zero', 'constant', 'sinusoid', 'pd')
+TORQUE_MODES = ('zero', 'constant', 'sinusoid', 'pd', 'multisine')
 MOMENTUM_CLASSES = {
     'generic': MomentumClass.GENERIC,
     'pure_angular': MomentumClass.PURE_ANGULAR,
@@ -117,6 +117,11 @@ _SHAPE_ACCEL = 0.1
 _PD_OMEGA = 3.0
 _PD_ZETA = 1.0
 _PD_AMPLITUDE = 0.2
+#: ``multisine``: sines per joint and their angular frequencies' range (rad/s): several
+#: incommensurate frequencies per joint turn the links about varied axes (payload
+#: identification needs that, docs/payload.md).
+_MULTISINE_COUNT = 4
+_MULTISINE_OMEGA = (1.0, 5.0)
 # A sample whose mass-matrix condition number grew by this factor over the initial
 # one is near a singular shape (e.g. the gimbal lock of a spherical joint as 3 revolutes).
 _SINGULAR_GROWTH = 100.0
@@ -190,8 +195,8 @@ class SimulationOptions:
     wrenches), ``thruster_force`` (nominal N, default the layout's or 1), ``firings``,
     the delivered wrench ``thrust_gain * command + thrust_bias`` and the command topic's
     ``command_rate``. ``torque_scale`` scales the excitation (the reference amplitude
-    for ``pd``); ``torque_hold`` is how long ``constant`` torques are held before they
-    flip sign.
+    for ``pd`` and ``multisine``); ``torque_hold`` is how long ``constant`` torques
+    are held before they flip sign.
     """
 
     duration: float = 10.0
@@ -540,10 +545,27 @@ def make_excitation(robot: RobotModel, state: FreeFloatingState, scenario_torque
             return lambda t, q, qd: value
         return Excitation(piece, edges.tolist())
     q0 = state.qbar.copy()
-    amplitude = scale * _PD_AMPLITUDE * rng.uniform(0.5, 1.0, m)
-    omega = rng.uniform(0.5, 2.0, m)
     kp = inertia * _PD_OMEGA ** 2
     kd = inertia * 2.0 * _PD_ZETA * _PD_OMEGA
+    if options.torque == 'multisine':
+        # Reference q0 + sum_h A_h sin(w_h t + p_h) per joint, the amplitudes summing
+        # to the pd mode's, with random frequencies and phases.
+        count = _MULTISINE_COUNT
+        weights = rng.uniform(0.5, 1.0, (m, count))
+        amplitudes = (scale * _PD_AMPLITUDE * rng.uniform(0.5, 1.0, m))[:, None] \
+            * weights / weights.sum(axis=1, keepdims=True)
+        omegas = rng.uniform(*_MULTISINE_OMEGA, (m, count))
+        phases = rng.uniform(0.0, 2.0 * np.pi, (m, count))
+
+        def multisine(t: float, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+            arg = omegas * t + phases
+            q_ref = q0 + np.sum(amplitudes * np.sin(arg), axis=1)
+            qd_ref = np.sum(amplitudes * omegas * np.cos(arg), axis=1)
+            qdd_ref = -np.sum(amplitudes * omegas ** 2 * np.sin(arg), axis=1)
+            return kp * (q_ref - q) + kd * (qd_ref - qd) + inertia * qdd_ref
+        return Excitation(lambda _t: multisine)
+    amplitude = scale * _PD_AMPLITUDE * rng.uniform(0.5, 1.0, m)
+    omega = rng.uniform(0.5, 2.0, m)
 
     def pd(t: float, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
         # Reference q0 + A sin(w t), with feedforward of its acceleration.
@@ -1141,10 +1163,12 @@ def register_command(subparsers: Any) -> None:
     parser.add_argument('--seed', type=_seed, default=0, help='random seed (default 0)')
     parser.add_argument('--torque', choices=TORQUE_MODES, default='sinusoid',
                         help='joint torques: zero, constant (held --torque-hold s, alternating '
-                             'sign), sinusoid, or pd (PD tracking of a sinusoidal reference '
-                             'about the initial shape) (default sinusoid)')
+                             'sign), sinusoid, pd (PD tracking of a sinusoidal reference '
+                             'about the initial shape) or multisine (PD tracking of a sum of '
+                             'four sines of random frequencies per joint) (default sinusoid)')
     parser.add_argument('--torque-scale', type=_nonnegative, default=1.0,
-                        help='scale of the torques (of the reference amplitude for pd)')
+                        help='scale of the torques (of the reference amplitude for pd and '
+                             'multisine)')
     parser.add_argument('--torque-hold', type=_positive, default=2.0,
                         help='seconds each constant torque is held (default 2)')
     parser.add_argument('--thruster', type=_thruster, action='append', default=[],

@@ -21,31 +21,15 @@ import yaml
 
 from reduced_dynamics.cli import main
 from reduced_dynamics.identify import (
-    identify_bag, IdentificationError, log_cholesky_from_dynamic, momentum_quality,
-    MomentumRegressor, read_window)
+    excitation_trajectory, identify_bag, IdentificationError, log_cholesky_from_dynamic,
+    momentum_quality, MomentumRegressor, read_window)
 from reduced_dynamics.params import defaults
+from reduced_dynamics.payload_bench import (
+    ACCEPTANCE_CASES, acceptance_bag, acceptance_errors, acceptance_robot)
 from reduced_dynamics.payload import load_payload, Payload, PayloadError, with_payload
 from reduced_dynamics.robot.model import load_robot
-from reduced_dynamics.robot.random_tree import random_tree_urdf
-from reduced_dynamics.simulator import simulate_bag, SimulationOptions, ThrusterPulse
-
-PLANAR_TWO_LINK = """<?xml version="1.0"?>
-<robot name="planar_two_link">
-  <link name="world"/>
-  <joint name="base_joint" type="planar"><parent link="world"/><child link="platform"/>
-    <axis xyz="0 0 1"/></joint>
-  <link name="platform"><inertial><mass value="20.0"/>
-    <inertia ixx="0.5" ixy="0" ixz="0" iyy="0.5" iyz="0" izz="0.8"/></inertial></link>
-  <joint name="shoulder" type="continuous"><parent link="platform"/><child link="link_1"/>
-    <origin xyz="0.25 0 0.1"/><axis xyz="0 0 1"/></joint>
-  <link name="link_1"><inertial><origin xyz="0.2 0 0"/><mass value="3.0"/>
-    <inertia ixx="0.005" ixy="0" ixz="0" iyy="0.04" iyz="0" izz="0.04"/></inertial></link>
-  <joint name="elbow" type="continuous"><parent link="link_1"/><child link="link_2"/>
-    <origin xyz="0.4 0 0"/><axis xyz="0 0 1"/></joint>
-  <link name="link_2"><inertial><origin xyz="0.15 0 0"/><mass value="2.0"/>
-    <inertia ixx="0.003" ixy="0" ixz="0" iyy="0.015" iyz="0" izz="0.015"/></inertial></link>
-</robot>
-"""
+from reduced_dynamics.simulator import (
+    initial_state, make_excitation, simulate_bag, SimulationOptions, ThrusterPulse)
 
 #: The realistic sensors of test/data/paper_realistic (scripts/make_test_bags.sh).
 REALISTIC = dict(noise_position=1e-4, noise_velocity=0.005, noise_effort=0.05,
@@ -63,33 +47,29 @@ def realistic_params() -> dict:
     return params
 
 
-#: name -> (URDF, base joint, gravity, payload >= 20 % of the arm, sim seed, torque scale)
-CASES = {
-    'paper': ('', None, None, 'forearm,8,0.3,0.05,-0.02,0.12,0.2,0.25', 4, 1.0),
-    'tree': (random_tree_urdf(4, seed=0, prismatic=False), None, None,
-             'link_4,4,0.1,-0.05,0.08,0.03,0.04,0.05', 1, 3.0),
-    'planar': (PLANAR_TWO_LINK, 'planar', np.array([0.0, 0.0, -9.81]),
-               'link_2,1.5,0.25,0.04,0,0.004,0.01,0.012', 1, 1.0),
-}
+#: Consecutive seeds from 1 (not chosen for the outcome); docs/payload.md has the rates
+#: over 16 seeds.
+SEEDS = (1, 2, 3)
 
 
 def case_robot(name: str):
-    urdf, base_joint, gravity = CASES[name][:3]
-    return load_robot(urdf, base_joint, gravity)
+    return acceptance_robot(name)
+
+
+def case_payload(name: str) -> Payload:
+    return Payload.parse(ACCEPTANCE_CASES[name][0])
 
 
 @pytest.fixture(scope='module')
 def bags(tmp_path_factory):
-    """20 s of arm motion per case with the realistic sensors, the truth holding the payload."""
+    """20 s of arm motion per case and seed, realistic sensors, the truth holding the payload."""
     root = tmp_path_factory.mktemp('payload')
     out = {}
-    for name, (_, _, _, spec, seed, scale) in CASES.items():
-        robot = case_robot(name)
-        path = root / name
-        simulate_bag(with_payload(robot, Payload.parse(spec)), path,
-                     SimulationOptions(duration=20.0, rate=100.0, seed=seed,
-                                       torque_scale=scale, **REALISTIC))
-        out[name] = path
+    for name in ACCEPTANCE_CASES:
+        for seed in SEEDS:
+            path = root / f'{name}_{seed}'
+            acceptance_bag(name, seed, str(path))
+            out[name, seed] = path
     return out
 
 
@@ -98,7 +78,7 @@ def test_regressor_is_the_payload_momentum():
     rng = np.random.default_rng(3)
     for name in ('paper', 'planar'):
         robot = case_robot(name)
-        payload = Payload.parse(CASES[name][3])
+        payload = case_payload(name)
         held = with_payload(robot, payload)
         regressor = MomentumRegressor(robot, payload.link)
         theta = payload.spatial_inertia().toDynamicParameters()
@@ -144,39 +124,40 @@ def test_log_cholesky_round_trip():
 
 @pytest.mark.parametrize('name', ['paper', 'tree', 'planar'])
 def test_identification_accuracy(bags, name):
-    """Issue 22 acceptance: mass 3 %, CoM 5 mm, principal inertias 15 %, each within 3 sigma."""
+    """Issue 22 acceptance on every seed: mass 3 %, CoM 5 mm, inertias 15 %, within 3 sigma."""
     robot = case_robot(name)
-    truth = Payload.parse(CASES[name][3])
-    estimate = identify_bag(str(bags[name]), robot, truth.link, realistic_params())
-    found = estimate.payload
-    assert abs(found.mass / truth.mass - 1.0) < 0.03
-    assert abs(found.mass - truth.mass) < 3.0 * estimate.mass_sigma
-    if name == 'planar':
-        # A planar base sees m, m cx, m cy and Izz only: the rest is reported blind.
-        assert set(estimate.blind) == {'m*cz', 'Ixx', 'Ixy', 'Iyy', 'Ixz', 'Iyz'}
-        axes = [0, 1]
-        inertia, true_inertia = found.inertia[2, 2], truth.inertia[2, 2]
-        sigma = estimate.inertia_sigma[2, 2]
-        assert abs(inertia / true_inertia - 1.0) < 0.15
-        assert abs(inertia - true_inertia) < 3.0 * sigma
-    else:
-        assert estimate.blind == []
-        axes = [0, 1, 2]
-        error = found.principal_inertia - truth.principal_inertia
-        assert np.all(np.abs(error / truth.principal_inertia) < 0.15)
-        assert np.all(np.abs(error) < 3.0 * estimate.principal_sigma)
-    com_error = np.abs(found.com - truth.com)[axes]
-    assert np.all(com_error < 0.005)
-    assert np.all(com_error < 3.0 * estimate.com_sigma[axes])
+    truth = case_payload(name)
+    for seed in SEEDS:
+        estimate = identify_bag(str(bags[name, seed]), robot, truth.link, realistic_params())
+        errors = acceptance_errors(name, estimate)
+        assert errors['accurate'], (seed, errors)
+        assert errors['covered'], (seed, errors)
+        if name == 'planar':
+            # A planar base sees m, m cx, m cy and Izz only: the rest is reported blind.
+            assert set(estimate.blind) == {'m*cz', 'Ixx', 'Ixy', 'Iyy', 'Ixz', 'Iyz'}
+        else:
+            assert estimate.blind == []
+
+
+def test_short_window_reports_weak_inertia(bags):
+    """A 5 s window: the principal inertias' 3 sigma exceeds 15 %, and the report says so."""
+    robot = case_robot('paper')
+    estimate = identify_bag(str(bags['paper', 1]), robot, 'forearm', realistic_params(),
+                            start=0.0, end=5.0)
+    weak = estimate.weakly_excited()
+    assert any(name.startswith('principal inertia') for name in weak)
+    assert 'weakly excited' in estimate.text()
+    errors = acceptance_errors('paper', estimate)
+    assert errors['covered'], errors
 
 
 def test_identified_payload_restores_momentum_conservation(bags):
     """The mu spread and false drift wrench: wrong model >> identified <= 2 x true model."""
     robot = case_robot('paper')
-    truth = Payload.parse(CASES['paper'][3])
+    truth = case_payload('paper')
     params = realistic_params()
-    estimate = identify_bag(str(bags['paper']), robot, truth.link, params)
-    window = read_window(str(bags['paper']), robot, params)
+    estimate = identify_bag(str(bags['paper', 1]), robot, truth.link, params)
+    window = read_window(str(bags['paper', 1]), robot, params)
     wrong = momentum_quality(robot, window, params)
     identified = momentum_quality(with_payload(robot, estimate.payload), window, params)
     true = momentum_quality(with_payload(robot, truth), window, params)
@@ -193,7 +174,7 @@ def test_still_arm_is_refused(tmp_path):
     plan.write_text(yaml.safe_dump({'joint_names': list(robot.shape_joint_names), 'points': [
         {'time': 0.0, 'positions': still}, {'time': 10.0, 'positions': still}]}))
     bag = tmp_path / 'still'
-    simulate_bag(with_payload(robot, Payload.parse(CASES['paper'][3])), bag,
+    simulate_bag(with_payload(robot, case_payload('paper')), bag,
                  SimulationOptions(duration=5.0, rate=100.0, seed=4, trajectory=str(plan),
                                    **REALISTIC))
     with pytest.raises(IdentificationError, match='poor excitation.*not identifiable'):
@@ -213,7 +194,7 @@ def test_still_arm_is_refused(tmp_path):
 def test_window_with_a_thruster_pulse_is_refused(tmp_path):
     robot = load_robot('')
     bag = tmp_path / 'pulse'
-    simulate_bag(with_payload(robot, Payload.parse(CASES['paper'][3])), bag,
+    simulate_bag(with_payload(robot, case_payload('paper')), bag,
                  SimulationOptions(duration=8.0, rate=100.0, seed=4,
                                    thrusters=(ThrusterPulse(4.0, 0.5, (20, -10, 5, 2, -3, 4)),),
                                    **REALISTIC))
@@ -242,7 +223,7 @@ def test_cli_simulate_payload_and_identify(tmp_path, capsys):
 
 def test_replay_with_payload_file(bags, tmp_path):
     """Replay with --payload: the robot gains the payload (mu spread falls to the true model's)."""
-    truth = Payload.parse(CASES['paper'][3])
+    truth = case_payload('paper')
     payload_file = tmp_path / 'payload.yaml'
     truth.write(payload_file)
     params = tmp_path / 'params.yaml'
@@ -252,8 +233,49 @@ def test_replay_with_payload_file(bags, tmp_path):
     spreads = {}
     for label, extra in (('nominal', []), ('payload', ['--payload', str(payload_file)])):
         summary = tmp_path / f'{label}.json'
-        assert main(['replay', str(bags['paper']), '-o', str(tmp_path / label), '--quiet',
+        assert main(['replay', str(bags['paper', 1]), '-o', str(tmp_path / label), '--quiet',
                      '--params', str(params), '--no-smooth', '--summary-json', str(summary)]
                     + extra) == 0
         spreads[label] = np.linalg.norm(yaml.safe_load(summary.read_text())['mu_spread'])
     assert spreads['payload'] < 0.5 * spreads['nominal']
+
+
+def test_multisine_torques_mix_several_frequencies_per_joint():
+    """``--torque multisine``: several sines per joint in 1-5 rad/s, linear in the scale."""
+    robot = load_robot('')
+    state, scenario = initial_state(robot, 'generic', 3)
+    times = np.arange(0.0, 120.0, 0.05)
+    laws = [make_excitation(robot, state, scenario,
+                            SimulationOptions(torque='multisine', torque_scale=scale, seed=3,
+                                              duration=120.0)).law(1.0)
+            for scale in (1.0, 2.0)]
+    rest = np.zeros(robot.m)
+    torques = [np.array([law(t, state.qbar, rest) for t in times]) for law in laws]
+    assert torques[1] == pytest.approx(2.0 * torques[0], rel=1e-12, abs=1e-12)
+    power = np.abs(np.fft.rfft(torques[0], axis=0)) ** 2
+    omega = 2.0 * np.pi * np.fft.rfftfreq(len(times), 0.05)
+    band = (omega > 0.9) & (omega < 5.1)
+    for joint in range(robot.m):
+        column = power[:, joint]
+        peaks = [i for i in np.flatnonzero(band)
+                 if column[i] > 0.01 * column.max()
+                 and column[i] >= column[i - 1] and column[i] >= column[i + 1]]
+        assert len(peaks) >= 3, joint
+        assert column[band].sum() > 0.9 * column.sum()  # leakage aside
+
+
+def test_proposed_excitation_identifies_the_inertia(tmp_path):
+    """The proposal for a still arm, played for 20 s, meets the acceptance bounds."""
+    robot = case_robot('paper')
+    truth = case_payload('paper')
+    still = np.array([0.1, 0.2, 0.3, 0.5, 0.2, -0.2])
+    plan = tmp_path / 'excite.yaml'
+    plan.write_text(yaml.safe_dump(excitation_trajectory(robot, truth.link, still, 20.0)))
+    bag = tmp_path / 'excited'
+    simulate_bag(with_payload(robot, truth), bag,
+                 SimulationOptions(duration=20.0, rate=100.0, seed=1, trajectory=str(plan),
+                                   **REALISTIC))
+    estimate = identify_bag(str(bag), robot, truth.link, realistic_params())
+    errors = acceptance_errors('paper', estimate)
+    assert errors['accurate'], errors
+    assert errors['covered'], errors
