@@ -233,6 +233,7 @@ class MomentumFilter:
         self._pinv = np.ascontiguousarray(group.algebra_pinv)
         self._r_pose = np.diag(self._pose_var)
         self._r_twist = np.diag(self._twist_var)
+        self._twist_zero = np.zeros(n)
         self.step_test = WrenchStepTest(n, step_significance, dim)
         #: the wrench step taken since the last row (None: none detected)
         self.step_detected: Optional[StepDetection] = None
@@ -554,7 +555,7 @@ class MomentumFilter:
             cause = None
             try:
                 accepted = self._update(measurement.pose, measurement.twist, lin,
-                                        measurement.stamp_sigma)
+                                        measurement.stamp_sigma, measurement.noise)
                 if not np.isfinite(self.p).all():
                     cause = 'covariance not finite'
                 elif not (np.diag(self.p) >= 0.0).all():
@@ -598,7 +599,8 @@ class MomentumFilter:
                             commands)
 
     def _update(self, pose: pin.SE3, twist: Optional[np.ndarray],
-                lin: Linearisation, stamp_sigma: Optional[float] = None) -> bool:
+                lin: Linearisation, stamp_sigma: Optional[float] = None,
+                noise: Optional[tuple] = None) -> bool:
         n = self.n
         g0, x0, p0 = self._g, self.x, self.p
         measured = np.ascontiguousarray(pose.homogeneous)
@@ -612,10 +614,26 @@ class MomentumFilter:
             # A re-timed stamp (a frame time, estimator/retiming.py) carries its own.
             sigma = self.noise.pose_stamp if stamp_sigma is None else stamp_sigma
         size = 2 * n if with_twist else n
-        accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain = kernels.update(
-            g0, x0, p0, measured, values, with_twist, lin.locked_inverse, lin.connection_qd,
-            lin.joint_cov, self._pose_var, self._stamp_twist, sigma, self._twist_var,
-            self._gates[size], self._basis, self._pinv, self._whole, self._form_rows)
+        if noise is None:
+            accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain = kernels.update(
+                g0, x0, p0, measured, values, with_twist, lin.locked_inverse,
+                lin.connection_qd, lin.joint_cov, self._pose_var, self._stamp_twist, sigma,
+                self._twist_var, self._gates[size], self._basis, self._pinv, self._whole,
+                self._form_rows)
+        else:
+            # The message's own covariances (estimator/covariance.py), full matrices; a
+            # part the message left unknown keeps the noise parameters.
+            r_pose = self._r_pose if noise[0] is None else noise[0]
+            if sigma > 0.0:
+                xi = self._stamp_twist * sigma
+                r_pose = r_pose + np.outer(xi, xi)
+            joint_cov, twist_var = lin.joint_cov, self._twist_var
+            if with_twist and noise[1] is not None:
+                joint_cov, twist_var = joint_cov + noise[1], self._twist_zero
+            accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain = kernels.update_noise(
+                g0, x0, p0, measured, values, with_twist, lin.locked_inverse,
+                lin.connection_qd, joint_cov, r_pose, twist_var, self._gates[size],
+                self._basis, self._pinv, self._whole, self._form_rows)
         self.last_nis = nis
         # Innovation log-likelihood (what `reduced-dynamics tune` maximises) and NIS sums.
         self.log_likelihood -= 0.5 * (nis + logdet + size * LOG_2PI)

@@ -48,6 +48,7 @@ from reduced_dynamics.messages.samples import (
     CommandSample,
     Diagnostics,
     JointStateSample,
+    message_covariance,
     PosePath,
     ShapePrediction,
     trusted_sample,
@@ -466,9 +467,11 @@ def decode_odometry(data: Buffer) -> BaseStateSample:
     pos = (pos + 7) & -8
     # pose (7), covariance (36), twist (6), covariance (36)
     _check_end(data, pos + 85 * 8)
-    values = np.frombuffer(data, _F8, 85, 4 + pos)[_ODOMETRY]
+    raw = np.frombuffer(data, _F8, 85, 4 + pos)
+    values = raw[_ODOMETRY]
     return trusted_sample(BaseStateSample, stamp_ns, frame_id, child, values[:3],
-                          values[3:7], values[7:10], values[10:])
+                          values[3:7], values[7:10], values[10:], None,
+                          message_covariance(raw[7:43]), message_covariance(raw[49:85]))
 
 
 @_strict
@@ -481,6 +484,21 @@ def decode_pose_stamped(data: Buffer, child_frame_id: str = '') -> BaseStateSamp
     pose = np.frombuffer(data, _F8, 7, 4 + pos).copy()
     return trusted_sample(BaseStateSample, stamp_ns, frame_id, str(child_frame_id), pose[:3],
                           pose[3:], None, None)
+
+
+@_strict
+def decode_pose_with_covariance_stamped(data: Buffer,
+                                        child_frame_id: str = '') -> BaseStateSample:
+    """Decode geometry_msgs/msg/PoseWithCovarianceStamped like its ``*_from_ros``."""
+    _check_header(data)
+    stamp_ns, frame_id, pos = _stamp_frame(data)
+    pos = (pos + 7) & -8
+    # pose (7), covariance (36)
+    _check_end(data, pos + 43 * 8)
+    raw = np.frombuffer(data, _F8, 43, 4 + pos)
+    pose = raw[:7].copy()
+    return trusted_sample(BaseStateSample, stamp_ns, frame_id, str(child_frame_id), pose[:3],
+                          pose[3:], None, None, None, message_covariance(raw[7:]), None)
 
 
 @_strict
@@ -500,6 +518,7 @@ DECODERS: dict[str, Callable[..., Any]] = {
     'sensor_msgs/msg/JointState': decode_joint_state,
     'nav_msgs/msg/Odometry': decode_odometry,
     'geometry_msgs/msg/PoseStamped': decode_pose_stamped,
+    'geometry_msgs/msg/PoseWithCovarianceStamped': decode_pose_with_covariance_stamped,
 }
 
 _REFERENCE_HASHES: dict[str, str] = {}
