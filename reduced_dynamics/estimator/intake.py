@@ -200,6 +200,7 @@ class InputIntake:
         for reason in reasons:
             # Not a rejection: the sample is used, with the noise parameters.
             self.covariance_fallbacks[reason] += 1
+            self._period_covariance_fallbacks += 1
             self.last_covariance_fallback = (
                 f'{reason}: base sample at {sample.stamp_ns} carries a bad covariance; '
                 'the noise parameters are used')

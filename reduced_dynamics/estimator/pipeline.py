@@ -162,6 +162,7 @@ class Estimator(InputIntake, Timing, ChunkProcessing, Reporting, Smoothing):
         self.covariance_fallbacks: Counter = Counter()
         self.last_covariance_fallback: Optional[str] = None
         self._covariance_reader = None
+        self._period_covariance_fallbacks = 0
         self.processed = 0
         self.prediction_failures: Counter = Counter()
         self.first_stamp_ns: Optional[int] = None

@@ -135,8 +135,9 @@ class Reporting:
             # A bad message covariance: the sample was used with the noise parameters.
             inputs.update({f'covariance_fallback_{k}': str(v)
                            for k, v in sorted(self.covariance_fallbacks.items())})
-            if not rejected:
+            if not rejected and self._period_covariance_fallbacks:
                 level, message = DIAG_WARN, self.last_covariance_fallback
+        self._period_covariance_fallbacks = 0
         statuses = [DiagnosticStatusSample(level, 'reduced_dynamics: inputs', message or '',
                                            self.robot.model.name, inputs)]
         if self._last_mu is not None:
