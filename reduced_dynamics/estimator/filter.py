@@ -426,12 +426,14 @@ class MomentumFilter:
 
     # --- the recursion ----------------------------------------------------------------
     def initialise(self, stamp_ns: int, g: pin.SE3, lin: Linearisation,
-                   twist: Optional[np.ndarray], output: bool = True) -> None:
+                   twist: Optional[np.ndarray], output: bool = True,
+                   noise: Optional[tuple] = None) -> None:
         """
         Start from a first measurement (pose, and the body twist with Odometry).
 
         ``output``: the recorded restart step is a row's (False: a measurement
-        between rows, see :class:`FilterStep`).
+        between rows, see :class:`FilterStep`). ``noise``: the measurement's own
+        (:attr:`Measurement.noise`; None: the noise parameters).
         """
         n = self.n
         self._g = pose = _homogeneous(g)
@@ -439,13 +441,16 @@ class MomentumFilter:
         self._lin = lin
         to_world = self._adjoint_inverse(g).T @ lin.locked  # body velocity -> mu
         p = np.zeros((self.dim, self.dim))
-        p[:n, :n] = np.diag(self._pose_var)
+        own_pose, own_twist = (None, None) if noise is None else noise
+        p[:n, :n] = np.diag(self._pose_var) if own_pose is None else own_pose
         if twist is None:
             mu = np.zeros(n)
             p[n:2 * n, n:2 * n] = (to_world * self._speed_var) @ to_world.T
         else:
             mu = to_world @ (twist + lin.connection_qd)
-            p[n:2 * n, n:2 * n] = (to_world * self._twist_var) @ to_world.T \
+            twist_cov = lin.joint_cov if own_twist is None else lin.joint_cov + own_twist
+            p[n:2 * n, n:2 * n] = to_world @ twist_cov @ to_world.T if own_twist is not None \
+                else (to_world * self._twist_var) @ to_world.T \
                 + to_world @ lin.joint_cov @ to_world.T
         p[2 * n:3 * n, 2 * n:3 * n] = (to_world * self._accel_var) @ to_world.T
         self.x = np.concatenate((mu, np.zeros(n)))
@@ -512,7 +517,7 @@ class MomentumFilter:
             if prior is not None:
                 if self.command and commands:
                     self._command = commands[-1].now
-                self.initialise(stamp_ns, prior.pose, lin, prior.twist)
+                self.initialise(stamp_ns, prior.pose, lin, prior.twist, True, prior.noise)
             return []
         before = self._lin if self._lin is not None else lin
         self._lin = lin
@@ -572,7 +577,8 @@ class MomentumFilter:
                 self.restart_causes[cause] += 1
                 LOG.warning('momentum filter restarted at %d ns: %s (restart %d)',
                             stamp_ns, cause, self.diverged)
-                self.initialise(stamp_ns, measurement.pose, lin, measurement.twist, output)
+                self.initialise(stamp_ns, measurement.pose, lin, measurement.twist, output,
+                                measurement.noise)
                 return
             if not accepted:
                 gated.append((measurement.stamp_ns, self.last_nis))
