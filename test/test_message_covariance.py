@@ -12,7 +12,7 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Message covariances as measurement noise (estimator/covariance.py, docs/message_covariance.md)."""
+"""Message covariances as measurement noise (docs/message_covariance.md)."""
 
 import dataclasses
 import functools
