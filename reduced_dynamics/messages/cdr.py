@@ -456,6 +456,18 @@ def decode_joint_state(data: Buffer) -> JointStateSample:
 
 
 _ODOMETRY = np.r_[0:7, 43:49]  # pose, then twist, among the 85 float64 of Odometry
+_ZERO_COVARIANCE = bytes(36 * 8)
+
+
+def _covariance(data: Buffer, raw: np.ndarray, start: int, first: int) -> Optional[np.ndarray]:
+    """Return the 36 covariance values from float ``first`` of ``raw`` (None: all zeros)."""
+    # Comparing the bytes is ten times cheaper than ndarray.any(): most drivers send zeros.
+    at = start + 8 * first
+    zeros = data.startswith(_ZERO_COVARIANCE, at) if isinstance(data, bytes) \
+        else data[at:at + 288] == _ZERO_COVARIANCE
+    if zeros:
+        return None
+    return message_covariance(raw[first:first + 36])
 
 
 @_strict
@@ -469,9 +481,13 @@ def decode_odometry(data: Buffer) -> BaseStateSample:
     _check_end(data, pos + 85 * 8)
     raw = np.frombuffer(data, _F8, 85, 4 + pos)
     values = raw[_ODOMETRY]
+    pose_cov, twist_cov = _covariance(data, raw, 4 + pos, 7), _covariance(data, raw, 4 + pos, 49)
+    if pose_cov is None and twist_cov is None:
+        # The fields left out keep their defaults (None).
+        return trusted_sample(BaseStateSample, stamp_ns, frame_id, child, values[:3],
+                              values[3:7], values[7:10], values[10:])
     return trusted_sample(BaseStateSample, stamp_ns, frame_id, child, values[:3],
-                          values[3:7], values[7:10], values[10:], None,
-                          message_covariance(raw[7:43]), message_covariance(raw[49:85]))
+                          values[3:7], values[7:10], values[10:], None, pose_cov, twist_cov)
 
 
 @_strict
@@ -498,7 +514,7 @@ def decode_pose_with_covariance_stamped(data: Buffer,
     raw = np.frombuffer(data, _F8, 43, 4 + pos)
     pose = raw[:7].copy()
     return trusted_sample(BaseStateSample, stamp_ns, frame_id, str(child_frame_id), pose[:3],
-                          pose[3:], None, None, None, message_covariance(raw[7:]), None)
+                          pose[3:], None, None, None, _covariance(data, raw, 4 + pos, 7), None)
 
 
 @_strict
