@@ -49,6 +49,8 @@ independent (over-confident) and pay an update per row.
 Measurements: a pose (PoseStamped), residual ``log(g_hat^-1 g_meas)``, H = [1 0 0];
 a body twist (Odometry), ``h = I^-1 Ad_g^T mu - A qbar_dot``,
 H = [-I^-1 W(pi), I^-1 Ad_g^T, 0], with the joint-velocity noise through A in R.
+R is diagonal from the noise parameters, or the full covariance the sample's message
+carried (:mod:`~reduced_dynamics.estimator.covariance`, docs/message_covariance.md).
 Innovations whose normalised square exceeds the gate are rejected (momentum
 jumps no wrench of the random walk explains); after ``GATE_RESET`` rejections
 in a row the filter re-initialises its momentum and wrench covariance (a real
@@ -448,10 +450,11 @@ class MomentumFilter:
             p[n:2 * n, n:2 * n] = (to_world * self._speed_var) @ to_world.T
         else:
             mu = to_world @ (twist + lin.connection_qd)
-            twist_cov = lin.joint_cov if own_twist is None else lin.joint_cov + own_twist
-            p[n:2 * n, n:2 * n] = to_world @ twist_cov @ to_world.T if own_twist is not None \
-                else (to_world * self._twist_var) @ to_world.T \
-                + to_world @ lin.joint_cov @ to_world.T
+            if own_twist is None:
+                p[n:2 * n, n:2 * n] = (to_world * self._twist_var) @ to_world.T \
+                    + to_world @ lin.joint_cov @ to_world.T
+            else:
+                p[n:2 * n, n:2 * n] = to_world @ (lin.joint_cov + own_twist) @ to_world.T
         p[2 * n:3 * n, 2 * n:3 * n] = (to_world * self._accel_var) @ to_world.T
         self.x = np.concatenate((mu, np.zeros(n)))
         if self.command:
