@@ -118,6 +118,24 @@ def test_planar_base_keeps_x_y_yaw_and_turns_the_pose_by_the_heading():
     assert np.array_equal(noise.twist, twist[np.ix_([0, 1, 5], [0, 1, 5])])
 
 
+def test_repeated_covariances_are_turned_by_each_samples_heading():
+    # The reader keeps the last covariance checked; the turn is still each sample's own,
+    # except where no turn changes the matrix (blocks multiple of the identity).
+    reader = CovarianceReader(paper_robot().group.algebra_pinv)
+    rng = np.random.default_rng(8)
+    full = _random_covariance(rng, np.full(6, 1e-3))
+    isotropic = np.diag([4e-6] * 3 + [1e-6] * 3)
+    isotropic[:3, 3:] = isotropic[3:, :3] = 5e-7 * np.eye(3)
+    for _ in range(3):
+        rotation = pin.exp3(rng.normal(size=3))
+        turn = np.kron(np.eye(2), rotation.T)
+        for values in (full, isotropic):
+            noise, reasons = reader.read(values.ravel(), values.ravel(), rotation)
+            assert not reasons
+            assert np.allclose(noise.pose, turn @ values @ turn.T, rtol=1e-12, atol=1e-20)
+            assert np.array_equal(noise.twist, values)
+
+
 def test_zero_variance_on_a_used_coordinate_falls_back():
     reader = CovarianceReader(paper_robot().group.algebra_pinv)
     pose = np.diag([4e-6, 1e-6, 0.0, 1e-6, 1e-6, 1e-6])  # a 2-D driver on a 3-D robot

@@ -43,6 +43,8 @@ UNKNOWN = -1.0
 #: Relative tolerance of the symmetry and positive semi-definiteness checks.
 TOLERANCE = 1e-9
 
+_EYE3 = np.eye(3)
+
 #: Reasons a covariance is bad (fallback to the noise parameters), in check order.
 REASONS = ('non_finite', 'negative_variance', 'not_symmetric', 'not_positive_semidefinite',
            'zero_variance')
@@ -88,17 +90,31 @@ def checked(values: Optional[np.ndarray]) -> tuple[Optional[np.ndarray], Optiona
     return matrix, None
 
 
-def pose_in_body(matrix: np.ndarray, rotation: np.ndarray) -> np.ndarray:
-    """Return a world-frame pose covariance (x y z roll pitch yaw) in the base frame."""
-    turn = np.zeros((6, 6))
-    turn[:3, :3] = turn[3:, 3:] = rotation.T
-    return turn @ matrix @ turn.T
+def _isotropic(matrix: np.ndarray) -> bool:
+    """Return whether every 3 x 3 block is a multiple of the identity (no turn changes it)."""
+    for block in (matrix[:3, :3], matrix[:3, 3:], matrix[3:, 3:]):
+        if not np.array_equal(block, block[0, 0] * _EYE3):
+            return False
+    return True
 
 
-def projected(matrix: np.ndarray, pinv: np.ndarray) -> tuple[Optional[np.ndarray],
-                                                             Optional[str]]:
-    """Return the covariance on the group's algebra coordinates, or (None, 'zero_variance')."""
-    out = pinv @ matrix @ pinv.T
+def projected(matrix: np.ndarray, pinv: np.ndarray,
+              rotation: Optional[np.ndarray] = None) -> tuple[Optional[np.ndarray],
+                                                              Optional[str]]:
+    """
+    Return a 6 x 6 covariance on the group's algebra coordinates, or (None, 'zero_variance').
+
+    ``rotation``: the base orientation R, which turns a world-frame pose covariance into
+    the base frame first (``diag(R^T, R^T) C diag(R, R)``); None: already in the base frame.
+    """
+    if rotation is None:
+        out = pinv @ matrix @ pinv.T
+    else:
+        # P diag(R^T, R^T) in one n x 6 matrix, then one sandwich.
+        turn = np.empty(pinv.shape)
+        turn[:, :3] = pinv[:, :3] @ rotation.T
+        turn[:, 3:] = pinv[:, 3:] @ rotation.T
+        out = turn @ matrix @ turn.T
     out = 0.5 * (out + out.T)
     if not (np.diag(out) > 0.0).all():
         return None, 'zero_variance'
@@ -109,27 +125,35 @@ class CovarianceReader:
     """
     Turns a base sample's message covariances into :class:`MeasurementNoise`.
 
-    ``pinv``: the base group's algebra pseudo-inverse (n x 6). The last checked
-    matrix is kept per field: drivers send the same covariance message after
-    message, and the checks need an eigendecomposition.
+    ``pinv``: the base group's algebra pseudo-inverse (n x 6). The last message
+    covariance is kept per field with its verdict: drivers send the same one message
+    after message, and the checks need an eigendecomposition. A twist covariance, and a
+    pose covariance whose blocks are multiples of the identity (no turn changes it), are
+    kept projected: the same matrix for every sample that repeats it.
     """
 
     def __init__(self, pinv: np.ndarray) -> None:
         """Read covariances for a group with algebra pseudo-inverse ``pinv``."""
         self.pinv = np.ascontiguousarray(pinv)
-        self._last: dict[str, tuple[bytes, Optional[np.ndarray], Optional[str]]] = {}
+        self._last: dict[str, tuple] = {}
 
-    def _checked(self, key: str, values: Optional[np.ndarray]
-                 ) -> tuple[Optional[np.ndarray], Optional[str]]:
+    def _read(self, key: str, values: Optional[np.ndarray], rotation: Optional[np.ndarray]
+              ) -> tuple[Optional[np.ndarray], Optional[str]]:
+        """Return (the covariance on the algebra coordinates or None, a fallback reason)."""
         if values is None:
             return None, None
         raw = values.tobytes()
-        last = self._last.get(key)
-        if last is not None and last[0] == raw:
-            return last[1], last[2]
-        matrix, reason = checked(values)
-        self._last[key] = (raw, matrix, reason)
-        return matrix, reason
+        entry = self._last.get(key)
+        if entry is None or entry[0] != raw:
+            matrix, reason = checked(values)
+            fixed = matrix is not None and (rotation is None or _isotropic(matrix))
+            if fixed:
+                matrix, reason = projected(matrix, self.pinv)
+            entry = self._last[key] = (raw, matrix, reason, fixed)
+        _, matrix, reason, fixed = entry
+        if matrix is None or fixed:
+            return matrix, reason
+        return projected(matrix, self.pinv, rotation)
 
     def read(self, pose_values: Optional[np.ndarray], twist_values: Optional[np.ndarray],
              rotation: np.ndarray) -> tuple[Optional[MeasurementNoise], list[str]]:
@@ -137,23 +161,13 @@ class CovarianceReader:
         Return the sample's noise (None: the parameters throughout) and the fallbacks' reasons.
 
         ``rotation``: the base orientation (3 x 3), which turns the pose covariance
-        from the header frame into the base frame.
+        from the header frame into the base frame. The matrices returned may be shared
+        between samples: read them, never modify them.
         """
-        reasons = []
-        pose, reason = self._checked('pose', pose_values)
-        if reason is not None:
-            reasons.append(f'pose_{reason}')
-        if pose is not None:
-            pose, reason = projected(pose_in_body(pose, rotation), self.pinv)
-            if reason is not None:
-                reasons.append(f'pose_{reason}')
-        twist, reason = self._checked('twist', twist_values)
-        if reason is not None:
-            reasons.append(f'twist_{reason}')
-        if twist is not None:
-            twist, reason = projected(twist, self.pinv)
-            if reason is not None:
-                reasons.append(f'twist_{reason}')
+        pose, pose_reason = self._read('pose', pose_values, rotation)
+        twist, twist_reason = self._read('twist', twist_values, None)
+        reasons = [] if pose_reason is None and twist_reason is None else \
+            [f'{k}_{r}' for k, r in (('pose', pose_reason), ('twist', twist_reason)) if r]
         if pose is None and twist is None:
             return None, reasons
         return MeasurementNoise(pose, twist), reasons
