@@ -71,7 +71,8 @@ from reduced_dynamics.estimator.config import ParameterSpec
 from reduced_dynamics.messages import (
     cdr, command_from_ros, DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample,
     joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros,
-    pose_stamped_from_ros, RclpyTypes, string_from_ros)
+    pose_stamped_from_ros, pose_with_covariance_stamped_from_ros, RclpyTypes,
+    string_from_ros)
 from reduced_dynamics.messages.samples import with_receive_time
 from reduced_dynamics.params import ALL_PARAMETERS, check_any_parameter, RUNTIME_PARAMETERS
 from reduced_dynamics.robot.model import load_robot, ModelError
@@ -787,6 +788,10 @@ class _Shell:
         if self._value('base_input') == 'odom':
             subscribe('nav_msgs/msg/Odometry', self._value('odom_topic'), self._on_odometry,
                       input_qos(), raw=True)
+        elif self._value('base_input') == 'pose_covariance':
+            subscribe('geometry_msgs/msg/PoseWithCovarianceStamped',
+                      self._value('base_pose_topic'), self._on_pose_covariance, input_qos(),
+                      raw=True)
         else:
             subscribe('geometry_msgs/msg/PoseStamped', self._value('base_pose_topic'),
                       self._on_pose, input_qos(), raw=True)
@@ -867,6 +872,15 @@ class _Shell:
                    'geometry_msgs/msg/PoseStamped',
                    lambda m: pose_stamped_from_ros(m, base_link), 'add_base_state',
                    received_ns(info))
+        self._drain_inputs()
+
+    def _on_pose_covariance(self, data: bytes, info: Any) -> None:
+        base_link = self._estimator.robot.base_link if self._estimator else ''
+        self._take('base', data,
+                   lambda d: cdr.decode_pose_with_covariance_stamped(d, base_link),
+                   'geometry_msgs/msg/PoseWithCovarianceStamped',
+                   lambda m: pose_with_covariance_stamped_from_ros(m, base_link),
+                   'add_base_state', received_ns(info))
         self._drain_inputs()
 
     def _drain_inputs(self) -> None:
@@ -1290,6 +1304,8 @@ def usage_text() -> str:
             ('joint_states_topic: sensor_msgs/msg/JointState', 'shape joint states'),
             ('odom_topic: nav_msgs/msg/Odometry', 'base state (base_input odom)'),
             ('base_pose_topic: geometry_msgs/msg/PoseStamped', 'base pose (base_input pose)'),
+            ('base_pose_topic: geometry_msgs/msg/PoseWithCovarianceStamped',
+             'base pose with its covariance (base_input pose_covariance)'),
             ('trajectory_topic: trajectory_msgs/msg/JointTrajectory',
              'planned arm motion (prediction_mode planned)'),
             ('commanded_wrench_topic: geometry_msgs/msg/WrenchStamped',

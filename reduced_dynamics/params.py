@@ -41,15 +41,18 @@ NODE_PARAMETERS: dict[str, ParameterSpec] = {
     'gravity': ParameterSpec([0.0, 0.0, 0.0], None, None, (),
                              'gravity [m/s^2], world frame; nonzero only for a planar base '
                              '(along z)'),
-    'base_input': ParameterSpec('odom', None, None, ('odom', 'pose'),
-                                'base state source: nav_msgs/Odometry (odom) or '
+    'base_input': ParameterSpec('odom', None, None, ('odom', 'pose', 'pose_covariance'),
+                                'base state source: nav_msgs/Odometry (odom), '
                                 'geometry_msgs/PoseStamped (pose only: the filter '
-                                'estimates the twist)'),
+                                'estimates the twist) or geometry_msgs/'
+                                'PoseWithCovarianceStamped (pose_covariance: a pose with '
+                                'its covariance, on base_pose_topic)'),
     'joint_states_topic': ParameterSpec('joint_states', None, None, (),
                                         'sensor_msgs/JointState input'),
     'odom_topic': ParameterSpec('odom', None, None, (), 'nav_msgs/Odometry input'),
     'base_pose_topic': ParameterSpec('base_pose', None, None, (),
-                                     'geometry_msgs/PoseStamped input'),
+                                     'geometry_msgs/PoseStamped (or, base_input '
+                                     'pose_covariance, PoseWithCovarianceStamped) input'),
     'trajectory_topic': ParameterSpec('joint_trajectory', None, None, (),
                                       'trajectory_msgs/JointTrajectory input: the planned '
                                       'arm motion (e.g. a joint_trajectory_controller\'s '

@@ -48,7 +48,7 @@ from reduced_dynamics.bag.reader import BagReader
 from reduced_dynamics.messages import cdr
 from reduced_dynamics.messages.convert import (
     command_from_ros, joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros,
-    pose_stamped_from_ros)
+    pose_stamped_from_ros, pose_with_covariance_stamped_from_ros)
 from reduced_dynamics.messages.samples import JointTrajectorySample, with_receive_time
 from reduced_dynamics.messages.types import RosbagsTypes
 from reduced_dynamics.output_spool import OutputSpool, SMOOTHED_FIELDS
@@ -62,6 +62,8 @@ JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
 REPLAY_BATCH = 512
 ODOMETRY_TYPE = 'nav_msgs/msg/Odometry'
 POSE_TYPE = 'geometry_msgs/msg/PoseStamped'
+#: a base pose with its covariance (docs/message_covariance.md), taken like POSE_TYPE
+POSE_COVARIANCE_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 TRAJECTORY_TYPE = 'trajectory_msgs/msg/JointTrajectory'
 WRENCH_TYPE = 'geometry_msgs/msg/WrenchStamped'
 #: Exit status of a replay that completed but lost messages to a damaged bag.
@@ -138,13 +140,14 @@ def choose_inputs(topics: dict[str, str], options: ReplayOptions) -> InputChoice
     odom = _topic(options.odom_topic or params['odom_topic'])
     pose = _topic(options.base_pose_topic or params['base_pose_topic'])
     prefer_pose = bool(options.base_pose_topic) or (
-        params['base_input'] == 'pose' and not options.odom_topic)
+        params['base_input'] in ('pose', 'pose_covariance') and not options.odom_topic)
     candidates = [(pose, POSE_TYPE), (odom, ODOMETRY_TYPE)] if prefer_pose \
         else [(odom, ODOMETRY_TYPE), (pose, POSE_TYPE)]
     if options.odom_topic:
         candidates = candidates[:1] if not prefer_pose else candidates
     for name, msgtype in candidates:
-        if topics.get(name) == msgtype:
+        if topics.get(name) == msgtype or (msgtype == POSE_TYPE
+                                           and topics.get(name) == POSE_COVARIANCE_TYPE):
             return joint_topic, name, msgtype == ODOMETRY_TYPE
     wanted = ', '.join(f'{n} ({t})' for n, t in candidates)
     raise BagError(f'bag has no base state topic: looked for {wanted}; it has '
@@ -172,6 +175,11 @@ def input_decoder(reader: BagReader, topic: str, msgtype: str, child_frame_id: s
     elif msgtype == POSE_TYPE:
         convert = functools.partial(pose_stamped_from_ros, child_frame_id=child_frame_id)
         fast = functools.partial(cdr.decode_pose_stamped, child_frame_id=child_frame_id)
+    elif msgtype == POSE_COVARIANCE_TYPE:
+        convert = functools.partial(pose_with_covariance_stamped_from_ros,
+                                    child_frame_id=child_frame_id)
+        fast = functools.partial(cdr.decode_pose_with_covariance_stamped,
+                                 child_frame_id=child_frame_id)
     elif msgtype == TRAJECTORY_TYPE:
         convert, fast = joint_trajectory_from_ros, None  # rare messages: the generic path
     elif msgtype == WRENCH_TYPE:
@@ -342,7 +350,7 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                   for t in (FIXED_LAG_TOPICS if options.fixed_lag > 0.0 else ())]
         out_topics.update({topic: t.msgtype for t, (_, topic, _) in zip(FIXED_LAG_TOPICS,
                                                                         lagged)})
-        base_type = ODOMETRY_TYPE if is_odom else POSE_TYPE
+        base_type = topics[base_topic]
         inputs = {}
         for topic, msgtype in reader.connection_types(wanted):
             if (topic, msgtype) == (joint_topic, JOINT_STATE_TYPE):

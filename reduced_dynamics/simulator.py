@@ -50,6 +50,7 @@ from reduced_dynamics.geometry.isotropy import MomentumClass
 from reduced_dynamics.messages.convert import (
     base_state_to_odometry,
     base_state_to_pose_stamped,
+    base_state_to_pose_with_covariance_stamped,
     header_to_ros,
     joint_state_to_ros,
     joint_trajectory_to_ros,
@@ -235,6 +236,8 @@ class SimulationOptions:
     joint_rate: Optional[float] = None
     base_rate: Optional[float] = None
     base_pose_only: bool = False
+    #: with ``base_pose_only``: PoseWithCovarianceStamped carrying the noise it adds
+    base_pose_covariance: bool = False
     momentum_class: str = 'generic'
     status: bool = False
     overwrite: bool = False
@@ -728,7 +731,8 @@ def bag_topics(options: SimulationOptions, robot: Optional[RobotModel] = None
     if robot is None or robot.m > 0:
         topics[TOPIC_JOINT_STATES] = 'sensor_msgs/msg/JointState'
     if options.base_pose_only:
-        topics[TOPIC_BASE_POSE] = 'geometry_msgs/msg/PoseStamped'
+        topics[TOPIC_BASE_POSE] = 'geometry_msgs/msg/PoseWithCovarianceStamped' \
+            if options.base_pose_covariance else 'geometry_msgs/msg/PoseStamped'
     else:
         topics[TOPIC_ODOM] = 'nav_msgs/msg/Odometry'
     topics[TOPIC_MOMENTUM] = 'geometry_msgs/msg/WrenchStamped'
@@ -853,7 +857,9 @@ class _Recorder:
         if times is not None:
             base = BaseStateSample(times[0], WORLD_FRAME, robot.base_link, position,
                                    quaternion, twist6[:3], twist6[3:])
-            if options.base_pose_only:
+            if options.base_pose_only and options.base_pose_covariance:
+                msg = base_state_to_pose_with_covariance_stamped(base, types, self.pose_cov)
+            elif options.base_pose_only:
                 msg = base_state_to_pose_stamped(base, types)
             else:
                 msg = base_state_to_odometry(base, types, self.pose_cov, self.twist_cov)
@@ -1249,6 +1255,9 @@ def register_command(subparsers: Any) -> None:
                              '(default 10)')
     parser.add_argument('--base-pose-only', action='store_true',
                         help='write /base_pose (PoseStamped) instead of /odom')
+    parser.add_argument('--base-pose-covariance', action='store_true',
+                        help='with --base-pose-only: write PoseWithCovarianceStamped, '
+                             'carrying the covariance of the noise added')
     parser.add_argument('--momentum-class', choices=tuple(MOMENTUM_CLASSES), default='generic',
                         help='class of the initial momentum (default generic)')
     parser.add_argument('--trajectory', metavar='FILE',
@@ -1277,6 +1286,7 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         thrusters=tuple(args.thruster), noise_position=args.noise_position,
         noise_velocity=args.noise_velocity, noise_pose=args.noise_pose,
         drop_rate=args.drop_rate, base_pose_only=args.base_pose_only,
+        base_pose_covariance=args.base_pose_covariance,
         noise_effort=args.noise_effort, noise_twist=args.noise_twist,
         noise_twist_angular=args.noise_twist_angular,
         noise_orientation=args.noise_orientation, quantize=tuple(args.quantize),

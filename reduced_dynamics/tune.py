@@ -43,8 +43,8 @@ from reduced_dynamics.estimator.pipeline import Estimator
 from reduced_dynamics.messages.samples import JointTrajectorySample, with_receive_time
 from reduced_dynamics.params import defaults, load_params_file
 from reduced_dynamics.replay import (check_shape_input, choose_inputs, input_decoder,
-                                     JOINT_STATE_TYPE, load_robot_from_params, ODOMETRY_TYPE,
-                                     POSE_TYPE, ReplayOptions, robot_source)
+                                     JOINT_STATE_TYPE, load_robot_from_params, ReplayOptions,
+                                     robot_source)
 from reduced_dynamics.robot.model import RobotModel
 
 #: What is tuned: the pose noise and the wrench random walk always, the twist noise
@@ -67,7 +67,7 @@ def load_inputs(bag: str, robot: RobotModel, options: ReplayOptions
     with open_bag(bag) as reader:
         joint_topic, base_topic, is_odom = choose_inputs(reader.topics(), options)
         check_shape_input(reader, joint_topic, robot, options)
-        base_type = ODOMETRY_TYPE if is_odom else POSE_TYPE
+        base_type = reader.topics()[base_topic]
         decoders = {}
         for topic, msgtype in reader.connection_types([t for t in (joint_topic, base_topic)
                                                        if t]):
@@ -90,7 +90,9 @@ def load_inputs(bag: str, robot: RobotModel, options: ReplayOptions
 def evaluate(robot: RobotModel, samples: Sequence, params: dict, is_odom: bool,
              base_driven: bool) -> dict:
     """Run the causal filter over ``samples``; return its innovation statistics."""
-    values = dict(params, prediction_rate=0.0, diagnostics_rate=0.0)
+    # The noise parameters are what is tuned: a message's own covariance must not replace them.
+    values = dict(params, prediction_rate=0.0, diagnostics_rate=0.0,
+                  use_message_covariance=False)
     estimator = Estimator(robot, EstimatorConfig.from_mapping(values), use_odometry=is_odom,
                           base_driven=base_driven,
                           cyclic_joints=params.get('cyclic_joints', ''))

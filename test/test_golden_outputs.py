@@ -33,6 +33,7 @@ from pathlib import Path
 import pytest
 
 from reduced_dynamics.bag.reader import open_bag
+from reduced_dynamics.params import defaults
 from reduced_dynamics.replay import replay, ReplayOptions
 from reduced_dynamics.resources import config_path
 from reduced_dynamics.robot.model import load_robot
@@ -45,6 +46,10 @@ BLESS = os.environ.get('RD_BLESS_GOLDEN', '') not in ('', '0')
 CASES = {
     # SE(3), Odometry, shape joints, predictions, diagnostics.
     'paper_realistic': ('paper_realistic', '', {}),
+    # The same with the noise parameters alone (use_message_covariance false): the bytes
+    # of before the message covariances (docs/message_covariance.md).
+    'paper_realistic_parameters': ('paper_realistic', '',
+                                   {'params': {**defaults(), 'use_message_covariance': False}}),
     # SE(2), poses with a stall and bunched frames, the commanded-wrench filter.
     'freeflyer_testbed': ('freeflyer_testbed', 'robots/freeflyer.urdf',
                           {'base_pose_topic': '/base_pose',

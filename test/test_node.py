@@ -36,7 +36,8 @@ from reduced_dynamics.estimator import Estimator, EstimatorConfig
 from reduced_dynamics.geometry.isotropy import MomentumClass
 from reduced_dynamics.full_dynamics import FullDynamics
 from reduced_dynamics.messages import (
-    joint_state_from_ros, odometry_from_ros, pose_stamped_from_ros, RclpyTypes)
+    joint_state_from_ros, odometry_from_ros, pose_stamped_from_ros,
+    pose_with_covariance_stamped_from_ros, RclpyTypes)
 from reduced_dynamics.params import ALL_PARAMETERS, node_section, RUNTIME_PARAMETERS
 from reduced_dynamics.resources import config_path, paper_robot_urdf, params_yaml
 from reduced_dynamics.robot.model import load_robot
@@ -215,7 +216,7 @@ def test_declares_every_parameter_with_a_descriptor(node_factory):
     from rcl_interfaces.msg import ParameterType
     node = node_factory()
     types = {float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING,
-             list: ParameterType.PARAMETER_DOUBLE_ARRAY}
+             list: ParameterType.PARAMETER_DOUBLE_ARRAY, bool: ParameterType.PARAMETER_BOOL}
     for name, spec in ALL_PARAMETERS.items():
         assert node.get_parameter(name).value == spec.default, name
         descriptor = node.describe_parameter(name)
@@ -406,6 +407,71 @@ def test_outputs_equal_an_estimator_fed_directly(ros, node_factory, base_input):
     momentum = ros.published('~/momentum', node)
     assert {m.header.stamp.sec * NS + m.header.stamp.nanosec for m in momentum} <= stamps
     assert node.estimator.processed == len(momentum) > 0.9 * count
+
+
+@pytest.mark.parametrize('base_input', ['odom', 'pose_covariance'])
+def test_message_covariances_give_the_outputs_of_an_estimator_fed_directly(
+        ros, node_factory, base_input):
+    # docs/message_covariance.md: the covariances a message carries are the sample's noise,
+    # in the node as in an Estimator fed the same messages (replay's path), bit for bit.
+    settings = {'prediction_rate': 0.0, 'diagnostics_rate': 2.0}
+    node = node_factory(urdf_path=str(paper_robot_urdf()), base_input=base_input, **settings)
+    count = SAMPLES // 2
+    run = trajectory()
+    messages = []
+    for i in range(count):
+        stamp = int(run['stamps'][i])
+        # A covariance that changes from message to message, with correlations.
+        pose_cov = numpy.diag([1e-6, 2e-6, 3e-6, 4e-6, 5e-6, 6e-6]) * (1.0 + 0.5 * (i % 3))
+        pose_cov[0, 5] = pose_cov[5, 0] = 1e-6
+        if base_input == 'odom':
+            msg = odometry(ros, stamp, run['position'][i], run['quat'][i], run['twist'][i])
+            msg.pose.covariance = pose_cov.ravel()
+            msg.twist.covariance = (4e-4 * numpy.eye(6)).ravel()
+            messages.append(('odom', msg))
+        else:
+            msg = ros.msg('geometry_msgs/msg/PoseWithCovarianceStamped')(
+                header=_header(ros, stamp, 'world'),
+                pose=ros.msg('geometry_msgs/msg/PoseWithCovariance')(
+                    pose=_pose(ros, run['position'][i], run['quat'][i]),
+                    covariance=pose_cov.ravel()))
+            messages.append(('base_pose', msg))
+        messages.append(('joint_states', joint_state(
+            ros, stamp, run['names'], run['qbar'][i], run['qbar_dot'][i], run['effort'][i])))
+    feed(ros, node, messages)
+    robot = load_robot(str(paper_robot_urdf()), 'floating', numpy.zeros(3))
+    estimator = Estimator(robot, EstimatorConfig(**settings), use_odometry=base_input == 'odom')
+    expected = {_resolved(node, topic): [] for topic in OUTPUT_TOPICS}
+    for topic, msg in messages:
+        if topic == 'joint_states':
+            outputs = estimator.add_joint_state(joint_state_from_ros(msg))
+        elif topic == 'odom':
+            outputs = estimator.add_base_state(odometry_from_ros(msg))
+        else:
+            outputs = estimator.add_base_state(
+                pose_with_covariance_stamped_from_ros(msg, 'spacecraft'))
+        for output in outputs:
+            for out_topic, out_msg in output_messages(output, RclpyTypes()):
+                expected[_resolved(node, out_topic)].append(out_msg)
+    momentum = expected[node.resolve_topic_name('~/momentum')]
+    assert len(momentum) > 0.9 * count
+    for topic, wanted in expected.items():
+        got = ros.published(topic)
+        assert len(got) == len(wanted), topic
+        for i, (actual, want) in enumerate(zip(got, wanted)):
+            assert_same_message(actual, want, f'{topic}[{i}]')
+    # The covariances were used: the parameters alone give other numbers.
+    plain = Estimator(robot, EstimatorConfig(**settings, use_message_covariance=False),
+                      use_odometry=base_input == 'odom')
+    for topic, msg in messages:
+        if topic == 'joint_states':
+            plain.add_joint_state(joint_state_from_ros(msg))
+        elif topic == 'odom':
+            plain.add_base_state(odometry_from_ros(msg))
+        else:
+            plain.add_base_state(pose_with_covariance_stamped_from_ros(msg, 'spacecraft'))
+    assert not estimator.covariance_fallbacks
+    assert plain.filter.log_likelihood != estimator.filter.log_likelihood
 
 
 def test_second_stage_outputs_equal_an_estimator_fed_directly(ros, node_factory):

@@ -68,6 +68,12 @@ PARAMETERS: dict[str, ParameterSpec] = {
         'standard deviation [s] of a re-timed pose stamp about its frame time (transport '
         'jitter of the frames against the envelope, sub-millisecond on a LAN); at most '
         'pose_stamp_noise is used'),
+    'use_message_covariance': ParameterSpec(
+        True, None, None, (),
+        'use the covariance an input message carries (nav_msgs/Odometry pose and twist, '
+        'geometry_msgs/PoseWithCovarianceStamped) as that sample\'s measurement noise; '
+        'the noise parameters stay the fallback for a zero or unknown (-1) covariance and '
+        'for a bad one (counted, docs/message_covariance.md); false: the parameters only'),
     'twist_linear_noise': ParameterSpec(
         1e-2, 1e-12, 1e3, (),
         'standard deviation [m/s] of an Odometry base linear velocity'),
@@ -222,6 +228,7 @@ class EstimatorConfig:
     pose_stamp_noise: float = PARAMETERS['pose_stamp_noise'].default
     pose_retiming: str = PARAMETERS['pose_retiming'].default
     pose_retimed_stamp_noise: float = PARAMETERS['pose_retimed_stamp_noise'].default
+    use_message_covariance: bool = PARAMETERS['use_message_covariance'].default
     twist_linear_noise: float = PARAMETERS['twist_linear_noise'].default
     twist_angular_noise: float = PARAMETERS['twist_angular_noise'].default
     joint_velocity_noise: float = PARAMETERS['joint_velocity_noise'].default
@@ -286,6 +293,10 @@ def check_parameter(name: str, value: Any) -> None:
             raise ValueError(f'{name} must be a string, got {value!r}')
         if spec.choices and value not in spec.choices:
             raise ValueError(f'{name} must be one of {spec.choices}, got {value!r}')
+        return
+    if isinstance(spec.default, bool):
+        if not isinstance(value, bool):
+            raise ValueError(f'{name} must be true or false, got {value!r}')
         return
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ValueError(f'{name} must be a number, got {value!r}')

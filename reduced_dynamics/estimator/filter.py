@@ -49,6 +49,8 @@ independent (over-confident) and pay an update per row.
 Measurements: a pose (PoseStamped), residual ``log(g_hat^-1 g_meas)``, H = [1 0 0];
 a body twist (Odometry), ``h = I^-1 Ad_g^T mu - A qbar_dot``,
 H = [-I^-1 W(pi), I^-1 Ad_g^T, 0], with the joint-velocity noise through A in R.
+R is diagonal from the noise parameters, or the full covariance the sample's message
+carried (:mod:`~reduced_dynamics.estimator.covariance`, docs/message_covariance.md).
 Innovations whose normalised square exceeds the gate are rejected (momentum
 jumps no wrench of the random walk explains); after ``GATE_RESET`` rejections
 in a row the filter re-initialises its momentum and wrench covariance (a real
@@ -238,6 +240,7 @@ class MomentumFilter:
         self._pinv = np.ascontiguousarray(group.algebra_pinv)
         self._r_pose = np.diag(self._pose_var)
         self._r_twist = np.diag(self._twist_var)
+        self._twist_zero = np.zeros(n)
         self.step_test = WrenchStepTest(n, step_significance, dim)
         #: the wrench step taken since the last row (None: none detected)
         self.step_detected: Optional[StepDetection] = None
@@ -445,12 +448,14 @@ class MomentumFilter:
 
     # --- the recursion ----------------------------------------------------------------
     def initialise(self, stamp_ns: int, g: pin.SE3, lin: Linearisation,
-                   twist: Optional[np.ndarray], output: bool = True) -> None:
+                   twist: Optional[np.ndarray], output: bool = True,
+                   noise: Optional[tuple] = None) -> None:
         """
         Start from a first measurement (pose, and the body twist with Odometry).
 
         ``output``: the recorded restart step is a row's (False: a measurement
-        between rows, see :class:`FilterStep`).
+        between rows, see :class:`FilterStep`). ``noise``: the measurement's own
+        (:attr:`Measurement.noise`; None: the noise parameters).
         """
         n = self.n
         self._g = pose = _homogeneous(g)
@@ -458,14 +463,18 @@ class MomentumFilter:
         self._lin = lin
         to_world = self._adjoint_inverse(g).T @ lin.locked  # body velocity -> mu
         p = np.zeros((self.dim, self.dim))
-        p[:n, :n] = np.diag(self._pose_var)
+        own_pose, own_twist = (None, None) if noise is None else noise
+        p[:n, :n] = np.diag(self._pose_var) if own_pose is None else own_pose
         if twist is None:
             mu = np.zeros(n)
             p[n:2 * n, n:2 * n] = (to_world * self._speed_var) @ to_world.T
         else:
             mu = to_world @ (twist + lin.connection_qd)
-            p[n:2 * n, n:2 * n] = (to_world * self._twist_var) @ to_world.T \
-                + to_world @ lin.joint_cov @ to_world.T
+            if own_twist is None:
+                p[n:2 * n, n:2 * n] = (to_world * self._twist_var) @ to_world.T \
+                    + to_world @ lin.joint_cov @ to_world.T
+            else:
+                p[n:2 * n, n:2 * n] = to_world @ (lin.joint_cov + own_twist) @ to_world.T
         p[2 * n:3 * n, 2 * n:3 * n] = (to_world * self._accel_var) @ to_world.T
         self.x = np.concatenate((mu, np.zeros(n)))
         if self.command:
@@ -532,7 +541,7 @@ class MomentumFilter:
             if prior is not None:
                 if self.command and commands:
                     self._command = commands[-1].now
-                self.initialise(stamp_ns, prior.pose, lin, prior.twist)
+                self.initialise(stamp_ns, prior.pose, lin, prior.twist, True, prior.noise)
             return []
         before = self._lin if self._lin is not None else lin
         self._lin = lin
@@ -575,7 +584,7 @@ class MomentumFilter:
             cause = None
             try:
                 accepted = self._update(measurement.pose, measurement.twist, lin,
-                                        measurement.stamp_sigma)
+                                        measurement.stamp_sigma, measurement.noise)
                 if not np.isfinite(self.p).all():
                     cause = 'covariance not finite'
                 elif not (np.diag(self.p) >= 0.0).all():
@@ -592,7 +601,8 @@ class MomentumFilter:
                 self.restart_causes[cause] += 1
                 LOG.warning('momentum filter restarted at %d ns: %s (restart %d)',
                             stamp_ns, cause, self.diverged)
-                self.initialise(stamp_ns, measurement.pose, lin, measurement.twist, output)
+                self.initialise(stamp_ns, measurement.pose, lin, measurement.twist, output,
+                                measurement.noise)
                 return
             if not accepted:
                 gated.append((measurement.stamp_ns, self.last_nis))
@@ -619,7 +629,8 @@ class MomentumFilter:
                             commands)
 
     def _update(self, pose: pin.SE3, twist: Optional[np.ndarray],
-                lin: Linearisation, stamp_sigma: Optional[float] = None) -> bool:
+                lin: Linearisation, stamp_sigma: Optional[float] = None,
+                noise: Optional[tuple] = None) -> bool:
         n = self.n
         g0, x0, p0 = self._g, self.x, self.p
         measured = np.ascontiguousarray(pose.homogeneous)
@@ -633,10 +644,26 @@ class MomentumFilter:
             # A re-timed stamp (a frame time, estimator/retiming.py) carries its own.
             sigma = self.noise.pose_stamp if stamp_sigma is None else stamp_sigma
         size = 2 * n if with_twist else n
-        accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain = kernels.update(
-            g0, x0, p0, measured, values, with_twist, lin.locked_inverse, lin.connection_qd,
-            lin.joint_cov, self._pose_var, self._stamp_twist, sigma, self._twist_var,
-            self._gates[size], self._basis, self._pinv, self._whole, self._form_rows)
+        if noise is None:
+            accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain = kernels.update(
+                g0, x0, p0, measured, values, with_twist, lin.locked_inverse,
+                lin.connection_qd, lin.joint_cov, self._pose_var, self._stamp_twist, sigma,
+                self._twist_var, self._gates[size], self._basis, self._pinv, self._whole,
+                self._form_rows)
+        else:
+            # The message's own covariances (estimator/covariance.py), full matrices; a
+            # part the message left unknown keeps the noise parameters.
+            r_pose = self._r_pose if noise[0] is None else noise[0]
+            if sigma > 0.0:
+                xi = self._stamp_twist * sigma
+                r_pose = r_pose + np.outer(xi, xi)
+            joint_cov, twist_var = lin.joint_cov, self._twist_var
+            if with_twist and noise[1] is not None:
+                joint_cov, twist_var = joint_cov + noise[1], self._twist_zero
+            accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain = kernels.update_noise(
+                g0, x0, p0, measured, values, with_twist, lin.locked_inverse,
+                lin.connection_qd, joint_cov, r_pose, twist_var, self._gates[size],
+                self._basis, self._pinv, self._whole, self._form_rows)
         self.last_nis = nis
         # Innovation log-likelihood (what `reduced-dynamics tune` maximises) and NIS sums.
         self.log_likelihood -= 0.5 * (nis + logdet + size * LOG_2PI)

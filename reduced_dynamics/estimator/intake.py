@@ -31,6 +31,7 @@ from typing import Union
 import numpy as np
 import pinocchio as pin
 
+from reduced_dynamics.estimator.covariance import CovarianceReader, NoisyRow
 from reduced_dynamics.estimator.outputs import EstimatorOutput
 from reduced_dynamics.estimator.plausibility import JointBounds
 from reduced_dynamics.estimator.prediction import Plan
@@ -174,12 +175,36 @@ class InputIntake:
                 kernel = self.kernel
                 twist = kernel.twists(kernel.coordinates(np.array([twist])))[0].tolist()
             row += twist
+        if (sample.pose_covariance is not None or sample.twist_covariance is not None) \
+                and self.config.use_message_covariance:
+            row = self._with_message_noise(row, sample, (x / norm, y / norm, z / norm,
+                                                         w / norm))
         # Stamp policy (estimator/stamps.py): outliers dropped, clock jumps followed.
         result = self._base_gate.offer(stamp, sample.receive_ns, (stamp, row))
         if result is not ACCEPTED:
             self._stamp_result(result, False)
             return
         self._accept_base((stamp, row))
+
+    def _with_message_noise(self, row: list, sample: BaseStateSample,
+                            xyzw: tuple[float, float, float, float]) -> list:
+        """Return the row carrying the sample's own noise (estimator/covariance.py)."""
+        reader = self._covariance_reader
+        if reader is None:
+            reader = self._covariance_reader = CovarianceReader(self.robot.group.algebra_pinv)
+        x, y, z, w = xyzw
+        rotation = pin.Quaternion(w, x, y, z).toRotationMatrix()
+        noise, reasons = reader.read(sample.pose_covariance,
+                                     sample.twist_covariance if self.use_odometry else None,
+                                     rotation)
+        for reason in reasons:
+            # Not a rejection: the sample is used, with the noise parameters.
+            self.covariance_fallbacks[reason] += 1
+            self._period_covariance_fallbacks += 1
+            self.last_covariance_fallback = (
+                f'{reason}: base sample at {sample.stamp_ns} carries a bad covariance; '
+                'the noise parameters are used')
+        return row if noise is None else NoisyRow(row, noise)
 
     def _take_command(self, sample: CommandSample) -> None:
         """Validate a commanded wrench (finite, plausible, stamp policy) and hold it."""

@@ -160,6 +160,12 @@ class Estimator(InputIntake, Timing, ChunkProcessing, Reporting, Smoothing,
         self._received_joints = self._received_bases = 0
         self.rejected: Counter = Counter()
         self.last_rejection: Optional[str] = None
+        #: base samples whose message covariance was bad, by reason (the noise
+        #: parameters were used instead; estimator/covariance.py)
+        self.covariance_fallbacks: Counter = Counter()
+        self.last_covariance_fallback: Optional[str] = None
+        self._covariance_reader = None
+        self._period_covariance_fallbacks = 0
         self.processed = 0
         self.prediction_failures: Counter = Counter()
         self.first_stamp_ns: Optional[int] = None

@@ -34,6 +34,7 @@ import numpy as np
 import pinocchio as pin
 
 from reduced_dynamics.estimator.base_motion import BaseMotionAnswer, predict_base_motion
+from reduced_dynamics.estimator.covariance import NoisyRow
 from reduced_dynamics.estimator.cyclic import CyclicColumns
 from reduced_dynamics.estimator.filter import Command, Linearisation, Measurement
 from reduced_dynamics.estimator.outputs import OutputChunk
@@ -117,7 +118,8 @@ class ChunkProcessing:
                 # The base state at the row's stamp (a measurement there, or the start).
                 prior = Measurement(stamp, pin.SE3(rotation[k], translation[k]),
                                     None if twists is None else twists[k],
-                                    self._row_stamp_sigma if at_row else None)
+                                    self._row_stamp_sigma if at_row else None,
+                                    self._row_noise if at_row else None)
                 if at_row:
                     measurements[-1] = prior
             for gated, nis in flt.row(stamp, lins[k], prior, measurements,
@@ -199,13 +201,15 @@ class ChunkProcessing:
         """
         out: list = []
         odometry, kernel = self.use_odometry, self.kernel
-        self._row_stamp_sigma = None
+        self._row_stamp_sigma = self._row_noise = None
         for sample in measured:
             sample_ns, row = sample[0], sample[1]
             sigma = sample[2] if len(sample) > 2 else None
+            # A message covariance rides on its row (estimator/covariance.py).
+            noise = row.noise if row.__class__ is NoisyRow else None
             if sample_ns == stamp:
                 # The row's own sample: its stamp sigma goes with the row's prior.
-                self._row_stamp_sigma = sigma
+                self._row_stamp_sigma, self._row_noise = sigma, noise
                 out.append(None)
                 continue
             twist = None
@@ -214,7 +218,7 @@ class ChunkProcessing:
                 if kernel.projects_twists:
                     twist = kernel.coordinates(twist[None])[0]
             out.append(Measurement(sample_ns, pin.XYZQUATToSE3(np.array(row[:7])), twist,
-                                   sigma))
+                                   sigma, noise))
         return out
 
     def _per_sample(self, stamp_list: tuple, qbar: np.ndarray, qbar_dot: np.ndarray,

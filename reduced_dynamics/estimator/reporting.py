@@ -143,6 +143,13 @@ class Reporting:
         inputs.update({f'rejected_{k}': str(v) for k, v in sorted(self.rejected.items())})
         level = DIAG_WARN if rejected else DIAG_OK
         message = self.last_rejection if rejected else 'inputs nominal'
+        if self.covariance_fallbacks:
+            # A bad message covariance: the sample was used with the noise parameters.
+            inputs.update({f'covariance_fallback_{k}': str(v)
+                           for k, v in sorted(self.covariance_fallbacks.items())})
+            if not rejected and self._period_covariance_fallbacks:
+                level, message = DIAG_WARN, self.last_covariance_fallback
+        self._period_covariance_fallbacks = 0
         statuses = [DiagnosticStatusSample(level, 'reduced_dynamics: inputs', message or '',
                                            self.robot.model.name, inputs)]
         if self._last_mu is not None:
@@ -285,6 +292,8 @@ class Reporting:
             'received': dict(self.received),
             'processed': self.processed,
             'rejected': dict(self.rejected),
+            # base samples whose bad message covariance gave way to the noise parameters
+            'covariance_fallbacks': dict(self.covariance_fallbacks),
             'clock_resets': self.clock_resets,
             'cyclic_joints': list(self.cyclic_joints),
             'mu_mean': mean.tolist(),

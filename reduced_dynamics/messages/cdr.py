@@ -48,6 +48,7 @@ from reduced_dynamics.messages.samples import (
     CommandSample,
     Diagnostics,
     JointStateSample,
+    message_covariance,
     PosePath,
     ShapePrediction,
     trusted_sample,
@@ -455,6 +456,18 @@ def decode_joint_state(data: Buffer) -> JointStateSample:
 
 
 _ODOMETRY = np.r_[0:7, 43:49]  # pose, then twist, among the 85 float64 of Odometry
+_ZERO_COVARIANCE = bytes(36 * 8)
+
+
+def _covariance(data: Buffer, raw: np.ndarray, start: int, first: int) -> Optional[np.ndarray]:
+    """Return the 36 covariance values from float ``first`` of ``raw`` (None: all zeros)."""
+    # Comparing the bytes is ten times cheaper than ndarray.any(): most drivers send zeros.
+    at = start + 8 * first
+    zeros = data.startswith(_ZERO_COVARIANCE, at) if isinstance(data, bytes) \
+        else data[at:at + 288] == _ZERO_COVARIANCE
+    if zeros:
+        return None
+    return message_covariance(raw[first:first + 36])
 
 
 @_strict
@@ -466,9 +479,15 @@ def decode_odometry(data: Buffer) -> BaseStateSample:
     pos = (pos + 7) & -8
     # pose (7), covariance (36), twist (6), covariance (36)
     _check_end(data, pos + 85 * 8)
-    values = np.frombuffer(data, _F8, 85, 4 + pos)[_ODOMETRY]
+    raw = np.frombuffer(data, _F8, 85, 4 + pos)
+    values = raw[_ODOMETRY]
+    pose_cov, twist_cov = _covariance(data, raw, 4 + pos, 7), _covariance(data, raw, 4 + pos, 49)
+    if pose_cov is None and twist_cov is None:
+        # The fields left out keep their defaults (None).
+        return trusted_sample(BaseStateSample, stamp_ns, frame_id, child, values[:3],
+                              values[3:7], values[7:10], values[10:])
     return trusted_sample(BaseStateSample, stamp_ns, frame_id, child, values[:3],
-                          values[3:7], values[7:10], values[10:])
+                          values[3:7], values[7:10], values[10:], None, pose_cov, twist_cov)
 
 
 @_strict
@@ -481,6 +500,21 @@ def decode_pose_stamped(data: Buffer, child_frame_id: str = '') -> BaseStateSamp
     pose = np.frombuffer(data, _F8, 7, 4 + pos).copy()
     return trusted_sample(BaseStateSample, stamp_ns, frame_id, str(child_frame_id), pose[:3],
                           pose[3:], None, None)
+
+
+@_strict
+def decode_pose_with_covariance_stamped(data: Buffer,
+                                        child_frame_id: str = '') -> BaseStateSample:
+    """Decode geometry_msgs/msg/PoseWithCovarianceStamped like its ``*_from_ros``."""
+    _check_header(data)
+    stamp_ns, frame_id, pos = _stamp_frame(data)
+    pos = (pos + 7) & -8
+    # pose (7), covariance (36)
+    _check_end(data, pos + 43 * 8)
+    raw = np.frombuffer(data, _F8, 43, 4 + pos)
+    pose = raw[:7].copy()
+    return trusted_sample(BaseStateSample, stamp_ns, frame_id, str(child_frame_id), pose[:3],
+                          pose[3:], None, None, None, _covariance(data, raw, 4 + pos, 7), None)
 
 
 @_strict
@@ -500,6 +534,7 @@ DECODERS: dict[str, Callable[..., Any]] = {
     'sensor_msgs/msg/JointState': decode_joint_state,
     'nav_msgs/msg/Odometry': decode_odometry,
     'geometry_msgs/msg/PoseStamped': decode_pose_stamped,
+    'geometry_msgs/msg/PoseWithCovarianceStamped': decode_pose_with_covariance_stamped,
 }
 
 _REFERENCE_HASHES: dict[str, str] = {}

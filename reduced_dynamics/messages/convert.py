@@ -35,6 +35,7 @@ from reduced_dynamics.messages.samples import (
     DiagnosticStatusSample,
     JointStateSample,
     JointTrajectorySample,
+    message_covariance,
     PosePath,
     ShapePrediction,
     TwistSample,
@@ -156,6 +157,8 @@ def odometry_from_ros(msg: Any) -> BaseStateSample:
         orientation_xyzw=xyzw_from_ros(msg.pose.pose.orientation),
         twist_linear=xyz_from_ros(twist.linear),
         twist_angular=xyz_from_ros(twist.angular),
+        pose_covariance=message_covariance(_floats(msg.pose.covariance)),
+        twist_covariance=message_covariance(_floats(msg.twist.covariance)),
     )
 
 
@@ -168,6 +171,34 @@ def pose_stamped_from_ros(msg: Any, child_frame_id: str = '') -> BaseStateSample
         child_frame_id=child_frame_id,
         position=xyz_from_ros(msg.pose.position),
         orientation_xyzw=xyzw_from_ros(msg.pose.orientation),
+    )
+
+
+def pose_with_covariance_stamped_from_ros(msg: Any, child_frame_id: str = '') -> BaseStateSample:
+    """Convert geometry_msgs/msg/PoseWithCovarianceStamped (no twist; covariance kept)."""
+    stamp_ns, frame_id = header_from_ros(msg.header)
+    return BaseStateSample(
+        stamp_ns=stamp_ns,
+        frame_id=frame_id,
+        child_frame_id=child_frame_id,
+        position=xyz_from_ros(msg.pose.pose.position),
+        orientation_xyzw=xyzw_from_ros(msg.pose.pose.orientation),
+        pose_covariance=message_covariance(_floats(msg.pose.covariance)),
+    )
+
+
+def base_state_to_pose_with_covariance_stamped(sample: BaseStateSample, types: MessageTypes,
+                                               covariance: Optional[ArrayLike] = None) -> Any:
+    """Build geometry_msgs/msg/PoseWithCovarianceStamped (covariance defaults to zeros)."""
+    return types.create(
+        'geometry_msgs/msg/PoseWithCovarianceStamped',
+        header=header_to_ros(sample.stamp_ns, sample.frame_id, types),
+        pose=types.create(
+            'geometry_msgs/msg/PoseWithCovariance',
+            pose=pose_to_ros(sample.position, sample.orientation_xyzw, types),
+            covariance=types.fixed_float_array(
+                np.zeros(36) if covariance is None else covariance, 36),
+        ),
     )
 
 

@@ -88,6 +88,16 @@ def with_receive_time(sample: object, receive_ns: Optional[int]) -> object:
     return sample
 
 
+def message_covariance(values: np.ndarray) -> Optional[np.ndarray]:
+    """
+    Return a copy of a message's 36 covariance values, None when all are zero.
+
+    All zeros is what a driver that fills no covariance sends (and what this
+    package wrote before it wrote covariances): no information, not certainty.
+    """
+    return values.copy() if values.any() else None
+
+
 def _times_from_start(value: object) -> np.ndarray:
     """Return trajectory point times [ns] as int64, checked >= 0 and strictly increasing."""
     times = np.asarray(value)
@@ -139,6 +149,10 @@ class BaseStateSample:
     (base) frame.  ``twist_linear``/``twist_angular`` are None when the
     source carries no twist (e.g. geometry_msgs/PoseStamped). ``receive_ns``:
     when the message arrived, None when unknown (as for joint states).
+    ``pose_covariance`` / ``twist_covariance``: the message's row-major 6 x 6
+    covariances (36 values, order x y z roll pitch yaw; the pose's in
+    ``frame_id``, the twist's in ``child_frame_id``, REP 103/105), None when the
+    message carries none or only zeros (:func:`message_covariance`).
     """
 
     stamp_ns: int
@@ -149,10 +163,17 @@ class BaseStateSample:
     twist_linear: Optional[np.ndarray] = None
     twist_angular: Optional[np.ndarray] = None
     receive_ns: Optional[int] = None
+    pose_covariance: Optional[np.ndarray] = None
+    twist_covariance: Optional[np.ndarray] = None
 
     def __post_init__(self) -> None:
         """Validate and normalize fields."""
         _validate_stamps(self)
+        for key in ('pose_covariance', 'twist_covariance'):
+            value = getattr(self, key)
+            if value is not None:
+                value = np.reshape(np.asarray(value, dtype=np.float64), -1)
+            object.__setattr__(self, key, _optional_array(value, (36,), key))
         object.__setattr__(self, 'position', _array(self.position, (3,), 'position'))
         object.__setattr__(
             self, 'orientation_xyzw', _array(self.orientation_xyzw, (4,), 'orientation_xyzw'))

@@ -399,6 +399,31 @@ def update(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
 
 
 @njit(cache=True)
+def update_noise(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
+                 measured: np.ndarray, with_twist: bool, inverse_locked: np.ndarray,
+                 connection_qd: np.ndarray, joint_cov: np.ndarray, r_pose: np.ndarray,
+                 twist_var: np.ndarray, gate: float, basis: np.ndarray, pinv: np.ndarray,
+                 whole: bool, form_rows: np.ndarray) -> tuple:
+    """
+    Return what :func:`update` does, with the pose noise R given as a full matrix.
+
+    For a sample that carries its own covariance (estimator/covariance.py): the
+    twist's goes in with ``joint_cov``, ``twist_var`` then zeros.
+    """
+    h, nu, r, s, solved, nis, logdet = innovation(
+        g, x, p, pose, measured, with_twist, inverse_locked, connection_qd, joint_cov, r_pose,
+        twist_var, basis, pinv, whole, form_rows)
+    dim = p.shape[0]
+    gain = solved[:, :dim].T.copy()
+    if nis > gate:
+        return False, nis, logdet, nu, r, g, x, p, h, s, gain
+    g1, x1, p1, h1, s1, gain1 = correct(g, x, p, pose, measured, with_twist, h, nu, r, gain,
+                                        inverse_locked, connection_qd, basis, pinv, whole,
+                                        form_rows)
+    return True, nis, logdet, nu, r, g1, x1, p1, h1, s1, gain1
+
+
+@njit(cache=True)
 def gain_of(p: np.ndarray, h: np.ndarray, r: np.ndarray) -> np.ndarray:
     """Return K = P H^T S^-1 with S = H P H^T + R symmetrised."""
     ph = p @ h.T

@@ -107,6 +107,10 @@ class Measurement(NamedTuple):
     #: (a re-timed frame time, estimator/retiming.py); None: ``pose_stamp`` (used only
     #: when ``pose_stamp`` > 0)
     stamp_sigma: Optional[float] = None
+    #: the sample's own noise (estimator/covariance.py ``MeasurementNoise``: pose and
+    #: twist covariances in the filter's coordinates, each None for the parameters);
+    #: None: the noise parameters
+    noise: Optional[tuple] = None
 
 
 @dataclass
