@@ -68,6 +68,7 @@ from reduced_dynamics.estimator import Estimator, EstimatorConfig, EstimatorOutp
 from reduced_dynamics.estimator.base_motion import answer_messages
 from reduced_dynamics.estimator.config import PARAMETERS as ESTIMATOR_PARAMETERS
 from reduced_dynamics.estimator.config import ParameterSpec
+from reduced_dynamics.estimator.core.warmup import warm_up
 from reduced_dynamics.messages import (
     cdr, command_from_ros, DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample,
     joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros,
@@ -574,6 +575,9 @@ class _Shell:
     # --- robot model ------------------------------------------------------------------
     def _configure(self) -> Optional[str]:
         """Load the robot model (and wait for the topic if none is given); return an error."""
+        # The compiled kernels load (or, after an install, compile) here, not in the
+        # callback of the first message, which would wait for them.
+        warm_up()
         description = self._value('robot_description')
         path = self._value('urdf_path')
         if description:

@@ -1170,3 +1170,26 @@ def test_shipped_example_plan_fits_the_default_request_budget(ros, node_factory,
         else:  # still capped: 4 x 0.5 s per 2 s of plan, 10 s for this one
             assert status.level == bytes([2]) and 'wall-time budget exceeded (10 s' in \
                 status.message, status.message
+
+
+def test_the_compiled_kernels_are_loaded_before_the_first_message():
+    """A fresh process: configuring the node loads the filter's and step test's kernels."""
+    script = (
+        'import rclpy\n'
+        'from reduced_dynamics.estimator.core import kernels\n'
+        'from reduced_dynamics.estimator import step_kernels\n'
+        'from reduced_dynamics.node import ReducedDynamicsNode\n'
+        'rclpy.init()\n'
+        'node = ReducedDynamicsNode()\n'
+        'loaded = [f.__name__ for f in (kernels.propagate, kernels.update,\n'
+        '                               step_kernels.absorb, step_kernels.evaluate)\n'
+        '          if f.signatures]\n'
+        'print(",".join(loaded))\n'
+        'node.destroy_node()\n'
+        'rclpy.try_shutdown()\n')
+    done = subprocess.run([sys.executable, '-c', script], capture_output=True, text=True,
+                          timeout=600, env=dict(os.environ, PYTHONPATH=os.pathsep.join(
+                              [str(Path(__file__).resolve().parent.parent)]
+                              + [p for p in [os.environ.get('PYTHONPATH')] if p])))
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split()[-1] == 'propagate,update,absorb,evaluate', done.stdout

@@ -57,6 +57,21 @@ def warm_up() -> None:
                         lin.connection_qd, flt._basis, flt._pinv, flt._whole, flt._form_rows)
         kernels.compensate(flt._g, flt.x, flt.p, np.zeros(flt.dim), np.zeros_like(flt.p),
                            flt._basis, flt._whole)
+    # The wrench step test's kernels (estimator/step_kernels.py): a few onsets opened,
+    # folded, absorbed and evaluated (twist and pose-only measurement sizes).
+    from reduced_dynamics.estimator.step_test import WrenchStepTest
+    for name in ('SE(3)', 'SE(2)'):
+        n = SUBGROUPS[name].dim
+        dim = 3 * n
+        test = WrenchStepTest(n, 1e-6, dim)
+        transition = np.eye(dim)
+        transition[:n, n:2 * n] = 0.01 * np.eye(n)
+        for k in range(8):
+            test.propagate(k * 30_000_000, transition)
+            m = n if k % 2 else 2 * n
+            h = np.zeros((m, dim))
+            h[:, :m] = np.eye(m)
+            test.update(h, np.eye(m), 0.1 * h.T, np.full(m, 1e-3))
     # The re-timer's window fit (core/envelope.py): the strided columns it is given (a
     # window of one point is contiguous: another signature).
     from reduced_dynamics.estimator.core import envelope
