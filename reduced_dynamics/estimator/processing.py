@@ -139,7 +139,8 @@ class ChunkProcessing:
                 rate[k], w_cov[k] = flt.total_wrench()
                 disturbance[k] = peak = flt.wrench
             detector.update(stamp, mu[k], math.sqrt(float(peak @ peak)),
-                            flt.wrench_significance(), flt.step_detected is not None)
+                            flt.wrench_significance(), flt.step_detected is not None,
+                            mu_cov[k])
             poses.append(g)
             quiet.append(not detector.in_event)
         # Drift twist I^-1 pi, stacked (the same kernel per row, whatever the chunk).

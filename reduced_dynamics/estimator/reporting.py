@@ -155,6 +155,9 @@ class Reporting:
                      f'{v:.3g}' for v in np.sqrt(np.diag(flt.p)[n:2 * n])),
                  'wrench_significance': f'{flt.wrench_significance():.4g}',
                  'event_threshold': f'{self.detector.start_threshold:.4g}',
+                 'event_window_threshold': f'{self.detector.multiscale.threshold:.4g}',
+                 'event_window_statistic':
+                 f'{float(self.detector.multiscale.statistics.max()):.4g}',
                  'innovation_gated': str(flt.gated),
                  'pose_offsets': str(flt.pose_offsets),
                  'events': str(len(self.detector.events)),
@@ -278,7 +281,10 @@ class Reporting:
                         'end_s': None if e.end_ns is None else (e.end_ns - origin) * 1e-9,
                         'start_stamp_ns': e.start_ns,
                         'impulse': None if e.impulse is None else e.impulse.tolist(),
-                        'peak_wrench': e.peak_wrench} for e in self.events],
+                        'peak_wrench': e.peak_wrench,
+                        'impulse_cov': None if e.impulse_cov is None
+                        else e.impulse_cov.tolist(),
+                        'window_s': e.window} for e in self.events],
             'predictions': self.predictor.made,
             'prediction_failures': dict(failures),
             'filter': self.filter_statistics(),

@@ -219,7 +219,7 @@ class Timing:
             setattr(self.filter, name, getattr(old, name))
         events = self.detector.events
         self.detector = EventDetector(self.robot.n, config.event_significance,
-                                      config.event_hold)
+                                      config.event_hold, config.event_false_alarm_rate)
         self.detector.events = events
         self.clock_resets += 1
         self.last_reset = reason
