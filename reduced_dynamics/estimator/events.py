@@ -71,6 +71,8 @@ class MomentumEvent:
     #: covariances of mu_before and mu_after (None: not given to the detector)
     cov_before: Optional[np.ndarray] = None
     cov_after: Optional[np.ndarray] = None
+    #: when it was detected (start_ns: where the multi-scale test dates its start)
+    detected_ns: Optional[int] = None
 
     @property
     def impulse_cov(self) -> Optional[np.ndarray]:
@@ -156,6 +158,7 @@ class EventDetector:
                 before = self._quiet_mu if self._quiet_mu is not None else mu
                 cov = self._quiet_cov if self._quiet_mu is not None else mu_cov
                 self.events.append(MomentumEvent(stamp_ns, mu_before=before.copy(),
+                                                 detected_ns=stamp_ns,
                                                  peak_wrench=wrench_norm,
                                                  peak_significance=significance,
                                                  cov_before=None if cov is None
@@ -166,7 +169,7 @@ class EventDetector:
                 self.events.append(MomentumEvent(
                     pulse.start_ns, mu_before=pulse.mu_before, peak_wrench=wrench_norm,
                     peak_significance=significance, window=pulse.window,
-                    cov_before=pulse.cov_before))
+                    cov_before=pulse.cov_before, detected_ns=stamp_ns))
                 self._quiet_since = None
             elif significance < self.rest_threshold:
                 self._quiet_mu = mu

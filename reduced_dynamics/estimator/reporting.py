@@ -280,6 +280,7 @@ class Reporting:
             'events': [{'start_s': (e.start_ns - origin) * 1e-9,
                         'end_s': None if e.end_ns is None else (e.end_ns - origin) * 1e-9,
                         'start_stamp_ns': e.start_ns,
+                        'detected_stamp_ns': e.detected_ns,
                         'impulse': None if e.impulse is None else e.impulse.tolist(),
                         'peak_wrench': e.peak_wrench,
                         'impulse_cov': None if e.impulse_cov is None
