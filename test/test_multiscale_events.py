@@ -100,3 +100,18 @@ def test_a_light_push_on_a_small_free_flyer_with_a_moving_arm(tmp_path):
     # causal momentum's own noise: 14-17 % of this impulse, not the 10 % asked).
     assert np.all(np.abs(impulse - true) <= 3.0 * sigma)
     assert event['window_s'] is not None
+
+
+def test_the_last_event_is_in_the_diagnostics():
+    from reduced_dynamics.estimator.events import EventDetector
+    from reduced_dynamics.estimator.reporting import _last_event
+    detector = EventDetector(3, 1e-6, 0.1, 1.0)
+    cov = np.eye(3) * 1e-4
+    for k in range(600):
+        mu = np.array([0.1 * max(0, min(k - 200, 100)) * 0.01, 0.0, 0.0])
+        detector.update(k * 10_000_000, mu, 0.0, 0.0, False, cov)
+    (event,) = detector.events
+    fields = _last_event(detector.events)
+    assert event.window is not None and fields['last_event_window'] == f'{event.window:.3g}'
+    assert float(fields['last_event_impulse'].split()[0]) == pytest.approx(0.1, abs=0.01)
+    assert fields['last_event_impulse_sigma'].split()[0] == f'{np.sqrt(2e-4):.3g}'

@@ -161,6 +161,7 @@ class Reporting:
                  'innovation_gated': str(flt.gated),
                  'pose_offsets': str(flt.pose_offsets),
                  'events': str(len(self.detector.events)),
+                 **_last_event(self.detector.events),
 
                  'kinetic_plus_potential_energy': f'{self._last_energy:.9g}',
                  **self._cyclic_diagnostics()}))
@@ -298,6 +299,23 @@ class Reporting:
             'prediction_residuals': _residuals_by_mode(finished),
             'trajectories_received': self.trajectories_received,
         }
+
+
+def _last_event(events: list[MomentumEvent]) -> dict[str, str]:
+    """Return the last event's start, end, impulse, its sigma and window (diagnostics)."""
+    if not events:
+        return {}
+    event = events[-1]
+    impulse, cov = event.impulse, event.impulse_cov
+    return {'last_event_start_ns': str(event.start_ns),
+            'last_event_end_ns': 'under way' if event.end_ns is None else str(event.end_ns),
+            'last_event_impulse': 'n/a' if impulse is None
+            else ' '.join(f'{v:.6g}' for v in impulse),
+            'last_event_impulse_sigma': 'n/a' if cov is None
+            else ' '.join(f'{v:.3g}' for v in np.sqrt(np.diag(cov))),
+            'last_event_peak_wrench': f'{event.peak_wrench:.6g}',
+            'last_event_window': 'per-sample' if event.window is None
+            else f'{event.window:.3g}'}
 
 
 def _axis_names(group) -> list[str]:
