@@ -93,7 +93,7 @@ def _bound(name: str, robot, duration: float) -> float:
 
 def _simulate(name: str, path: Path, seconds: float, seed: int, pushes: list) -> dict:
     spec = ROBOTS[name]
-    truth = path.with_suffix('.json')
+    truth = path.parent / f'{path.name}.json'
     args = ['simulate', '-o', str(path), '--overwrite', '--summary', str(truth),
             '--duration', f'{seconds:g}', '--rate', f"{spec['rate']:g}", '--seed', str(seed),
             '--momentum-class', 'zero', *spec['simulate']]
