@@ -71,7 +71,7 @@ class MomentumEvent:
     #: covariances of mu_before and mu_after (None: not given to the detector)
     cov_before: Optional[np.ndarray] = None
     cov_after: Optional[np.ndarray] = None
-    #: when it was detected (start_ns: where the multi-scale test dates its start)
+    #: when it was detected (the start is where the multi-scale test dates it)
     detected_ns: Optional[int] = None
 
     @property
