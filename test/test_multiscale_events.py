@@ -115,3 +115,37 @@ def test_the_last_event_is_in_the_diagnostics():
     assert event.window is not None and fields['last_event_window'] == f'{event.window:.3g}'
     assert float(fields['last_event_impulse'].split()[0]) == pytest.approx(0.1, abs=0.01)
     assert fields['last_event_impulse_sigma'].split()[0] == f'{np.sqrt(2e-4):.3g}'
+
+
+def test_a_short_pulse_on_a_29_joint_tree_whose_joints_move(tmp_path):
+    """
+    The issue's second case, scaled: a 20 N, 0.3 s pulse on a 29-joint random tree.
+
+    500 Hz, pose 1 mm / 1 mrad, velocities 0.01, joints under PD tracking. Measured:
+    one event, dated 5.036 s for a pulse at 5 s, detected at 5.206 s (window 2.9 s);
+    none before. Its impulse is 0.75 / -5.48 / -4.76 N s against 0.57 / -5.21 / -2.92
+    (the vertical component 1.8 N s off: not within the issue's 10 %).
+    """
+    from reduced_dynamics.robot.random_tree import random_tree_urdf
+    urdf = tmp_path / 'tree.urdf'
+    urdf.write_text(random_tree_urdf(29, seed=3, prismatic=False))
+    bag, truth = tmp_path / 'bag', tmp_path / 'truth.json'
+    assert cli_main(['simulate', '-o', str(bag), '--summary', str(truth), '--urdf', str(urdf),
+                     '--duration', '10', '--rate', '500', '--seed', '4', '--torque', 'pd',
+                     '--momentum-class', 'zero', '--thruster', '5,0.3,20,0,0,0,0,0',
+                     '--noise-position', '1e-4', '--noise-velocity', '0.01',
+                     '--noise-pose', '0.001', '--noise-orientation', '0.001',
+                     '--noise-twist', '0.01']) == 0
+    params = tmp_path / 'params.yaml'
+    params.write_text(yaml.safe_dump({'/**/reduced_dynamics': {'ros__parameters': {
+        'pose_position_noise': 1e-3, 'pose_angle_noise': 1e-3, 'twist_linear_noise': 0.01,
+        'twist_angular_noise': 0.01, 'joint_velocity_noise': 0.01}}}))
+    summary_file = tmp_path / 'summary.json'
+    assert cli_main(['replay', str(bag), '-o', str(tmp_path / 'out'), '--quiet',
+                     '--no-smooth', '--params', str(params), '--summary-json',
+                     str(summary_file), '--urdf', str(urdf)]) == 0
+    summary = json.loads(summary_file.read_text())
+    origin = json.loads(truth.read_text())['start_time_ns']
+    (event,) = summary['events']
+    assert abs((event['start_stamp_ns'] - origin) * 1e-9 - 5.0) <= 0.5
+    assert 0.0 <= (event['detected_stamp_ns'] - origin) * 1e-9 - 5.0 <= 0.5
