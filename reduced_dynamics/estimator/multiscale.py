@@ -30,7 +30,7 @@ test (:mod:`.step_test`) weighs a step against the random walk, which explains
 a slow push almost as well (docs/multiscale_events.md).
 
 Windows form a geometric bank from ``shortest`` to ``longest`` (0.05-3 s, ratio
-1.5: 11 windows). The user's false-alarm rate R per hour is spread over the
+1.5, and 3 s itself: 12 windows). The user's false-alarm rate R per hour is spread over the
 windows and the updates (union bound): each T_L at an update dt after the last
 is compared with the chi2_n quantile of ``R dt / 3600 / windows``. That is
 conservative twice (the bound; V_L above the true variance), which the measured
