@@ -528,6 +528,50 @@ def bench_step_test(report: Report, robot, settings: Settings) -> None:
         note='same detections (test_step_test.py)'))
 
 
+def bench_multiscale(report: Report, robot, settings: Settings) -> None:
+    """
+    Time the multi-scale event test alone (docs/multiscale_events.md) and its share.
+
+    The test is fed the (stamp, mu, P_mu) one streaming run gave it (1 kHz, every
+    window covered after 3 s); the share is against the streaming update in the same
+    repeats.
+    """
+    from reduced_dynamics.estimator import events as events_module
+    from reduced_dynamics.estimator.multiscale import LONGEST, MultiScaleTest
+    calls: list = []
+
+    class Recording(MultiScaleTest):
+        def update(self, stamp_ns, mu, cov):
+            calls.append((stamp_ns, mu.copy(), cov.copy()))
+            return super().update(stamp_ns, mu, cov)
+
+    samples = max(settings.step_test_samples, int(LONGEST * 1000) + 1000)
+    joints, bases = update_samples(robot, samples)
+    original = events_module.MultiScaleTest
+    events_module.MultiScaleTest = Recording
+    try:
+        time_update(robot, joints, bases, warmup=1)
+    finally:
+        events_module.MultiScaleTest = original
+    full = int(LONGEST * 1000) + 10
+    alone, updates = [], []
+    for _ in range(settings.repeats):
+        test = MultiScaleTest(robot.n, 1.0)
+        start = 0.0
+        for k, (stamp, mu, cov) in enumerate(calls):
+            if k == full:
+                start = time.perf_counter()
+            test.update(stamp, mu, cov)
+        alone.append((time.perf_counter() - start) / max(len(calls) - full, 1))
+        updates.append(time_update(robot, joints, bases, warmup=full))
+    report.add(make_figure(
+        'update', 'multi-scale event test (paper robot)', 'us/sample',
+        [1e6 * t for t in alone], 'estimator update with it', [1e6 * u for u in updates],
+        [t / u for t, u in zip(alone, updates)],
+        note='the test alone on one run\'s recorded calls, every window covered; ratio: '
+             'its share of a streaming update (1 kHz pose + twist)'))
+
+
 # --------------------------------------------------------------------------- 2. prediction
 def _timed(run: Callable[[], Any], repeats: int) -> tuple[Any, list]:
     result, times = None, []
@@ -1367,6 +1411,7 @@ def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
         say('update...')
         bench_update(report, robot, settings)
         bench_step_test(report, robot, settings)
+        bench_multiscale(report, robot, settings)
     if 'prediction' in sections:
         say('prediction...')
         bench_prediction(report, robot, settings)

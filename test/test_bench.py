@@ -62,6 +62,7 @@ def test_bench_sections_tiny(tmp_path):
     first_call = [f for f in report.figures if f.name == 'filter kernels: first call, cached']
     assert first_call and 0.0 < first_call[0].median < 600.0
     assert 'wrench step test, anchored vs explicit (paper robot)' in names
+    assert 'multi-scale event test (paper robot)' in names
     assert any(n.startswith('reduced dop853') for n in names)
     assert any(n.startswith('reduced discrete_gradient') for n in names)
     assert 'replay throughput (prediction off)' in names

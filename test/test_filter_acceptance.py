@@ -190,7 +190,9 @@ def test_command_twin_of_a_real_bag_correlates_near_one(tmp_path, path):
         out = str(tmp_path / f'out{smooth}')
         summary = replay(twin, out, robot, ReplayOptions(
             params=defaults(), base_pose_topic='/vrpn_mocap/robot/pose', smooth=smooth))
-        assert summary['events'] == [] and summary['filter']['steps_taken'] == 0
+        # The twin's body is pushed (by the command, not given to the filter here): the
+        # multi-scale test flags those pushes as events; no wrench step is taken.
+        assert summary['filter']['steps_taken'] == 0
         correlations[smooth] = thrust_correlation(bag, out, poses_bag=twin)
     # Measured smoothed 0.995/0.994/0.993 and 0.998/0.998/0.997; causal 0.922/0.916/0.826
     # and 0.991/0.985/0.975 (the trajectory bag's 8 Hz commands switch whole thrusters).

@@ -136,6 +136,11 @@ PARAMETERS: dict[str, ParameterSpec] = {
         'quantile, or the GLR statistic of a wrench step on the innovations above it (the '
         'step is then taken at once); a thruster/contact event starts on either '
         '(dimensionless, the same at any mass; 0: no events)'),
+    'event_false_alarm_rate': ParameterSpec(
+        1.0, 0.0, 3600.0, (),
+        'false alarms per hour of the multi-scale event test (the filtered momentum\'s '
+        'change over windows of 0.05-3 s against no wrench; its per-window, per-update '
+        'significance is derived from it and the update rate; 0: off)'),
     'event_hold': ParameterSpec(0.1, 0.0, 10.0, (),
                                 'quiet time [s] with w consistent with zero (chi-square '
                                 'below its 99 % quantile) before an event ends and the model '
@@ -243,6 +248,7 @@ class EstimatorConfig:
     command_acceleration_bound: float = PARAMETERS['command_acceleration_bound'].default
     innovation_gate: float = PARAMETERS['innovation_gate'].default
     event_significance: float = PARAMETERS['event_significance'].default
+    event_false_alarm_rate: float = PARAMETERS['event_false_alarm_rate'].default
     event_hold: float = PARAMETERS['event_hold'].default
     smoothing_lag: float = PARAMETERS['smoothing_lag'].default
     prediction_rate: float = PARAMETERS['prediction_rate'].default

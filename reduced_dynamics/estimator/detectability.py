@@ -72,3 +72,22 @@ def detection_bound(acceleration: Sequence[float], rate: float, pose_sigma: Sequ
                 >= threshold:
             return k / rate
     return math.inf
+
+
+def impulse_bound(acceleration: Sequence[float], duration: float, rate: float,
+                  pose_sigma: Sequence[float],
+                  twist_sigma: Optional[Sequence[float]] = None,
+                  significance: float = 1e-6) -> float:
+    """
+    Return the smallest scale c of ``acceleration`` a push of ``duration`` s needs to be flagged.
+
+    The bound above turned around: a constant body acceleration c a over the push
+    carries lambda(duration) = c^2 lambda_1(duration) by its end, which reaches the
+    chi2_n quantile at c = sqrt(quantile / lambda_1). The push's velocity change is
+    then c a duration (times the inertia: the impulse). A test that also reads the
+    samples after the push (the multi-scale test's longer windows) can flag less.
+    """
+    unit = step_information(acceleration, duration, rate, pose_sigma, twist_sigma)
+    if unit <= 0.0:
+        return math.inf
+    return math.sqrt(float(chi2.isf(significance, len(acceleration))) / unit)

@@ -28,6 +28,13 @@ w alone lags. :class:`~reduced_dynamics.estimator.step_test.WrenchStepTest`, a
 generalised-likelihood-ratio test of a *step* in w on the filter's own
 innovations (Willsky & Jones 1976; docs/step_test.md), flags it at once; a
 step it finds starts an event as s above its threshold does.
+
+Neither sees a weak push of a second or more: the step test weighs a step
+against the filter's random walk, which explains a slow push almost as well.
+:class:`~reduced_dynamics.estimator.multiscale.MultiScaleTest` tests the
+filtered momentum's change over windows of 0.05-3 s against no wrench at the
+user's false-alarm rate per hour (``event_false_alarm_rate``); a window it finds
+starts an event at the window's start (docs/multiscale_events.md).
 """
 
 from __future__ import annotations
@@ -37,6 +44,7 @@ from typing import Optional
 
 import numpy as np
 from reduced_dynamics.chi_square import chi2
+from reduced_dynamics.estimator.multiscale import MultiScaleTest
 
 # The step test's names stay importable from here (filter.py and older callers).
 from reduced_dynamics.estimator.step_test import StepDetection, WrenchStepTest
@@ -57,6 +65,25 @@ class MomentumEvent:
     mu_after: Optional[np.ndarray] = None
     peak_wrench: float = 0.0
     peak_significance: float = 0.0
+    #: the window [s] of the multi-scale test that detected it (None: the per-sample
+    #: chi-square or the step test)
+    window: Optional[float] = None
+    #: covariances of mu_before and mu_after (None: not given to the detector)
+    cov_before: Optional[np.ndarray] = None
+    cov_after: Optional[np.ndarray] = None
+    #: when it was detected (the start is where the multi-scale test dates it)
+    detected_ns: Optional[int] = None
+
+    @property
+    def impulse_cov(self) -> Optional[np.ndarray]:
+        """
+        Return the impulse's covariance, P_mu before + P_mu after.
+
+        An upper bound: the two estimates' errors are positively correlated.
+        """
+        if self.cov_before is None or self.cov_after is None or self.impulse is None:
+            return None
+        return self.cov_before + self.cov_after
 
     @property
     def impulse(self) -> Optional[np.ndarray]:
@@ -73,13 +100,18 @@ class EventDetector:
     dim: int
     significance: float
     hold: float
+    #: false alarms per hour of the multi-scale test (0: off)
+    false_alarm_rate: float = 0.0
     events: list[MomentumEvent] = field(default_factory=list)
     _quiet_mu: Optional[np.ndarray] = None
     _quiet_since: Optional[int] = None
     _changed: bool = False
+    _quiet_cov: Optional[np.ndarray] = None
 
     def __post_init__(self) -> None:
         """Set the start and end thresholds from the chi-square quantiles."""
+        self.multiscale = MultiScaleTest(self.dim, self.false_alarm_rate
+                                         if self.significance > 0.0 else 0.0)
         self.start_threshold = float(chi2.isf(self.significance, self.dim))
         self.end_threshold = float(chi2.isf(0.01, self.dim))
         # Below the median w is indistinguishable from zero: mu there is "before".
@@ -96,13 +128,16 @@ class EventDetector:
         return changed
 
     def update(self, stamp_ns: int, mu: np.ndarray, wrench_norm: float,
-               significance: float, step: bool = False) -> None:
+               significance: float, step: bool = False,
+               mu_cov: Optional[np.ndarray] = None) -> None:
         """
         Feed one filtered sample: mu, |w|, s = w^T P_ww^-1 w, and a GLR step (True: found).
 
         A step starts an event as s above its threshold does (the step test reacts
-        to a thruster switching on before the random-walk w has grown).
+        to a thruster switching on before the random-walk w has grown). ``mu_cov``:
+        P_mu, for the multi-scale test and the impulse's covariance (None: neither).
         """
+        pulse = None if mu_cov is None else self.multiscale.update(stamp_ns, mu, mu_cov)
         event = self.events[-1] if self.in_event else None
         if event is None and self.events and significance < self.end_threshold:
             last = self.events[-1]
@@ -110,6 +145,7 @@ class EventDetector:
                 # The filter's mu still converges after the wrench has gone: the
                 # impulse keeps following it for SETTLE seconds (or to the next event).
                 last.mu_after = mu.copy()
+                last.cov_after = None if mu_cov is None else mu_cov.copy()
         if event is None and step and self.events and \
                 (stamp_ns - self.events[-1].end_ns) * 1e-9 <= SETTLE:
             # A step while the filter settles after an event (the compensation of its
@@ -120,16 +156,32 @@ class EventDetector:
         if event is None:
             if significance > self.start_threshold or step:
                 before = self._quiet_mu if self._quiet_mu is not None else mu
+                cov = self._quiet_cov if self._quiet_mu is not None else mu_cov
                 self.events.append(MomentumEvent(stamp_ns, mu_before=before.copy(),
+                                                 detected_ns=stamp_ns,
                                                  peak_wrench=wrench_norm,
-                                                 peak_significance=significance))
+                                                 peak_significance=significance,
+                                                 cov_before=None if cov is None
+                                                 else cov.copy()))
+                self._quiet_since = None
+            elif pulse is not None:
+                # A pulse over the window: the event starts where the window does.
+                self.events.append(MomentumEvent(
+                    pulse.start_ns, mu_before=pulse.mu_before, peak_wrench=wrench_norm,
+                    peak_significance=significance, window=pulse.window,
+                    cov_before=pulse.cov_before, detected_ns=stamp_ns))
                 self._quiet_since = None
             elif significance < self.rest_threshold:
                 self._quiet_mu = mu
+                self._quiet_cov = mu_cov
             return
         event.peak_wrench = max(event.peak_wrench, wrench_norm)
         event.peak_significance = max(event.peak_significance, significance)
-        if significance >= self.end_threshold or step:
+        # A pulse found by its window goes on while the window of half its length
+        # still moves mu beyond the median (a slow push barely moves w's chi-square).
+        pushing = event.window is not None and self.multiscale.window_statistic(
+            event.window / 2) >= self.rest_threshold
+        if significance >= self.end_threshold or step or pushing:
             self._quiet_since = None
             return
         if self._quiet_since is None:
@@ -137,5 +189,9 @@ class EventDetector:
         if (stamp_ns - self._quiet_since) * 1e-9 >= self.hold:
             event.end_ns = stamp_ns
             event.mu_after = mu.copy()
+            event.cov_after = None if mu_cov is None else mu_cov.copy()
             self._quiet_mu = mu
+            self._quiet_cov = mu_cov
             self._changed = True
+            # No window of the multi-scale test reaches back into this event.
+            self.multiscale.reset(stamp_ns)

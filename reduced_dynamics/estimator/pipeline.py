@@ -263,7 +263,7 @@ class Estimator(InputIntake, Timing, ChunkProcessing, Reporting, Smoothing,
         self._attach_fixed_lag()
         old_detector = getattr(self, 'detector', None)
         self.detector = EventDetector(self.robot.n, config.event_significance,
-                                      config.event_hold)
+                                      config.event_hold, config.event_false_alarm_rate)
         if old_detector is not None:
             self.detector.events = old_detector.events
         old_predictor = getattr(self, 'predictor', None)

@@ -145,7 +145,9 @@ class ChunkProcessing:
                 rate[k], w_cov[k] = flt.total_wrench()
                 disturbance[k] = peak = flt.wrench
             detector.update(stamp, mu[k], math.sqrt(float(peak @ peak)),
-                            flt.wrench_significance(), flt.step_detected is not None)
+                            flt.wrench_significance(), flt.step_detected is not None,
+                            # mu moves by the commanded impulses too: no window test.
+                            mu_cov[k] if disturbance is None else None)
             poses.append(g)
             quiet.append(not detector.in_event)
         # Drift twist I^-1 pi, stacked (the same kernel per row, whatever the chunk).

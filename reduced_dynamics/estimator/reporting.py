@@ -174,9 +174,13 @@ class Reporting:
                      f'{v:.3g}' for v in np.sqrt(np.diag(flt.p)[n:2 * n])),
                  'wrench_significance': f'{flt.wrench_significance():.4g}',
                  'event_threshold': f'{self.detector.start_threshold:.4g}',
+                 'event_window_threshold': f'{self.detector.multiscale.threshold:.4g}',
+                 'event_window_statistic':
+                 f'{float(self.detector.multiscale.statistics.max()):.4g}',
                  'innovation_gated': str(flt.gated),
                  'pose_offsets': str(flt.pose_offsets),
                  'events': str(len(self.detector.events)),
+                 **_last_event(self.detector.events),
 
                  'kinetic_plus_potential_energy': f'{self._last_energy:.9g}',
                  **self._cyclic_diagnostics()}))
@@ -301,8 +305,12 @@ class Reporting:
             'events': [{'start_s': (e.start_ns - origin) * 1e-9,
                         'end_s': None if e.end_ns is None else (e.end_ns - origin) * 1e-9,
                         'start_stamp_ns': e.start_ns,
+                        'detected_stamp_ns': e.detected_ns,
                         'impulse': None if e.impulse is None else e.impulse.tolist(),
-                        'peak_wrench': e.peak_wrench} for e in self.events],
+                        'peak_wrench': e.peak_wrench,
+                        'impulse_cov': None if e.impulse_cov is None
+                        else e.impulse_cov.tolist(),
+                        'window_s': e.window} for e in self.events],
             'predictions': self.predictor.made,
             'prediction_failures': dict(failures),
             'filter': self.filter_statistics(),
@@ -315,6 +323,23 @@ class Reporting:
             'prediction_residuals': _residuals_by_mode(finished),
             'trajectories_received': self.trajectories_received,
         }
+
+
+def _last_event(events: list[MomentumEvent]) -> dict[str, str]:
+    """Return the last event's start, end, impulse, its sigma and window (diagnostics)."""
+    if not events:
+        return {}
+    event = events[-1]
+    impulse, cov = event.impulse, event.impulse_cov
+    return {'last_event_start_ns': str(event.start_ns),
+            'last_event_end_ns': 'under way' if event.end_ns is None else str(event.end_ns),
+            'last_event_impulse': 'n/a' if impulse is None
+            else ' '.join(f'{v:.6g}' for v in impulse),
+            'last_event_impulse_sigma': 'n/a' if cov is None
+            else ' '.join(f'{v:.3g}' for v in np.sqrt(np.diag(cov))),
+            'last_event_peak_wrench': f'{event.peak_wrench:.6g}',
+            'last_event_window': 'per-sample' if event.window is None
+            else f'{event.window:.3g}'}
 
 
 def _axis_names(group) -> list[str]:

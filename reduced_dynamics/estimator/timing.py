@@ -220,7 +220,7 @@ class Timing:
         self.filter.record = old.record  # the fixed-lag smoother's steps too
         events = self.detector.events
         self.detector = EventDetector(self.robot.n, config.event_significance,
-                                      config.event_hold)
+                                      config.event_hold, config.event_false_alarm_rate)
         self.detector.events = events
         self.clock_resets += 1
         self.last_reset = reason
