@@ -384,18 +384,9 @@ def update(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
     Return (accepted, nis, logdet, nu, R, g, x, P, H, S, K); when gated (NIS above
     ``gate``) the state is the prior's and H, S, K those of the innovation.
     """
-    r_pose = pose_noise(pose_var, stamp_twist, stamp_sigma)
-    h, nu, r, s, solved, nis, logdet = innovation(
-        g, x, p, pose, measured, with_twist, inverse_locked, connection_qd, joint_cov, r_pose,
-        twist_var, basis, pinv, whole, form_rows)
-    dim = p.shape[0]
-    gain = solved[:, :dim].T.copy()
-    if nis > gate:
-        return False, nis, logdet, nu, r, g, x, p, h, s, gain
-    g1, x1, p1, h1, s1, gain1 = correct(g, x, p, pose, measured, with_twist, h, nu, r, gain,
-                                        inverse_locked, connection_qd, basis, pinv, whole,
-                                        form_rows)
-    return True, nis, logdet, nu, r, g1, x1, p1, h1, s1, gain1
+    return update_noise(g, x, p, pose, measured, with_twist, inverse_locked, connection_qd,
+                        joint_cov, pose_noise(pose_var, stamp_twist, stamp_sigma), twist_var,
+                        gate, basis, pinv, whole, form_rows)
 
 
 @njit(cache=True)
