@@ -29,10 +29,18 @@ Covariances are symmetrised after every operation that could make them drift
 apart (propagation, Joseph-form update, a step's compensation).
 """
 
+import warnings
+
 import numpy as np
 from numba import njit
+from numba.core.errors import NumbaPerformanceWarning
 
 from reduced_dynamics.estimator.core.lie import adjoint, compose, group_exp, group_log, inverse
+
+# Printed once, when a kernel compiles after an install, about products of small strided
+# views (a few dozen elements): not worth a copy, and not for the user to act on.
+warnings.filterwarnings('ignore', message=".*'@' is faster on contiguous arrays",
+                        category=NumbaPerformanceWarning)
 
 #: Re-linearisations of an update with a twist (iterated EKF).
 ITERATIONS = 2
