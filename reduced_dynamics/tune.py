@@ -60,6 +60,10 @@ TWIST_PARAMETERS = ('twist_linear_noise', 'twist_angular_noise')
 PROCESS_SCAN = (0.01, 0.1, 1.0, 10.0)
 
 
+class _BudgetSpent(Exception):
+    """The optimiser asked for an evaluation beyond ``--max-evaluations``."""
+
+
 def load_inputs(bag: str, robot: RobotModel, options: ReplayOptions
                 ) -> tuple[list, bool, bool]:
     """Return the bag's decoded input samples, whether the base is Odometry, base-driven."""
@@ -123,11 +127,16 @@ def tune(robot: RobotModel, samples: Sequence, params: dict, is_odom: bool,
     highs = np.array([math.log10(PARAMETERS[n].high) for n in names])
     start = np.array([math.log10(max(float(params[n]), 1e-12)) for n in names])
     count = 0
+    best: list = [math.inf, start]  # lowest cost seen, where
 
     def cost(x: np.ndarray) -> float:
         nonlocal count
+        if count >= max_evaluations:
+            # One budget for the scan and the local search, whatever scipy's maxfev
+            # does (it asked for one more evaluation when the scan had spent it).
+            raise _BudgetSpent
         count += 1
-        x = np.clip(x, lows, highs)
+        given, x = x, np.clip(x, lows, highs)
         trial = dict(params, **{n: float(10.0 ** v) for n, v in zip(names, x)})
         try:
             value = evaluate(robot, samples, trial, is_odom, base_driven)['log_likelihood']
@@ -136,21 +145,27 @@ def tune(robot: RobotModel, samples: Sequence, params: dict, is_odom: bool,
         if progress is not None:
             progress(f'tune: evaluation {count}: log-likelihood {value:.6g} at '
                      + ', '.join(f'{n}={10.0 ** v:.3g}' for n, v in zip(names, x)))
-        return -value if math.isfinite(value) else math.inf
+        result = -value if math.isfinite(value) else math.inf
+        if result < best[0] or count == 1:
+            best[:] = [result, given]
+        return result
 
     before = evaluate(robot, samples, params, is_odom, base_driven)
     process = np.array([n in PROCESS_PARAMETERS for n in names])
-    if process.any():
-        # Pick the basin first: the process noise scaled together, the rest as given.
-        trials = [start + process * math.log10(factor) for factor in PROCESS_SCAN]
-        start = min(trials, key=cost)
-    result = minimize(cost, start, method='Nelder-Mead',
-                      options={'maxfev': max(max_evaluations - count, 1),
-                               'xatol': 0.02, 'fatol': 0.5,
-                               'initial_simplex': np.vstack([start] + [
-                                   start + 0.5 * np.eye(len(names))[i]
-                                   for i in range(len(names))])})
-    best = np.clip(result.x, lows, highs)
+    try:
+        if process.any():
+            # Pick the basin first: the process noise scaled together, the rest as given.
+            for factor in PROCESS_SCAN:
+                cost(start + process * math.log10(factor))
+            start = best[1]
+        minimize(cost, start, method='Nelder-Mead',
+                 options={'maxfev': max_evaluations, 'xatol': 0.02, 'fatol': 0.5,
+                          'initial_simplex': np.vstack([start] + [
+                              start + 0.5 * np.eye(len(names))[i]
+                              for i in range(len(names))])})
+    except _BudgetSpent:
+        pass
+    best = np.clip(best[1], lows, highs)
     values = {n: float(f'{10.0 ** v:.4g}') for n, v in zip(names, best)}
     after = evaluate(robot, samples, dict(params, **values), is_odom, base_driven)
     return {'values': values, 'before': before, 'after': after, 'evaluations': count}
