@@ -160,6 +160,10 @@ def _is_double(spec: ParameterSpec) -> bool:
     return isinstance(spec.default, float)
 
 
+def _is_double_array(spec: ParameterSpec) -> bool:
+    return isinstance(spec.default, list) and all(isinstance(v, float) for v in spec.default)
+
+
 def _coerced(name: str, value: Any) -> Any:
     """Return a value in the parameter's own type: an integer given for a double is a double."""
     spec = ALL_PARAMETERS.get(name)
@@ -168,6 +172,9 @@ def _coerced(name: str, value: Any) -> Any:
         if isinstance(value, bool) or not isinstance(value, _DOUBLE_TYPES):
             raise ValueError(f'{name} must be a number, got {value!r}')
         return float(value)
+    if spec is not None and _is_double_array(spec) and isinstance(value, list):
+        return [float(v) if isinstance(v, int) and not isinstance(v, bool) else v
+                for v in value]
     return value
 
 
@@ -264,6 +271,11 @@ def _as_double(parameter: 'Parameter') -> 'Parameter':
     spec = ALL_PARAMETERS.get(parameter.name)
     if spec is not None and _is_double(spec) and parameter.type_ == Parameter.Type.INTEGER:
         return Parameter(parameter.name, Parameter.Type.DOUBLE, float(parameter.value))
+    # The same for arrays: ``gravity: [0, 0, -10]`` in a params file is an INTEGER_ARRAY.
+    if spec is not None and _is_double_array(spec) and \
+            parameter.type_ == Parameter.Type.INTEGER_ARRAY:
+        return Parameter(parameter.name, Parameter.Type.DOUBLE_ARRAY,
+                         [float(v) for v in parameter.value])
     return parameter
 
 

@@ -36,3 +36,49 @@ def test_tune_makes_exactly_max_evaluations_filter_runs(tmp_path, capsys, budget
                 if line.startswith('tune: evaluation ')]
     assert len(progress) == budget
     assert f', {budget} evaluations' in out.read_text().splitlines()[0]
+
+
+@pytest.fixture
+def ros():
+    try:
+        from ros_harness import real_ros
+    except ImportError:  # test/ imported as a package
+        from test.ros_harness import real_ros
+    with real_ros() as backend:
+        yield backend
+
+
+def _gravity_file(tmp_path: Path) -> Path:
+    path = tmp_path / 'gravity.yaml'
+    path.write_text('/**:\n  ros__parameters:\n    base_joint: planar\n'
+                    '    gravity: [0, 0, -10]\n')
+    return path
+
+
+def test_integer_gravity_is_taken_as_doubles_by_the_node(ros, tmp_path):
+    """README: integers are accepted for doubles; the same for a list of doubles."""
+    from rclpy.parameter import Parameter
+    from reduced_dynamics.node import ReducedDynamicsNode
+    given = ReducedDynamicsNode(parameter_overrides=[
+        Parameter('gravity', value=[0, 0, -10]), Parameter('base_joint', value='planar')])
+    from_file = ReducedDynamicsNode(
+        cli_args=['--ros-args', '--params-file', str(_gravity_file(tmp_path))])
+    try:
+        for node in (given, from_file):
+            parameter = node.get_parameter('gravity')
+            assert parameter.type_ == Parameter.Type.DOUBLE_ARRAY
+            assert list(parameter.value) == [0.0, 0.0, -10.0]
+            assert node.model_error is None
+            assert node.estimator.robot.group.name == 'SE(2)'
+    finally:
+        given.destroy_node()
+        from_file.destroy_node()
+
+
+def test_integer_gravity_in_a_replay_params_file(tmp_path):
+    from reduced_dynamics.params import load_params_file
+    from reduced_dynamics.replay import load_robot_from_params
+    params = load_params_file(str(_gravity_file(tmp_path)))
+    robot = load_robot_from_params(params)
+    assert robot.group.name == 'SE(2)'
+    assert list(robot.gravity) == [0.0, 0.0, -10.0]
