@@ -77,8 +77,8 @@ from reduced_dynamics.messages import (
 from reduced_dynamics.messages.samples import with_receive_time
 from reduced_dynamics.params import ALL_PARAMETERS, check_any_parameter, RUNTIME_PARAMETERS
 from reduced_dynamics.robot.model import load_robot, ModelError
-from reduced_dynamics.topics import (DIAGNOSTICS_TOPIC, FIXED_LAG_TOPICS, NODE_NAME,
-                                     OUTPUT_TOPICS)
+from reduced_dynamics.topics import (active_topics, DIAGNOSTICS_TOPIC, FIXED_LAG_TOPICS,
+                                     NODE_NAME, OUTPUT_TOPICS)
 
 try:
     # rclpy first: if it is missing, ROS 2 is not sourced (rcl_interfaces comes with it).
@@ -444,6 +444,8 @@ class _Shell:
         self._suppressed: Counter = Counter()
         self._publishers_by_topic: dict[str, Any] = {}
         self._encoders: dict[str, Callable[[Any], bytes]] = {}
+        #: The outputs advertised (topics.active_topics of the features that are on).
+        self._output_topics = OUTPUT_TOPICS
         self._input_subscriptions: list = []
         #: (subscription, callback) of the sensor inputs, which _drain_inputs takes from
         self._sensor_inputs: list = []
@@ -741,7 +743,11 @@ class _Shell:
     def _activate(self) -> None:
         """Advertise the outputs, subscribe to the inputs, start the worker and the status."""
         overridable = QoSOverridingOptions.with_default_policies()
-        for topic in OUTPUT_TOPICS + FIXED_LAG_TOPICS:
+        # cyclic_joints and commanded_wrench_topic are read-only: a topic that can never
+        # carry a message is not advertised (a stack would wait on it).
+        self._output_topics = active_topics(bool(self._value('cyclic_joints')),
+                                            bool(self._value('commanded_wrench_topic')))
+        for topic in self._output_topics + FIXED_LAG_TOPICS:
             self._publishers_by_topic[topic.name] = self.create_publisher(
                 self._types.get(topic.msgtype),
                 topic.name if topic.name.startswith('/') else '~/' + topic.name,
@@ -1036,7 +1042,7 @@ class _Shell:
         publishers, encoders = self._publishers_by_topic, self._encoders
         if not publishers:
             return  # deactivated
-        for topic in OUTPUT_TOPICS:
+        for topic in self._output_topics:
             sample = getattr(output, topic.field)
             if sample is not None:
                 publishers[topic.name].publish(encoders[topic.name](sample))

@@ -82,3 +82,24 @@ def test_integer_gravity_in_a_replay_params_file(tmp_path):
     robot = load_robot_from_params(params)
     assert robot.group.name == 'SE(2)'
     assert list(robot.gravity) == [0.0, 0.0, -10.0]
+
+
+@pytest.mark.parametrize('cyclic, command', [(False, False), (True, False), (False, True),
+                                             (True, True)])
+def test_optional_outputs_are_advertised_only_when_their_feature_is_on(ros, cyclic, command):
+    from rclpy.parameter import Parameter
+    from reduced_dynamics.node import ReducedDynamicsNode
+    overrides = {'urdf_path': str(config_path('robots/paper_robot_wheels.urdf'))}
+    if cyclic:
+        overrides['cyclic_joints'] = 'auto'
+    if command:
+        overrides['commanded_wrench_topic'] = 'wrench_command'
+    node = ReducedDynamicsNode(
+        parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
+    try:
+        advertised = {pub.topic_name for pub in node.publishers}
+        assert ('/reduced_dynamics/cyclic_momenta' in advertised) == cyclic
+        assert ('/reduced_dynamics/drift/disturbance' in advertised) == command
+        assert '/reduced_dynamics/momentum' in advertised
+    finally:
+        node.destroy_node()

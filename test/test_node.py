@@ -360,7 +360,8 @@ def test_topic_names_and_qos(node_factory):
     from rclpy.qos import DurabilityPolicy
     from rclpy.qos import ReliabilityPolicy
     from reduced_dynamics.node import input_qos, INPUT_QOS_DEPTH
-    node = node_factory(namespace='robot', joint_states_topic='/arm/joint_states')
+    node = node_factory(namespace='robot', joint_states_topic='/arm/joint_states',
+                        cyclic_joints='auto', commanded_wrench_topic='command')
     publishers = {pub.topic_name: pub for pub in node.publishers}
     assert set(publishers) >= {'/robot/reduced_dynamics/' + t.name for t in OUTPUT_TOPICS
                                if t.name != DIAGNOSTICS_TOPIC} | {'/diagnostics'}
