@@ -114,6 +114,8 @@ ROS_NOT_SOURCED = ('reduced_dynamics_node: ROS 2 Jazzy is not sourced (rclpy not
                    'pip install ".[ros]"')
 #: Latched URDF topic (robot_state_publisher), relative to the node's namespace.
 ROBOT_DESCRIPTION_TOPIC = 'robot_description'
+#: Longest steady-time period [s] of the status while the node has no robot model.
+NO_MODEL_STATUS_PERIOD = 1.0
 #: Node-clock time between two log lines about the same kind of rejected input.
 LOG_THROTTLE_NS = 5_000_000_000
 OUTPUT_QOS_DEPTH = 10
@@ -651,6 +653,9 @@ class _Shell:
         self._nominal_robot, self.payload, self._payload_window = nominal, payload, window
         self._resets_seen = estimator.clock_resets
         self._robot_source = source
+        if self._model_error is not None and self._shell_active:
+            self._model_error = None
+            self._restart_watchdog()  # back to diagnostics_rate of node time
         self._model_error = None
         self.get_logger().info(
             f'robot {robot.model.name} from {source}'
@@ -1092,7 +1097,16 @@ class _Shell:
             self.destroy_timer(self._watchdog)
             self._watchdog = None
         rate = self._config.diagnostics_rate
-        if rate > 0.0:
+        if self._model_error is not None:
+            # No model: the ERROR status goes out on steady time, at least every
+            # NO_MODEL_STATUS_PERIOD (a diagnostic updater's period), even with
+            # diagnostics_rate 0 or use_sim_time without /clock (ROS time stands still).
+            from rclpy.clock import Clock, ClockType
+            period = min(1.0 / rate, NO_MODEL_STATUS_PERIOD) if rate > 0.0 \
+                else NO_MODEL_STATUS_PERIOD
+            self._watchdog = self.create_timer(period, self._on_watchdog,
+                                               clock=Clock(clock_type=ClockType.STEADY_TIME))
+        elif rate > 0.0:
             self._watchdog = self.create_timer(1.0 / rate, self._on_watchdog)
 
     def node_status(self) -> DiagnosticStatusSample:
