@@ -30,7 +30,8 @@ def test_tune_makes_exactly_max_evaluations_filter_runs(tmp_path, capsys, budget
     """1: part of the process-noise scan; 4: the scan alone; 7: the scan and Nelder-Mead."""
     out = tmp_path / 'tuned.yaml'
     assert main(['tune', str(PD_BAG), '-o', str(out), '--urdf',
-                 str(config_path('robots/freeflyer.urdf')), '--end', '4', '--base-pose-topic', '/vrpn_mocap/robot/pose',
+                 str(config_path('robots/freeflyer.urdf')), '--end', '4',
+                 '--base-pose-topic', '/vrpn_mocap/robot/pose',
                  '--max-evaluations', str(budget)]) == 0
     progress = [line for line in capsys.readouterr().err.splitlines()
                 if line.startswith('tune: evaluation ')]
