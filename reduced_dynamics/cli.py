@@ -16,7 +16,7 @@
 Command line: ``reduced-dynamics validate | symmetries | simulate | replay | ...``.
 
 Subcommands: validate, symmetries, simulate, replay, replay-many, predict, tune, bench,
-identify.
+identify, correlate.
 
 One subcommand per task; ``--help`` on each lists its options.
 """
@@ -108,6 +108,8 @@ LAZY_COMMANDS = {
                      'innovation likelihood)'),
     'bench': ('bench', 'benchmark the estimator, prediction, replay and scaling'),
     'identify': ('identify', 'identify a grasped payload\'s inertial parameters from a bag'),
+    'correlate': ('correlate', 'correlation and gain of the wrench estimate with a thruster '
+                               'command, per axis'),
 }
 
 

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 from bisect import bisect_right
 import struct
-from typing import NamedTuple, Optional
+from typing import NamedTuple, Optional, Sequence
 
 import numpy as np
 from scipy.signal import savgol_filter
@@ -136,6 +136,73 @@ def _held(stamps: list[int], source_stamps, values: np.ndarray) -> np.ndarray:
     return values[index]
 
 
+class CommandFit(NamedTuple):
+    """Per axis (world Fx, Fy; Mz about the centre of mass): correlation and linear fit."""
+
+    correlation: Correlation
+    #: Slope of the estimate against the command (delivered / commanded).
+    gain: tuple[float, float, float]
+    #: The estimate where the command is zero [N, N, N m].
+    bias: tuple[float, float, float]
+
+
+def commanded_world(bag: str, stamps: Sequence[int], pose_topic: str = POSE_TOPIC,
+                    poses_bag: Optional[str] = None,
+                    mapping: Optional[CommandMapping] = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Return the commanded (Fx, Fy, Mz) in the world frame at ``stamps``, and (x, y, yaw).
+
+    The command is held from its last message, its body force rotated by the pose
+    (of ``poses_bag``, default ``bag``) held from its last message.
+    """
+    command_stamps, commands = _commands(bag, mapping)
+    if not len(command_stamps):
+        raise ValueError(f'{bag}: no thruster command to correlate with')
+    pose_stamps, poses = _poses(poses_bag or bag, pose_topic)
+    if not pose_stamps:
+        raise ValueError(f'{poses_bag or bag}: no pose on {pose_topic}')
+    state = _held(list(stamps), pose_stamps, poses)
+    body = _held(list(stamps), command_stamps, commands)
+    c, s = np.cos(state[:, 2]), np.sin(state[:, 2])
+    return np.column_stack((c * body[:, 0] - s * body[:, 1],
+                            s * body[:, 0] + c * body[:, 1], body[:, 2])), state
+
+
+def about_centre_of_mass(estimate: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """Return (Fx, Fy, Tz about the origin) rows as (Fx, Fy, Tz about ``position``)."""
+    fx, fy, tz = estimate[:, 0], estimate[:, 1], estimate[:, 2]
+    # Torque about the centre of mass: about the origin minus r x F.
+    return np.column_stack((fx, fy, tz - (position[:, 0] * fy - position[:, 1] * fx)))
+
+
+def command_fit(bag: str, out_bag: str, pose_topic: str = POSE_TOPIC,
+                window: int = WINDOW, order: int = ORDER, poses_bag: Optional[str] = None,
+                mapping: Optional[CommandMapping] = None,
+                rate_topic: str = RATE_TOPIC) -> CommandFit:
+    """
+    Return the README's correlation and the gain of ``out_bag``'s estimate with the command.
+
+    The arguments are :func:`thrust_correlation`'s. The gain and bias are the
+    least-squares line estimate = gain * command + bias through the same smoothed
+    samples the correlation is taken over.
+    """
+    stamps, estimate = _estimates(out_bag, rate_topic)
+    if len(stamps) <= 2 * window:
+        raise ValueError(f'{out_bag}: {len(stamps)} wrench estimates on {rate_topic}, the '
+                         f'correlation needs more than {2 * window} (the smoothing window '
+                         'dropped at each end)')
+    commanded, state = commanded_world(bag, stamps, pose_topic, poses_bag, mapping)
+    about_com = about_centre_of_mass(estimate, state[:, :2])
+    smooth_est = savgol_filter(about_com, window, order, axis=0)[window:-window]
+    smooth_cmd = savgol_filter(commanded, window, order, axis=0)[window:-window]
+    values = [float(np.corrcoef(smooth_est[:, i], smooth_cmd[:, i])[0, 1]) for i in range(3)]
+    lines = [np.polyfit(smooth_cmd[:, i], smooth_est[:, i], 1) for i in range(3)]
+    return CommandFit(Correlation(*values, len(smooth_est)),
+                      tuple(float(line[0]) for line in lines),
+                      tuple(float(line[1]) for line in lines))
+
+
 def thrust_correlation(bag: str, out_bag: str, pose_topic: str = POSE_TOPIC,
                        window: int = WINDOW, order: int = ORDER,
                        poses_bag: Optional[str] = None,
@@ -149,27 +216,8 @@ def thrust_correlation(bag: str, out_bag: str, pose_topic: str = POSE_TOPIC,
     ``mapping``: the command message and thrusters (default freeflyer2's).
     ``rate_topic``: the estimate (e.g. the fixed-lag ``drift/momentum_rate_smoothed``).
     """
-    stamps, estimate = _estimates(out_bag, rate_topic)
-    if len(stamps) <= 2 * window:
-        raise ValueError(f'{out_bag}: {len(stamps)} wrench estimates, the correlation needs '
-                         f'more than {2 * window} (the smoothing window dropped at each end)')
-    command_stamps, commands = _commands(bag, mapping)
-    if not len(command_stamps):
-        raise ValueError(f'{bag}: no thruster command to correlate with')
-    pose_stamps, poses = _poses(poses_bag or bag, pose_topic)
-    state = _held(stamps, pose_stamps, poses)
-    x, y, yaw = state[:, 0], state[:, 1], state[:, 2]
-    body = _held(stamps, command_stamps, commands)
-    c, s = np.cos(yaw), np.sin(yaw)
-    commanded = np.column_stack((c * body[:, 0] - s * body[:, 1],
-                                 s * body[:, 0] + c * body[:, 1], body[:, 2]))
-    fx, fy, tz = estimate[:, 0], estimate[:, 1], estimate[:, 2]
-    # Torque about the centre of mass: about the origin minus r x F.
-    about_com = np.column_stack((fx, fy, tz - (x * fy - y * fx)))
-    smooth_est = savgol_filter(about_com, window, order, axis=0)[window:-window]
-    smooth_cmd = savgol_filter(commanded, window, order, axis=0)[window:-window]
-    values = [float(np.corrcoef(smooth_est[:, i], smooth_cmd[:, i])[0, 1]) for i in range(3)]
-    return Correlation(*values, len(smooth_est))
+    return command_fit(bag, out_bag, pose_topic, window, order, poses_bag, mapping,
+                       rate_topic).correlation
 
 
 def momentum_spread(out_bag: str) -> Optional[np.ndarray]:
