@@ -53,7 +53,8 @@ from reduced_dynamics.messages.samples import JointTrajectorySample, with_receiv
 from reduced_dynamics.messages.types import RosbagsTypes
 from reduced_dynamics.output_spool import OutputSpool, SMOOTHED_FIELDS
 from reduced_dynamics.params import defaults, load_params_file
-from reduced_dynamics.plot_marks import draw_marks, read_marks
+from reduced_dynamics.plot_marks import read_marks
+from reduced_dynamics.replay_plots import PlotInputs, write_plots
 from reduced_dynamics.robot.model import load_robot, RobotModel
 from reduced_dynamics.topics import active_topics, cdr_encoder, FIXED_LAG_TOPICS, resolved_name
 
@@ -101,6 +102,9 @@ class ReplayOptions:
     #: fixed-lag smoothing [s] as the node's smoothing_lag (0: off, the default here
     #: whatever the params say: a replay writes the fixed-lag topics only when asked)
     fixed_lag: float = 0.0
+    #: command mapping YAML of a thruster command drawn on the plots (default: the
+    #: shipped freeflyer2 one when the bag has its topic)
+    thruster_map: Optional[str] = None
 
 
 class _Series:
@@ -499,7 +503,8 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
         except (BagError, OSError, ValueError, AttributeError) as error:  # marks are optional
             marks = {'torque_steps': [], 'pulses': [], 'pulse_topic': None,
                      'error': str(error)}
-        summary['plots'] = write_plots(options.plots_dir, series, robot, marks)
+        summary['plots'] = write_plots(options.plots_dir, series, robot, marks, PlotInputs(
+            str(bag_path), base_topic, command_topic, options.thruster_map))
         t0 = series['mu'].rows[0][0] if series['mu'].rows else 0
         summary['plot_marks'] = {
             'torque_steps_s': [round((s - t0) * 1e-9, 6) for s in marks['torque_steps']],
@@ -571,92 +576,6 @@ def damage_report(reader: BagReader, topics: list[str], read: Counter,
         'missing_vs_index': missing,
         'extra_vs_index': extra,
     }
-
-
-def write_plots(directory: str, series: dict, robot: RobotModel,
-                marks: Optional[dict] = None) -> list[str]:
-    """
-    Write PNG plots of mu, drift, shape state and prediction residual; return paths.
-
-    ``marks`` (:func:`reduced_dynamics.plot_marks.read_marks`): thruster pulses are
-    shaded and joint-torque changes drawn on every plot.
-    """
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    os.makedirs(directory, exist_ok=True)
-    paths = []
-
-    def save(fig, name: str) -> None:
-        path = os.path.join(directory, name)
-        fig.tight_layout()
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-        paths.append(path)
-
-    marks = marks or {}
-    mu_rows = series['mu'].rows
-    t0 = mu_rows[0][0] if mu_rows else 0
-
-    def wrench_plot(rows: np.ndarray, names: tuple, units: tuple, title: str,
-                    file: str) -> None:
-        # rows: stamp then six (force-like, torque-like) columns, world frame.
-        t = (rows[:, 0] - t0) * 1e-9
-        fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
-        for half, ax in enumerate(axes):
-            draw_marks(ax, marks, t0)
-            for i in range(3):
-                ax.plot(t, rows[:, 1 + 3 * half + i], label=f'{names[half]}_{"xyz"[i]}')
-            ax.set_ylabel(units[half])
-            ax.legend(loc='upper right', fontsize=8)
-            ax.grid(True, alpha=0.3)
-        axes[1].set_xlabel('time [s]')
-        axes[0].set_title(title)
-        save(fig, file)
-
-    mu = np.array(series['mu'].rows)
-    if mu.size:
-        lifted = np.array([robot.group.dual_to_wrench(row) for row in mu[:, 1:]])
-        wrench_plot(np.column_stack([mu[:, 0], lifted]), ('p', 'L'),
-                    ('linear momentum [kg m/s]', 'angular momentum [kg m²/s]'),
-                    'momentum map μ (world frame, about the origin)', 'momentum.png')
-    rate = np.array(series['rate'].rows)
-    if rate.size:
-        wrench_plot(rate, ('F', 'T'), ('force [N]', 'torque about origin [N m]'),
-                    'momentum drift: estimated external wrench dμ/dt', 'drift.png')
-    disturbance = np.array(series.get('disturbance', _Series()).rows)
-    if disturbance.size:
-        wrench_plot(disturbance, ('F', 'T'), ('force [N]', 'torque about origin [N m]'),
-                    'disturbance beyond the commanded wrench', 'disturbance.png')
-    shape = np.array(series['shape'].rows)
-    if shape.size and shape.shape[1] > 1:
-        t = (shape[:, 0] - t0) * 1e-9
-        fig, ax = plt.subplots(figsize=(9, 4))
-        draw_marks(ax, marks, t0)
-        for i, name in enumerate(robot.shape_joint_names):
-            ax.plot(t, shape[:, 1 + i], label=name)
-        ax.set_xlabel('time [s]')
-        ax.set_ylabel('shape q̄ [rad or m]')
-        ax.set_title('shape state')
-        ax.legend(loc='upper right', fontsize=8, ncol=2)
-        ax.grid(True, alpha=0.3)
-        save(fig, 'shape.png')
-    residual = np.array(series['residual'])
-    fig, ax = plt.subplots(figsize=(9, 4))
-    draw_marks(ax, marks, t0 if mu_rows else (int(residual[0, 0]) if residual.size else 0))
-    if residual.size:
-        t = (residual[:, 0] - (mu[0, 0] if mu.size else residual[0, 0])) * 1e-9
-        ax.semilogy(t, np.maximum(residual[:, 1], 1e-16), 'o-', label='shape [rad]')
-        ax.semilogy(t, np.maximum(residual[:, 2], 1e-16), 's-', label='base position [m]')
-        ax.legend()
-    else:
-        ax.text(0.5, 0.5, 'no finished prediction', ha='center', transform=ax.transAxes)
-    ax.set_xlabel('prediction start [s]')
-    ax.set_ylabel('max error over horizon')
-    ax.set_title('prediction residual (reduced model vs. measured)')
-    ax.grid(True, which='both', alpha=0.3)
-    save(fig, 'prediction_residual.png')
-    return paths
 
 
 def format_summary(summary: dict[str, Any]) -> str:
@@ -754,7 +673,7 @@ def _run(args: argparse.Namespace) -> int:
                             start=args.start, end=args.end, plots_dir=args.plots,
                             overwrite=args.overwrite, strict=args.strict,
                             smooth=not args.no_smooth, base_driven=args.base_driven,
-                            fixed_lag=args.fixed_lag,
+                            fixed_lag=args.fixed_lag, thruster_map=args.thruster_map,
                             robot_source=robot_source(params, args.urdf),
                             progress=None if args.quiet else sys.stderr)
     try:
@@ -815,6 +734,10 @@ def register_command(commands: Any) -> None:
     parser.add_argument('--start', type=float, help='seconds from the bag start')
     parser.add_argument('--end', type=float, help='seconds from the bag start')
     parser.add_argument('--plots', metavar='DIR', help='write PNG plots into DIR')
+    parser.add_argument('--thruster-map', metavar='FILE',
+                        help='command mapping YAML whose thruster command the plots draw '
+                             '(default: config/thrusters/freeflyer2.yaml when the bag has '
+                             'its topic)')
     parser.add_argument('--summary-json', metavar='FILE', help='write the summary as JSON')
     parser.add_argument('--overwrite', action='store_true', help='replace an existing output')
     parser.add_argument('--strict', action='store_true',
