@@ -31,7 +31,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import os
-from typing import Any, Optional
+from typing import Any, NamedTuple, Optional, Sequence
 
 import numpy as np
 import pinocchio as pin
@@ -104,19 +104,34 @@ def read_poses(bag: str, topic: str) -> tuple[np.ndarray, np.ndarray, np.ndarray
             np.array([r[2] for r in rows]))
 
 
+class Table(NamedTuple):
+    """A series' rows: stamps [ns] as integers (a float64 rounds them to 256 ns), values."""
+
+    stamps: np.ndarray
+    values: np.ndarray
+
+    @classmethod
+    def of(cls, rows: Sequence[tuple]) -> 'Table':
+        """Return the table of (stamp, value...) rows."""
+        stamps = np.array([row[0] for row in rows], dtype=np.int64)
+        width = len(rows[0]) - 1 if len(rows) else 0
+        values = np.array([row[1:] for row in rows], dtype=float).reshape(len(rows), width)
+        return cls(stamps, values)
+
+
 def centre_of_mass(robot: RobotModel, stamps: np.ndarray, poses: tuple,
-                   shape: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   shape: Table) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
     Return the system's centre of mass (world, (n, 3)) and the base pose at ``stamps``.
 
-    ``poses``: :func:`read_poses`; ``shape``: rows (stamp, qbar...) of the shape
-    state. Each is held from its last sample at or before the stamp.
+    ``poses``: :func:`read_poses`; ``shape``: the shape state qbar. Each is held
+    from its last sample at or before the stamp.
     """
     pose_stamps, positions, rotations = poses
     index = _held(stamps, pose_stamps)
     data = robot.model.createData()
-    if shape.size and shape.shape[1] > 1:
-        qbars = shape[_held(stamps, shape[:, 0].astype(np.int64)), 1:]
+    if len(shape.stamps) and shape.values.shape[1] == robot.m:
+        qbars = shape.values[_held(stamps, shape.stamps)]
     else:
         qbars = np.zeros((len(stamps), robot.m))
     local = np.empty((len(stamps), 3))
@@ -128,6 +143,15 @@ def centre_of_mass(robot: RobotModel, stamps: np.ndarray, poses: tuple,
             cache[key] = pin.centerOfMass(robot.model, data, q).copy()
         local[k] = cache[key]
     rotation, position = rotations[index], positions[index]
+    if robot.base_joint_type != 'floating':
+        # A planar base: the pose's projection onto SE(2) (RobotModel.project_pose), as
+        # the estimator takes it; a tilt of the mocap frame is not the body's.
+        yaw = np.arctan2(rotation[:, 1, 0], rotation[:, 0, 0])
+        c, s = np.cos(yaw), np.sin(yaw)
+        rotation = np.zeros_like(rotation)
+        rotation[:, 0, 0], rotation[:, 0, 1], rotation[:, 1, 0], rotation[:, 1, 1] = c, -s, s, c
+        rotation[:, 2, 2] = 1.0
+        position = np.column_stack([position[:, :2], np.zeros(len(position))])
     return position + np.einsum('nij,nj->ni', rotation, local), position, rotation
 
 
@@ -206,16 +230,16 @@ def _positive(values: np.ndarray) -> tuple[np.ndarray, int]:
     return np.where(keep, values, np.nan), int(np.count_nonzero(~keep))
 
 
-def _residual_figure(plt: Any, residual: np.ndarray, start: int, marks: dict, t0: int) -> Any:
+def _residual_figure(plt: Any, residual: Table, start: int, marks: dict, t0: int) -> Any:
     fig, ax = plt.subplots(figsize=(10, 4), layout='constrained')
     draw_marks(ax, marks, t0)
     ax.set_yscale('log')
     drawn = 0
     notes = []
-    if residual.size:
-        t = (residual[:, 0] - start) * 1e-9
-        for column, marker, name in ((1, 'o-', 'shape [rad]'), (2, 's-', 'base position [m]')):
-            values, zeros = _positive(residual[:, column])
+    if len(residual.stamps):
+        t = (residual.stamps - start) * 1e-9
+        for column, marker, name in ((0, 'o-', 'shape [rad]'), (1, 's-', 'base position [m]')):
+            values, zeros = _positive(residual.values[:, column])
             if zeros == len(values):
                 notes.append(f'{name.split(" [")[0]} residual 0 throughout (not drawn)')
                 continue
@@ -225,7 +249,7 @@ def _residual_figure(plt: Any, residual: np.ndarray, start: int, marks: dict, t0
     if drawn:
         ax.legend(**LEGEND)
     else:
-        ax.text(0.5, 0.5, 'no finished prediction' if not residual.size
+        ax.text(0.5, 0.5, 'no finished prediction' if not len(residual.stamps)
                 else 'no nonzero residual', ha='center', transform=ax.transAxes)
     ax.set_xlabel('prediction start [s]')
     ax.set_ylabel('max error over horizon (log; zeros left out)')
@@ -250,67 +274,65 @@ def make_figures(series: dict, robot: RobotModel, marks: Optional[dict] = None,
     marks = marks or {}
     inputs = inputs or PlotInputs()
     figures: dict[str, Any] = {}
-    mu = np.array(series['mu'].rows)
-    t0 = int(mu[0, 0]) if mu.size else 0
-    shape = np.array(series['shape'].rows)
-    rate = np.array(series['rate'].rows)
-    disturbance = np.array(series['disturbance'].rows) if 'disturbance' in series \
-        else np.zeros(0)
+    mu, rate, shape = (Table.of(series[name].rows) for name in ('mu', 'rate', 'shape'))
+    disturbance = Table.of(series['disturbance'].rows if 'disturbance' in series else [])
+    t0 = int(mu.stamps[0]) if len(mu.stamps) else 0
     # The base pose and the centre of mass at the estimate stamps, when the bag has them.
     about, com = 'origin', None
     position = rotation = None
-    if inputs.bag and inputs.base_topic and mu.size:
+    if inputs.bag and inputs.base_topic and len(mu.stamps):
         poses = read_poses(inputs.bag, inputs.base_topic)
         if len(poses[0]):
-            com, position, rotation = centre_of_mass(robot, mu[:, 0].astype(np.int64), poses,
-                                                     shape)
+            com, position, rotation = centre_of_mass(robot, mu.stamps, poses, shape)
             about = 'centre of mass'
 
-    def moved_about_com(rows: np.ndarray) -> np.ndarray:
-        """(n, 1 + 6) world rows about the origin -> (n, 6) about the centre of mass."""
-        values = rows[:, 1:].copy()
+    def moved_about_com(table: Table) -> np.ndarray:
+        """World (n, 6) rows about the origin -> about the centre of mass."""
+        values = table.values.copy()
         if com is not None:
-            # Same stamps as mu (every series is added per output); torque about c.
-            index = _held(rows[:, 0].astype(np.int64), mu[:, 0].astype(np.int64))
-            values[:, 3:] -= np.cross(com[index], values[:, :3])
+            # Every series is added per output: the stamps are mu's.
+            values[:, 3:] -= np.cross(com[_held(table.stamps, mu.stamps)], values[:, :3])
         return values
 
-    if mu.size:
-        lifted = np.array([robot.group.dual_to_wrench(row) for row in mu[:, 1:]])
+    def seconds(table: Table) -> np.ndarray:
+        return (table.stamps - t0) * 1e-9
+
+    if len(mu.stamps):
+        lifted = Table(mu.stamps, np.array([robot.group.dual_to_wrench(row)
+                                            for row in mu.values]))
         figures['momentum.png'] = _wrench_figure(
-            plt, (mu[:, 0] - t0) * 1e-9, moved_about_com(np.column_stack([mu[:, 0], lifted])),
-            robot, ('p', 'L'), ('linear momentum [kg m/s]',
-                                f'angular momentum about {about} [kg m²/s]'),
+            plt, seconds(mu), moved_about_com(lifted), robot, ('p', 'L'),
+            ('linear momentum [kg m/s]', f'angular momentum about {about} [kg m²/s]'),
             f'momentum map μ (world frame, angular about the {about})', marks, t0)
-    if rate.size:
+    if len(rate.stamps):
         command = None
         if com is not None and inputs.bag:
-            command = commanded_world(inputs.bag, inputs, rate[:, 0].astype(np.int64),
-                                      position, rotation, com)
+            held = _held(rate.stamps, mu.stamps)
+            command = commanded_world(inputs.bag, inputs, rate.stamps, position[held],
+                                      rotation[held], com[held])
         figures['drift.png'] = _wrench_figure(
-            plt, (rate[:, 0] - t0) * 1e-9, moved_about_com(rate), robot, ('F', 'T'),
+            plt, seconds(rate), moved_about_com(rate), robot, ('F', 'T'),
             ('force [N]', f'torque about {about} [N m]'),
             'momentum drift: estimated external wrench dμ/dt', marks, t0, command)
-    if disturbance.size:
+    if len(disturbance.stamps):
         figures['disturbance.png'] = _wrench_figure(
-            plt, (disturbance[:, 0] - t0) * 1e-9, moved_about_com(disturbance), robot,
-            ('F', 'T'), ('force [N]', f'torque about {about} [N m]'),
+            plt, seconds(disturbance), moved_about_com(disturbance), robot, ('F', 'T'),
+            ('force [N]', f'torque about {about} [N m]'),
             'disturbance beyond the commanded wrench', marks, t0)
-    if shape.size and shape.shape[1] > 1:
+    if len(shape.stamps) and shape.values.shape[1]:
         fig, ax = plt.subplots(figsize=(10, 4), layout='constrained')
         draw_marks(ax, marks, t0)
         for i, name in enumerate(robot.shape_joint_names):
-            ax.plot((shape[:, 0] - t0) * 1e-9, shape[:, 1 + i], label=name)
+            ax.plot(seconds(shape), shape.values[:, i], label=name)
         ax.set_xlabel('time [s]')
         ax.set_ylabel('shape q̄ [rad or m]')
         ax.set_title('shape state')
         ax.legend(**LEGEND)
         ax.grid(True, alpha=0.3)
         figures['shape.png'] = fig
-    residual = np.array(series['residual'])
-    start = int(mu[0, 0]) if mu.size else (int(residual[0, 0]) if residual.size else 0)
-    figures['prediction_residual.png'] = _residual_figure(plt, residual, start, marks,
-                                                          t0 if mu.size else start)
+    residual = Table.of(series['residual'])
+    start = t0 if len(mu.stamps) else (int(residual.stamps[0]) if len(residual.stamps) else 0)
+    figures['prediction_residual.png'] = _residual_figure(plt, residual, start, marks, start)
     return figures
 
 
