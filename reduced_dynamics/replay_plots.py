@@ -112,7 +112,7 @@ class Table(NamedTuple):
 
     @classmethod
     def of(cls, rows: Sequence[tuple]) -> 'Table':
-        """Return the table of (stamp, value...) rows."""
+        """Return the table of ``(stamp, value, ...)`` rows."""
         stamps = np.array([row[0] for row in rows], dtype=np.int64)
         width = len(rows[0]) - 1 if len(rows) else 0
         values = np.array([row[1:] for row in rows], dtype=float).reshape(len(rows), width)

@@ -71,7 +71,7 @@ def _line(ax, label):
 
 @pytest.fixture(scope='module')
 def freeflyer2(tmp_path_factory):
-    """The shipped planar recording with its thruster commands."""
+    """Return the figures and summary of the shipped planar recording (thruster commands)."""
     monkeypatch = pytest.MonkeyPatch()
     try:
         figures, summary = _replayed_figures(
