@@ -284,6 +284,8 @@ def replay_inputs(options: dict, out_dir: str) -> tuple[Any, Any]:
     fields = {f.name for f in dataclasses.fields(ReplayOptions)}
     given = {k: v for k, v in options.items()
              if k in fields and k not in ('params', 'progress', 'overwrite', 'plots_dir')}
+    if options.get('command_mapping') and not given.get('thruster_map'):
+        given['thruster_map'] = options['command_mapping']  # the plots draw that command
     replay_options = ReplayOptions(
         params=params, overwrite=True, smooth=not options.get('no_smooth', False),
         plots_dir=os.path.join(out_dir, 'plots') if options.get('plots') else None, **given)

@@ -305,15 +305,17 @@ def make_figures(series: dict, robot: RobotModel, marks: Optional[dict] = None,
             ('linear momentum [kg m/s]', f'angular momentum about {about} [kg m²/s]'),
             f'momentum map μ (world frame, angular about the {about})', marks, t0)
     if len(rate.stamps):
-        command = None
+        command, title = None, 'momentum drift: estimated external wrench dμ/dt'
         if com is not None and inputs.bag:
             held = _held(rate.stamps, mu.stamps)
-            command = commanded_world(inputs.bag, inputs, rate.stamps, position[held],
-                                      rotation[held], com[held])
+            try:
+                command = commanded_world(inputs.bag, inputs, rate.stamps, position[held],
+                                          rotation[held], com[held])
+            except (ValueError, OSError) as error:  # a bad thruster map: the plot says so
+                title += f'\ncommanded wrench not drawn: {error}'
         figures['drift.png'] = _wrench_figure(
             plt, seconds(rate), moved_about_com(rate), robot, ('F', 'T'),
-            ('force [N]', f'torque about {about} [N m]'),
-            'momentum drift: estimated external wrench dμ/dt', marks, t0, command)
+            ('force [N]', f'torque about {about} [N m]'), title, marks, t0, command)
     if len(disturbance.stamps):
         figures['disturbance.png'] = _wrench_figure(
             plt, seconds(disturbance), moved_about_com(disturbance), robot, ('F', 'T'),

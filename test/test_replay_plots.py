@@ -198,3 +198,24 @@ def test_centre_of_mass_moves_with_the_linear_momentum(name):
     scale = max(np.abs(integral).max(), 1e-3)  # paper_constant: p = 0, c stays
     # Measured: 5e-12 m (constant), 5.8e-9 m of 0.054 m (thruster).
     assert np.abs(moved - integral).max() <= 1e-5 * scale
+
+
+def test_a_bad_thruster_map_is_named_on_the_plot_not_a_crash(monkeypatch, tmp_path):
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('command: {topic: /robot/commands/binary_thrust}\n')
+    figures, summary = _replayed_figures(
+        monkeypatch, tmp_path, PD_BAG, load_robot(str(config_path('robots/freeflyer.urdf'))),
+        base_pose_topic=MOCAP, end=5.0, thruster_map=str(bad))
+    force, torque = figures['drift.png'].axes
+    assert _labels(force) == ['F_x', 'F_y'] and _labels(torque) == ['T_z']
+    assert f'commanded wrench not drawn: {bad}: command needs type, field' in force.get_title()
+
+
+def test_replay_many_plots_draw_the_command_of_its_command_mapping(tmp_path):
+    from reduced_dynamics.fleet import replay_inputs
+    mapping = str(config_path('thrusters/freeflyer2.yaml'))
+    _, options = replay_inputs({'command_mapping': mapping, 'plots': True}, str(tmp_path))
+    assert options.thruster_map == mapping
+    _, own = replay_inputs({'command_mapping': mapping, 'thruster_map': 'other.yaml'},
+                           str(tmp_path))
+    assert own.thruster_map == 'other.yaml'
