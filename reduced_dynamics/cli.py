@@ -16,7 +16,7 @@
 Command line: ``reduced-dynamics validate | symmetries | simulate | replay | ...``.
 
 Subcommands: validate, symmetries, simulate, replay, replay-many, predict, tune, bench,
-identify.
+identify, play.
 
 One subcommand per task; ``--help`` on each lists its options.
 """
@@ -108,6 +108,7 @@ LAZY_COMMANDS = {
                      'innovation likelihood)'),
     'bench': ('bench', 'benchmark the estimator, prediction, replay and scaling'),
     'identify': ('identify', 'identify a grasped payload\'s inertial parameters from a bag'),
+    'play': ('player_node', 'publish a bag over DDS with rclpy, as ros2 bag play does'),
 }
 
 
