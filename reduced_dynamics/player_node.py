@@ -127,6 +127,7 @@ class _Shell:
         self._deserialize = deserialize_message
         self.node = rclpy.create_node(NODE_NAME)
         self.offset_ns = 0
+        self._pass_start: Optional[int] = None
         self.restamp_failures = 0
         types = RclpyTypes()
         self.topics = dict(topics)
@@ -191,10 +192,9 @@ class _Shell:
         self._clock_msg.clock.sec, self._clock_msg.clock.nanosec = sec, nanosec
         self._clock_publisher.publish(self._clock_msg)
 
-    def start_pass(self, _index: int) -> None:
-        """Move the restamp offset: each pass starts at now."""
-        if self.options.restamp:
-            self.offset_ns = restamp_offset_ns(self.clock.bag_time_ns(), time.time_ns())
+    def start_pass(self, _index: int, start_ns: int) -> None:
+        """Move the restamp offset at the pass's first message: each pass starts at now."""
+        self._pass_start = start_ns
 
     def publish(self, message: RawBagMessage, _index: int) -> bool:
         """Publish one bag message; False when its topic is skipped or it cannot be moved."""
@@ -204,6 +204,9 @@ class _Shell:
         if not self.options.restamp:
             publisher.publish(bytes(message.data))
             return True
+        if self._pass_start is not None:  # the first message of a pass: playing now
+            self.offset_ns = restamp_offset_ns(self.clock, self._pass_start, time.time_ns())
+            self._pass_start = None
         try:
             msg = self._deserialize(bytes(message.data), self.classes[message.topic])
             shift_stamps(msg, self.offset_ns)

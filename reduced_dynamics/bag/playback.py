@@ -194,7 +194,7 @@ def play_messages(
     publish: Callable[[RawBagMessage, int], bool],
     *,
     topics: Optional[dict[str, str]] = None,
-    on_pass: Optional[Callable[[int], None]] = None,
+    on_pass: Optional[Callable[[int, int], None]] = None,
     reader_factory: Callable[[str], BagReader] = open_bag,
 ) -> PlayStats:
     """
@@ -202,8 +202,8 @@ def play_messages(
 
     ``publish`` returns False for a message it did not publish (a topic whose type
     is not installed: counted in :attr:`PlayStats.skipped`). ``topics`` defaults to
-    :func:`played_topics`; ``on_pass(index)`` runs as each pass starts (the shell
-    moves the restamp offset there). Stops early when ``clock.stop()`` is called.
+    :func:`played_topics`; ``on_pass(index, bag start)`` runs as each pass starts
+    (the shell moves the restamp offset there). Stops early when ``clock.stop()`` is called.
     """
     stats = PlayStats()
     passes = 0
@@ -214,7 +214,7 @@ def play_messages(
             if passes:
                 clock.jump(start)
             if on_pass is not None:
-                on_pass(passes)
+                on_pass(passes, start)
             empty = True
             for message in reader.raw_messages(names):
                 empty = False
@@ -298,9 +298,19 @@ def shift_stamps(msg: Any, offset_ns: int) -> int:
     return shifted
 
 
-def restamp_offset_ns(bag_start_ns: int, now_epoch_ns: int) -> int:
-    """Return what moves the bag's first log time to ``now_epoch_ns`` (stamps keep spacing)."""
-    return int(now_epoch_ns) - int(bag_start_ns)
+def restamp_offset_ns(clock: PlaybackClock, bag_start_ns: int, epoch_now_ns: int) -> int:
+    """
+    Return the stamp shift of a pass: bag start to the system time it was due at.
+
+    The bag start was due at ``clock.due_ns(bag_start_ns)`` (monotonic); the system
+    time of that moment is ``epoch_now_ns`` minus the monotonic time elapsed since.
+    A message whose stamp is its log time is then stamped with the moment it is due
+    (at rate 1). Call it while playing (not paused).
+    """
+    due = clock.due_ns(bag_start_ns)
+    if due is None:
+        raise ValueError('the restamp offset is taken while playing, not paused')
+    return int(epoch_now_ns) - (clock.now_ns() - due) - int(bag_start_ns)
 
 
 def clock_time_ns(clock: PlaybackClock, offset_ns: int = 0) -> int:

@@ -1,0 +1,213 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+``reduced-dynamics play`` over real DDS: the player, the node and a recorder as processes.
+
+Every party is a process of its own (test/dds_recorder.py records): one process
+both publishing and recording lost most outputs on a loaded machine. Nothing waits
+a fixed time: the player starts when its publishers are matched
+(``--wait-for-subscribers``), the recorder ends when it has the expected counts, and
+the timeouts only turn a hang into a failure.
+"""
+
+import json
+import os
+from pathlib import Path
+import queue
+import shlex
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+try:
+    from ros_harness import DOMAIN_ID
+except ImportError:  # test/ imported as a package
+    from test.ros_harness import DOMAIN_ID
+
+import test_node_dds as dds  # noqa: E402  (the installed node and its comparison)
+from test_node_dds import install  # noqa: E402,F401  (fixture: the colcon install)
+
+from reduced_dynamics.bag.reader import open_bag  # noqa: E402
+from reduced_dynamics.node import NODE_STATUS_NAME  # noqa: E402
+from reduced_dynamics.resources import paper_robot_urdf  # noqa: E402
+from reduced_dynamics.topics import active_topics, resolved_name  # noqa: E402
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+DATA = REPO_ROOT / 'test' / 'data'
+SQLITE_BAG = DATA / 'freeflyer2' / 'rosbag2_2024_03_14-14_17_23'
+MOCAP = '/vrpn_mocap/robot/pose'
+GUARD = 300  # seconds: only a hang reaches it
+
+
+def _env():
+    path = os.pathsep.join([str(REPO_ROOT)] + [
+        p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p])
+    return dict(os.environ, ROS_DOMAIN_ID=DOMAIN_ID, PYTHONUNBUFFERED='1', PYTHONPATH=path)
+
+
+def _start(args):
+    return subprocess.Popen(args, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+
+
+def start_player(bag, *options):
+    """Start ``reduced-dynamics play BAG OPTIONS`` (this checkout's package)."""
+    return _start([sys.executable, '-m', 'reduced_dynamics.cli', 'play', str(bag), *options])
+
+
+def start_recorder(output, specs, exclude=''):
+    """Start test/dds_recorder.py; ``specs``: TOPIC:TYPE[:COUNT] strings."""
+    script = str(Path(__file__).resolve().parent / 'dds_recorder.py')
+    return _start([sys.executable, script, str(output), *specs]
+                  + (['--exclude', exclude] if exclude else []))
+
+
+def wait_for_line(proc, text, timeout=GUARD):
+    """Read ``proc``'s stdout until a line holds ``text``; return the lines read."""
+    lines: queue.Queue = queue.Queue()
+
+    def read():
+        for line in proc.stdout:
+            lines.put(line)
+        lines.put(None)
+    threading.Thread(target=read, daemon=True).start()
+    seen, end = [], time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            line = lines.get(timeout=max(end - time.monotonic(), 0.01))
+        except queue.Empty:
+            break
+        if line is None:
+            break
+        seen.append(line)
+        if text in line:
+            return seen
+    raise AssertionError(f'no line with {text!r}: {seen} {proc.stderr.read() if proc.poll() is not None else ""}')
+
+
+def finish(proc, timeout=GUARD):
+    """Wait for ``proc`` to end by itself; return (code, stdout, stderr)."""
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    return proc.returncode, out, err
+
+
+def _bag_raw(bag, topic):
+    with open_bag(bag) as reader:
+        return [bytes(m.data) for m in reader.raw_messages([topic])]
+
+
+# ------------------------------------------------------------------ sqlite, no definitions
+@pytest.mark.parametrize('restamp', [False, True])
+def test_sqlite_bag_without_definitions_is_played_bit_for_bit(tmp_path, restamp):
+    """The real freeflyer2 sqlite bag: PoseStamped played, ff_msgs skipped and counted."""
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.serialization import deserialize_message
+    with open_bag(SQLITE_BAG) as reader:
+        counts = {t: reader.message_count(t) for t in reader.topics()}
+        start_ns = reader.start_ns
+    sent = _bag_raw(SQLITE_BAG, MOCAP)
+    recorder = start_recorder(tmp_path / 'got.json',
+                              [f'{MOCAP}:geometry_msgs/msg/PoseStamped:{len(sent)}'])
+    before = time.time_ns()
+    player = start_player(SQLITE_BAG, '--rate', '200', '--qos-depth', '0',
+                          '--wait-for-subscribers', MOCAP, *(['--restamp'] if restamp else []))
+    code, out, err = finish(player)
+    after = time.time_ns()
+    assert code == 0, out + err
+    recorded, rec_out, rec_err = finish(recorder)
+    assert recorded == 0, rec_out + rec_err
+    got = [bytes.fromhex(h) for h in json.loads((tmp_path / 'got.json').read_text())[MOCAP]]
+    # Every ff_msgs topic: one line; their messages counted in the summary.
+    assert sorted(line.split()[3].rstrip(':') for line in err.splitlines()
+                  if 'skipping' in line) == \
+        sorted(t for t in counts if t != MOCAP)
+    skipped = sum(n for t, n in counts.items() if t != MOCAP)
+    assert f'published {len(sent)} messages on 1 topic(s)' in out
+    assert f'{skipped} skipped' in out
+    assert len(got) == len(sent)
+    if not restamp:
+        assert got == sent
+        return
+    offsets = set()
+    for mine, theirs in zip(got, sent):
+        a, b = (deserialize_message(d, PoseStamped) for d in (mine, theirs))
+        offsets.add((a.header.stamp.sec - b.header.stamp.sec) * 10**9
+                    + a.header.stamp.nanosec - b.header.stamp.nanosec)
+        a.header.stamp = b.header.stamp
+        assert a == b  # only the stamp moved
+    offset, = offsets  # one shift for all: the spacing is kept
+    assert before - start_ns <= offset <= after - start_ns
+
+
+# ------------------------------------------------------------------ into the node
+def test_bag_played_into_the_node_gives_replays_outputs(install, tmp_path):  # noqa: F811
+    """
+    paper_constant played with ``--clock`` into the node on sim time, as replay_bag.launch.py.
+
+    Compared as test_node_dds compares the node fed by a test client: every causal
+    output bit for bit, the estimator's diagnostics but for the counts that depend on
+    how two topics interleaved on arrival; the node's own status is left out.
+    """
+    from reduced_dynamics.replay import replay, ReplayOptions
+    from reduced_dynamics.robot.model import load_robot
+    bag = DATA / 'paper_constant'
+    urdf = paper_robot_urdf()
+    replay(str(bag), str(tmp_path / 'out'), load_robot(urdf), ReplayOptions(smooth=False))
+    expected = {}
+    with open_bag(tmp_path / 'out') as reader:
+        for topic in active_topics(False):
+            name = resolved_name(topic)
+            expected[name] = (topic.msgtype, [bytes(m.data) for m in reader.raw_messages([name])])
+    # Counts to wait for: every topic but the node's own status mixed into /diagnostics.
+    specs = [f'{name}:{msgtype}:{len(messages)}' for name, (msgtype, messages)
+             in expected.items()]
+    keep_outputs = [f'-p qos_overrides.{name}.publisher.history:=keep_all' for name in expected]
+    node = dds.start_node(install, f'-p urdf_path:={shlex.quote(urdf)}',
+                          '-p use_sim_time:=true',
+                          *(f'-p {arg}' for arg in dds.RELIABLE_INPUTS), *keep_outputs)
+    recorder = player = None
+    try:
+        recorder = start_recorder(tmp_path / 'got.json', specs, exclude=NODE_STATUS_NAME)
+        wait_for_line(recorder, 'ready')  # the node's outputs are matched
+        player = start_player(bag, '--clock', '--qos-depth', '0',
+                              '--wait-for-subscribers', '/joint_states', '/odom')
+        code, out, err = finish(player)
+        assert code == 0, out + err
+        recorded, rec_out, rec_err = finish(recorder)
+        assert recorded == 0, rec_out + rec_err
+        node_code, node_output = dds.stop(node)
+    finally:
+        for proc in (node, recorder, player):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+    assert node_code == 0, node_output
+    got = {name: [bytes.fromhex(h) for h in messages] for name, messages
+           in json.loads((tmp_path / 'got.json').read_text()).items()}
+    diagnostics = '/diagnostics'
+    for name, (_, wanted) in expected.items():
+        assert len(got[name]) == len(wanted), name
+        for i, (mine, theirs) in enumerate(zip(got[name], wanted)):
+            if mine != theirs and name == diagnostics:
+                assert dds._differences(name, mine, theirs) == [], f'{name}[{i}]'
+            else:
+                assert mine == theirs, f'{name}[{i}]'
