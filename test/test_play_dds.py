@@ -171,7 +171,7 @@ def test_bag_played_into_the_node_gives_replays_outputs(install, tmp_path):  # n
     from reduced_dynamics.replay import replay, ReplayOptions
     from reduced_dynamics.robot.model import load_robot
     bag = DATA / 'paper_constant'
-    urdf = paper_robot_urdf()
+    urdf = str(paper_robot_urdf())
     replay(str(bag), str(tmp_path / 'out'), load_robot(urdf), ReplayOptions(smooth=False))
     expected = {}
     with open_bag(tmp_path / 'out') as reader:
