@@ -28,6 +28,7 @@ The raw CDR of each message is published as it is (rclpy publishes bytes); only
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import signal
 import sys
 import threading
@@ -71,8 +72,8 @@ def register_command(commands: Any) -> None:
                         help='wait for Enter (on a terminal) or the ~/resume service '
                              '(std_srvs/Trigger) before playing')
     parser.add_argument('--wait-for-subscribers', nargs='+', default=[], metavar='TOPIC',
-                        help='start only when each of these bag topics has a subscriber '
-                             '(e.g. the node\'s inputs)')
+                        help='start only when each of these topics has a subscriber (e.g. '
+                             'the node\'s inputs; topics not in the bag are not waited for)')
     parser.add_argument('--wait-timeout', type=float, default=0.0, metavar='S',
                         help='give up waiting for subscribers after S seconds (exit 1; '
                              'default 0: wait for ever)')
@@ -82,12 +83,17 @@ def register_command(commands: Any) -> None:
     parser.set_defaults(func=_run)
 
 
+def _names(values: list[str]) -> tuple[str, ...]:
+    """Split topic lists given as one word each or as one 'a b' / 'a,b' word (launch)."""
+    return tuple(n for v in values for n in v.replace(',', ' ').split())
+
+
 def options_from_args(args: argparse.Namespace) -> PlayOptions:
     """Return the PlayOptions of parsed arguments."""
     return PlayOptions(
-        bag=args.bag, rate=args.rate, topics=tuple(args.topics), loop=args.loop,
+        bag=args.bag, rate=args.rate, topics=_names(args.topics), loop=args.loop,
         start_paused=args.start_paused, clock_hz=args.clock, restamp=args.restamp,
-        wait_for_subscribers=tuple(args.wait_for_subscribers), qos_depth=args.qos_depth,
+        wait_for_subscribers=_names(args.wait_for_subscribers), qos_depth=args.qos_depth,
         wait_timeout=args.wait_timeout)
 
 
@@ -102,13 +108,16 @@ def _run(args: argparse.Namespace) -> int:
     except (BagError, ValueError) as error:
         problems.append(str(error))
         topics, start_ns, latched = {}, 0, set()
-    missing = sorted(set(options.wait_for_subscribers) - set(topics))
-    if missing and not problems:
-        problems.append(f'--wait-for-subscribers names topics that are not played: {missing}')
     if problems:
         for problem in problems:
             print(f'{PROG}: error: {problem}', file=sys.stderr)
         return 2
+    unplayed = [t for t in options.wait_for_subscribers if t not in topics]
+    if unplayed:  # nothing is published there, so nothing waits for them (launch defaults)
+        print(f'{PROG}: not waiting for {", ".join(unplayed)}: not played from this bag',
+              flush=True)
+        options = dataclasses.replace(options, wait_for_subscribers=tuple(
+            t for t in options.wait_for_subscribers if t in topics))
     return run(options, topics, start_ns, latched)
 
 

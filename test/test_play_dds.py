@@ -97,7 +97,8 @@ def wait_for_line(proc, text, timeout=GUARD):
         seen.append(line)
         if text in line:
             return seen
-    raise AssertionError(f'no line with {text!r}: {seen} {proc.stderr.read() if proc.poll() is not None else ""}')
+    error = proc.stderr.read() if proc.poll() is not None else ''
+    raise AssertionError(f'no line with {text!r}: {seen} {error}')
 
 
 def finish(proc, timeout=GUARD):
@@ -189,8 +190,9 @@ def test_bag_played_into_the_node_gives_replays_outputs(install, tmp_path):  # n
     try:
         recorder = start_recorder(tmp_path / 'got.json', specs, exclude=NODE_STATUS_NAME)
         wait_for_line(recorder, 'ready')  # the node's outputs are matched
+        # As launch/replay_bag.launch.py runs it (its wait_for default: one word).
         player = start_player(bag, '--clock', '--qos-depth', '0',
-                              '--wait-for-subscribers', '/joint_states', '/odom')
+                              '--wait-for-subscribers', '/joint_states /odom /base_pose')
         code, out, err = finish(player)
         assert code == 0, out + err
         recorded, rec_out, rec_err = finish(recorder)
