@@ -213,3 +213,47 @@ def test_bag_played_into_the_node_gives_replays_outputs(install, tmp_path):  # n
                 assert dds._differences(name, mine, theirs) == [], f'{name}[{i}]'
             else:
                 assert mine == theirs, f'{name}[{i}]'
+
+
+# ------------------------------------------------------------------ paused start
+def test_start_paused_plays_when_the_resume_service_is_called(tmp_path):
+    """``--start-paused``: nothing until ~/resume (std_srvs/Trigger); then the whole bag."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from std_srvs.srv import Trigger
+    sent = _bag_raw(DATA / 'paper_constant', '/joint_states')
+    recorder = start_recorder(tmp_path / 'got.json',
+                              [f'/joint_states:sensor_msgs/msg/JointState:{len(sent)}'])
+    player = start_player(DATA / 'paper_constant', '--start-paused', '--rate', '20',
+                          '--topics', '/joint_states', '--qos-depth', '0')
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('test_resume', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        wait_for_line(player, 'paused')
+        wait_for_line(recorder, 'ready')  # matched while paused: nothing was lost
+
+        def call(name):
+            client = node.create_client(Trigger, f'/reduced_dynamics_player/{name}')
+            assert client.wait_for_service(timeout_sec=GUARD)
+            future = client.call_async(Trigger.Request())
+            executor.spin_until_future_complete(future, timeout_sec=GUARD)
+            return future.result().success, future.result().message
+        assert call('pause') == (False, 'already paused')
+        assert call('resume') == (True, 'playing')
+        code, out, err = finish(player)
+        assert code == 0, out + err
+        recorded, rec_out, rec_err = finish(recorder)
+        assert recorded == 0, rec_out + rec_err
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+        for proc in (player, recorder):
+            if proc.poll() is None:
+                proc.kill()
+    got = [bytes.fromhex(h) for h in json.loads((tmp_path / 'got.json').read_text())
+           ['/joint_states']]
+    assert got == sent
