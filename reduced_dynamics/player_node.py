@@ -325,8 +325,10 @@ def _play(shell: _Shell, options: PlayOptions, clock: PlaybackClock) -> int:
     acked = shell.wait_for_acknowledgements()
     elapsed = time.monotonic() - began
     skipped = sum(stats.skipped.values())
+    median, worst = stats.lateness_ms()
     print(f'{PROG}: published {stats.total()} messages on {len(stats.published)} topic(s) in '
-          f'{elapsed:.1f} s ({stats.passes} pass(es)'
+          f'{elapsed:.2f} s ({stats.passes} pass(es), behind schedule by {median:.2f} ms '
+          f'median, {worst:.1f} ms at most'
           + (f', {skipped} skipped' if skipped else '')
           + (', stopped' if stats.stopped else '')
           + ('' if acked else f', not all acknowledged within {ACK_TIMEOUT:g} s') + ')',

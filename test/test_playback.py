@@ -135,6 +135,9 @@ def test_every_message_is_published_in_order_not_before_it_is_due():
     assert [(t, s) for _, t, s, _ in published] == order
     # Lower bounds only: a loaded machine publishes late, never early.
     assert all(at >= clock.due_ns(stamp) for _, _, stamp, at in published)
+    assert len(stats.late_ns) == count and min(stats.late_ns) >= 0
+    median, worst = stats.lateness_ms()
+    assert 0 <= median <= worst == max(stats.late_ns) / 1e6
 
 
 def test_topics_filter_loop_and_skipped_counts():

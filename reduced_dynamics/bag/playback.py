@@ -182,10 +182,18 @@ class PlayStats:
     skipped: dict[str, int] = dataclasses.field(default_factory=dict)  # topic -> messages
     passes: int = 0
     stopped: bool = False
+    late_ns: list[int] = dataclasses.field(default_factory=list)  # behind schedule, per message
 
     def total(self) -> int:
         """Return the number of messages published."""
         return sum(self.published.values())
+
+    def lateness_ms(self) -> tuple[float, float]:
+        """Return the median and the largest delay behind the schedule, ms (0, 0: none)."""
+        if not self.late_ns:
+            return 0.0, 0.0
+        ordered = sorted(self.late_ns)
+        return ordered[len(ordered) // 2] / 1e6, ordered[-1] / 1e6
 
 
 def play_messages(
@@ -222,7 +230,13 @@ def play_messages(
                     stats.stopped = True
                     stats.passes = passes + 1
                     return stats
-                counts = stats.published if publish(message, passes) else stats.skipped
+                due = clock.due_ns(message.timestamp_ns)
+                if publish(message, passes):
+                    counts = stats.published
+                    if due is not None:  # (paused meanwhile: not a delay of the player's)
+                        stats.late_ns.append(clock.now_ns() - due)
+                else:
+                    counts = stats.skipped
                 counts[message.topic] = counts.get(message.topic, 0) + 1
         passes += 1
         stats.passes = passes
