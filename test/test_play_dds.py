@@ -183,12 +183,15 @@ def test_bag_played_into_the_node_gives_replays_outputs(install, tmp_path):  # n
     specs = [f'{name}:{msgtype}:{len(messages)}' for name, (msgtype, messages)
              in expected.items()]
     keep_outputs = [f'-p qos_overrides.{name}.publisher.history:=keep_all' for name in expected]
-    node = dds.start_node(install, f'-p urdf_path:={shlex.quote(urdf)}',
-                          '-p use_sim_time:=true',
-                          *(f'-p {arg}' for arg in dds.RELIABLE_INPUTS), *keep_outputs)
-    recorder = player = None
+    # The recorder first: its readers are known to the node before the node's writers
+    # exist, so they match them before anything is published (volatile writers send only
+    # what they write after matching); "ready" says the recorder sees them too.
+    recorder = start_recorder(tmp_path / 'got.json', specs, exclude=NODE_STATUS_NAME)
+    node = player = None
     try:
-        recorder = start_recorder(tmp_path / 'got.json', specs, exclude=NODE_STATUS_NAME)
+        node = dds.start_node(install, f'-p urdf_path:={shlex.quote(urdf)}',
+                              '-p use_sim_time:=true',
+                              *(f'-p {arg}' for arg in dds.RELIABLE_INPUTS), *keep_outputs)
         wait_for_line(recorder, 'ready')  # the node's outputs are matched
         # As launch/replay_bag.launch.py runs it (its wait_for default: one word).
         player = start_player(bag, '--clock', '--qos-depth', '0',
