@@ -37,8 +37,8 @@ from typing import Any, Optional
 
 from reduced_dynamics.bag.errors import BagError
 from reduced_dynamics.bag.playback import (
-    clock_time_ns, DEFAULT_CLOCK_HZ, DEFAULT_QOS_DEPTH, NS_PER_S, play_messages, PlaybackClock,
-    PlayOptions, played_topics, restamp_offset_ns, shift_stamps)
+    clock_time_ns, DEFAULT_CLOCK_HZ, DEFAULT_QOS_DEPTH, definition_problems, NS_PER_S,
+    play_messages, PlaybackClock, PlayOptions, played_topics, restamp_offset_ns, shift_stamps)
 from reduced_dynamics.bag.reader import open_bag, RawBagMessage
 
 PROG = 'reduced-dynamics play'
@@ -105,9 +105,10 @@ def _run(args: argparse.Namespace) -> int:
             topics = played_topics(reader, options)
             start_ns = reader.start_ns
             latched = reader.latched_topics()
+            refused = definition_problems(reader, topics)
     except (BagError, ValueError) as error:
         problems.append(str(error))
-        topics, start_ns, latched = {}, 0, set()
+        topics, start_ns, latched, refused = {}, 0, set(), {}
     if problems:
         for problem in problems:
             print(f'{PROG}: error: {problem}', file=sys.stderr)
@@ -118,14 +119,14 @@ def _run(args: argparse.Namespace) -> int:
               flush=True)
         options = dataclasses.replace(options, wait_for_subscribers=tuple(
             t for t in options.wait_for_subscribers if t in topics))
-    return run(options, topics, start_ns, latched)
+    return run(options, topics, start_ns, latched, refused)
 
 
 class _Shell:
     """The rclpy side: node, publishers, /clock, services, executor thread."""
 
     def __init__(self, rclpy: Any, options: PlayOptions, topics: dict[str, str],
-                 latched: set[str], clock: PlaybackClock) -> None:
+                 latched: set[str], refused: dict[str, str], clock: PlaybackClock) -> None:
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile,
                                ReliabilityPolicy)
@@ -143,6 +144,9 @@ class _Shell:
         self.publishers: dict[str, Any] = {}
         self.classes: dict[str, type] = {}
         for topic, msgtype in topics.items():
+            if topic in refused:
+                print(f'{PROG}: skipping {topic}: {refused[topic]}', file=sys.stderr)
+                continue
             try:
                 cls = types.get(msgtype)
             except LookupError as error:
@@ -267,7 +271,7 @@ def _resume_on_enter(clock: PlaybackClock) -> None:
 
 
 def run(options: PlayOptions, topics: dict[str, str], start_ns: int,
-        latched: Optional[set[str]] = None) -> int:
+        latched: Optional[set[str]] = None, refused: Optional[dict[str, str]] = None) -> int:
     """Publish the bag until it ends (or Ctrl-C / SIGTERM); return the exit code."""
     clock = PlaybackClock(start_ns, options.rate, paused=True)
 
@@ -284,7 +288,7 @@ def run(options: PlayOptions, topics: dict[str, str], start_ns: int,
         rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         shell = None
         try:
-            shell = _Shell(rclpy, options, topics, latched or set(), clock)
+            shell = _Shell(rclpy, options, topics, latched or set(), refused or {}, clock)
             return _play(shell, options, clock)
         finally:
             if shell is not None:

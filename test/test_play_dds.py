@@ -160,6 +160,19 @@ def test_sqlite_bag_without_definitions_is_played_bit_for_bit(tmp_path, restamp)
     assert before - start_ns <= offset <= after - start_ns
 
 
+def test_a_topic_defined_otherwise_is_skipped_and_counted(tmp_path):
+    """Bytes of another definition would not decode as the installed type: not published."""
+    from test_playback import write_redefined_bag
+    bag = write_redefined_bag(tmp_path / 'bag')
+    code, out, err = finish(start_player(bag, '--rate', '1000'))
+    assert code == 0, out + err
+    assert [line for line in err.splitlines() if 'skipping' in line] == [
+        'reduced-dynamics play: skipping /odd: the bag defines std_msgs/msg/String '
+        'differently from ROS 2 Jazzy (its type hash differs): its bytes would not decode '
+        'as the installed type']
+    assert 'published 1 messages on 1 topic(s)' in out and '1 skipped' in out
+
+
 # ------------------------------------------------------------------ into the node
 def test_bag_played_into_the_node_gives_replays_outputs(install, tmp_path):  # noqa: F811
     """

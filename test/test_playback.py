@@ -175,6 +175,33 @@ def test_a_topic_not_in_the_bag_is_refused_with_the_available_ones():
         play_messages(PlayOptions(str(BAG), topics=('/nope',)), clock, lambda m, i: True)
 
 
+# ------------------------------------------------------------------ definitions
+def write_redefined_bag(path):
+    """Write a bag whose /odd is std_msgs/String defined as an int32; /same is Jazzy's Bool."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import get_types_from_msg
+    odd_store = get_typestore(Stores.EMPTY)
+    odd_store.register(get_types_from_msg('int32 data', 'std_msgs/msg/String'))
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        odd = writer.add_connection('/odd', 'std_msgs/msg/String', typestore=odd_store)
+        same = writer.add_connection('/same', 'std_msgs/msg/Bool', typestore=STORE)
+        writer.write(odd, 1, odd_store.serialize_cdr(
+            odd_store.types['std_msgs/msg/String'](data=7), 'std_msgs/msg/String'))
+        writer.write(same, 2, STORE.serialize_cdr(
+            STORE.types['std_msgs/msg/Bool'](data=True), 'std_msgs/msg/Bool'))
+    return path
+
+
+def test_a_topic_defined_otherwise_than_in_jazzy_is_found_by_its_type_hash(tmp_path):
+    from reduced_dynamics.bag.playback import definition_problems
+    with open_bag(write_redefined_bag(tmp_path / 'bag')) as reader:
+        problems = definition_problems(reader, reader.topics())
+    assert list(problems) == ['/odd'] and 'type hash differs' in problems['/odd']
+    for bag in (BAG, DATA / 'freeflyer2' / 'rosbag2_2024_03_14-14_17_23'):  # no definitions
+        with open_bag(bag) as reader:
+            assert definition_problems(reader, reader.topics()) == {}
+
+
 # ------------------------------------------------------------------ stamps
 def _header(sec, nanosec, frame='map'):
     time_ = STORE.types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec)

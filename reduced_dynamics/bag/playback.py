@@ -32,6 +32,7 @@ import threading
 import time
 from typing import Any, Optional
 
+from reduced_dynamics.bag.errors import BagError
 from reduced_dynamics.bag.reader import BagReader, open_bag, RawBagMessage
 
 NS_PER_S = 1_000_000_000
@@ -81,6 +82,29 @@ def played_topics(reader: BagReader, options: PlayOptions) -> dict[str, str]:
         raise ValueError(f'topics not in bag {reader.path}: {missing}; '
                          f'available: {sorted(available)}')
     return {t: available[t] for t in options.topics}
+
+
+def definition_problems(reader: BagReader, topics: dict[str, str]) -> dict[str, str]:
+    """
+    Return ``{topic: reason}`` for topics recorded with another definition than Jazzy's.
+
+    The raw bytes of such a topic would not decode as the installed (Jazzy) type: a bag
+    from another distribution whose message changed, or a type of the same name
+    defined differently. Found by the type hash (RIHS01) the bag records against the
+    ROS 2 Jazzy definition (Iron-era and later bags record one; older bags cannot be
+    checked, nor can types Jazzy does not define).
+    """
+    out = {}
+    for topic, msgtype in topics.items():
+        try:
+            store = reader.typestore_for(topic, msgtype)
+        except BagError:
+            continue  # no definition in the bag and not a Jazzy type: nothing to check
+        if store is not reader.typestore:
+            out[topic] = (f'the bag defines {msgtype} differently from ROS 2 Jazzy '
+                          '(its type hash differs): its bytes would not decode as the '
+                          'installed type')
+    return out
 
 
 class PlaybackClock:
