@@ -97,7 +97,41 @@ def options_from_args(args: argparse.Namespace) -> PlayOptions:
         wait_timeout=args.wait_timeout)
 
 
+class _StopOnSignal:
+    """SIGINT / SIGTERM end playback cleanly; installed first, so at any moment of start-up."""
+
+    def __init__(self) -> None:
+        self.stopped = False
+        self.clock: Optional[PlaybackClock] = None
+        self._previous = {sig: signal.signal(sig, self._on_signal)
+                          for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def _on_signal(self, _signum: int, _frame: Any) -> None:
+        self.stopped = True
+        if self.clock is not None:
+            self.clock.stop()
+
+    def watch(self, clock: PlaybackClock) -> None:
+        """Stop ``clock`` at a signal (at once if one came already)."""
+        self.clock = clock
+        if self.stopped:
+            clock.stop()
+
+    def restore(self) -> None:
+        """Put the previous handlers back."""
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
 def _run(args: argparse.Namespace) -> int:
+    stopper = _StopOnSignal()
+    try:
+        return _checked_run(args, stopper)
+    finally:
+        stopper.restore()
+
+
+def _checked_run(args: argparse.Namespace, stopper: _StopOnSignal) -> int:
     options = options_from_args(args)
     problems = options.problems()
     try:
@@ -119,7 +153,9 @@ def _run(args: argparse.Namespace) -> int:
               flush=True)
         options = dataclasses.replace(options, wait_for_subscribers=tuple(
             t for t in options.wait_for_subscribers if t in topics))
-    return run(options, topics, start_ns, latched, refused)
+    if stopper.stopped:
+        return 0
+    return run(options, topics, start_ns, latched, refused, stopper)
 
 
 class _Shell:
@@ -246,10 +282,12 @@ class _Shell:
         """Wait until every reliable subscriber has acknowledged what was published."""
         from rclpy.duration import Duration
         end = time.monotonic() + ACK_TIMEOUT
+        # In slices: a signal is handled between them (the wait itself is in C).
+        step = Duration(nanoseconds=100_000_000)
         for publisher in self.publishers.values():
-            left = max(end - time.monotonic(), 0.0)
-            if not publisher.wait_for_all_acked(Duration(nanoseconds=int(left * NS_PER_S))):
-                return False
+            while not publisher.wait_for_all_acked(step):
+                if self.clock.stopped or time.monotonic() >= end:
+                    return False
         return True
 
     def close(self) -> None:
@@ -271,13 +309,13 @@ def _resume_on_enter(clock: PlaybackClock) -> None:
 
 
 def run(options: PlayOptions, topics: dict[str, str], start_ns: int,
-        latched: Optional[set[str]] = None, refused: Optional[dict[str, str]] = None) -> int:
+        latched: Optional[set[str]] = None, refused: Optional[dict[str, str]] = None,
+        stopper: Optional[_StopOnSignal] = None) -> int:
     """Publish the bag until it ends (or Ctrl-C / SIGTERM); return the exit code."""
+    own_stopper = stopper is None
+    stopper = _StopOnSignal() if stopper is None else stopper
     clock = PlaybackClock(start_ns, options.rate, paused=True)
-
-    def on_signal(_signum: int, _frame: Any) -> None:
-        clock.stop()
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    stopper.watch(clock)
     try:
         try:
             import rclpy
@@ -285,6 +323,8 @@ def run(options: PlayOptions, topics: dict[str, str], start_ns: int,
         except ImportError:
             print(NO_RCLPY, file=sys.stderr)
             return 1
+        if clock.stopped:  # a signal while rclpy loaded
+            return 0
         rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         shell = None
         try:
@@ -295,8 +335,8 @@ def run(options: PlayOptions, topics: dict[str, str], start_ns: int,
                 shell.close()
             rclpy.try_shutdown()
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        if own_stopper:
+            stopper.restore()
 
 
 def _play(shell: _Shell, options: PlayOptions, clock: PlaybackClock) -> int:
@@ -326,7 +366,7 @@ def _play(shell: _Shell, options: PlayOptions, clock: PlaybackClock) -> int:
     stats = play_messages(options, clock, shell.publish,
                           topics=shell.topics,
                           on_pass=shell.start_pass)
-    acked = shell.wait_for_acknowledgements()
+    acked = stats.stopped or shell.wait_for_acknowledgements()
     elapsed = time.monotonic() - began
     skipped = sum(stats.skipped.values())
     median, worst = stats.lateness_ms()
@@ -334,7 +374,8 @@ def _play(shell: _Shell, options: PlayOptions, clock: PlaybackClock) -> int:
           f'{elapsed:.2f} s ({stats.passes} pass(es), behind schedule by {median:.2f} ms '
           f'median, {worst:.1f} ms at most'
           + (f', {skipped} skipped' if skipped else '')
-          + (', stopped' if stats.stopped else '')
-          + ('' if acked else f', not all acknowledged within {ACK_TIMEOUT:g} s') + ')',
+          + (', stopped' if stats.stopped or clock.stopped else '')
+          + ('' if acked or clock.stopped
+             else f', not all acknowledged within {ACK_TIMEOUT:g} s') + ')',
           flush=True)
     return 0

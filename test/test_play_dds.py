@@ -27,6 +27,7 @@ import os
 from pathlib import Path
 import queue
 import shlex
+import signal
 import subprocess
 import sys
 import threading
@@ -61,8 +62,19 @@ def _env():
 
 
 def _start(args):
-    return subprocess.Popen(args, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    """Start a process whose stdout lines are collected (``proc.lines``) as they come."""
+    proc = subprocess.Popen(args, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, start_new_session=True)
+    proc.lines, proc.new_lines = [], queue.Queue()
+
+    def read():
+        for line in proc.stdout:
+            proc.lines.append(line)
+            proc.new_lines.put(line)
+        proc.new_lines.put(None)
+    proc.reader = threading.Thread(target=read, daemon=True)
+    proc.reader.start()
+    return proc
 
 
 def start_player(bag, *options):
@@ -78,38 +90,31 @@ def start_recorder(output, specs, exclude=''):
 
 
 def wait_for_line(proc, text, timeout=GUARD):
-    """Read ``proc``'s stdout until a line holds ``text``; return the lines read."""
-    lines: queue.Queue = queue.Queue()
-
-    def read():
-        for line in proc.stdout:
-            lines.put(line)
-        lines.put(None)
-    threading.Thread(target=read, daemon=True).start()
-    seen, end = [], time.monotonic() + timeout
+    """Wait until a stdout line of ``proc`` holds ``text`` (a readiness sign)."""
+    end = time.monotonic() + timeout
     while time.monotonic() < end:
         try:
-            line = lines.get(timeout=max(end - time.monotonic(), 0.01))
+            line = proc.new_lines.get(timeout=max(end - time.monotonic(), 0.01))
         except queue.Empty:
             break
         if line is None:
             break
-        seen.append(line)
         if text in line:
-            return seen
+            return
     error = proc.stderr.read() if proc.poll() is not None else ''
-    raise AssertionError(f'no line with {text!r}: {seen} {error}')
+    raise AssertionError(f'no line with {text!r}: {proc.lines} {error}')
 
 
 def finish(proc, timeout=GUARD):
     """Wait for ``proc`` to end by itself; return (code, stdout, stderr)."""
     try:
-        out, err = proc.communicate(timeout=timeout)
+        proc.wait(timeout=timeout)
     finally:
         if proc.poll() is None:
             proc.kill()
-            proc.communicate()
-    return proc.returncode, out, err
+            proc.wait()
+    proc.reader.join(timeout=timeout)
+    return proc.returncode, ''.join(proc.lines), proc.stderr.read()
 
 
 def _bag_raw(bag, topic):
@@ -171,6 +176,27 @@ def test_a_topic_defined_otherwise_is_skipped_and_counted(tmp_path):
         'differently from ROS 2 Jazzy (its type hash differs): its bytes would not decode '
         'as the installed type']
     assert 'published 1 messages on 1 topic(s)' in out and '1 skipped' in out
+
+
+@pytest.mark.parametrize('sig, sign', [
+    (signal.SIGINT, 'playing'), (signal.SIGTERM, 'playing'),
+    (signal.SIGINT, 'waiting for subscribers')])
+def test_a_signal_stops_playback_with_exit_0_and_one_summary_line(sig, sign):
+    """Ctrl-C or SIGTERM while playing, or while waiting for a subscriber that never comes."""
+    waiting = ['--wait-for-subscribers', MOCAP] if sign.startswith('waiting') else []
+    player = start_player(SQLITE_BAG, '--topics', MOCAP, *waiting)  # 55 s at rate 1
+    try:
+        wait_for_line(player, sign)
+        player.send_signal(sig)
+        code, out, err = finish(player)
+    finally:
+        if player.poll() is None:
+            player.kill()
+    assert code == 0, err
+    assert 'Traceback' not in err and err.strip() == '', err
+    if sign == 'playing':
+        summary, = [line for line in out.splitlines() if 'published' in line]
+        assert summary.endswith(', stopped)'), summary
 
 
 # ------------------------------------------------------------------ into the node
