@@ -38,7 +38,8 @@ from typing import Any, Optional
 from reduced_dynamics.bag.errors import BagError
 from reduced_dynamics.bag.playback import (
     clock_time_ns, DEFAULT_CLOCK_HZ, DEFAULT_QOS_DEPTH, definition_problems, NS_PER_S,
-    play_messages, PlaybackClock, PlayOptions, played_topics, restamp_offset_ns, shift_stamps)
+    parse_remap, play_messages, PlaybackClock, PlayOptions, played_topics, restamp_offset_ns,
+    shift_stamps)
 from reduced_dynamics.bag.reader import open_bag, RawBagMessage
 
 PROG = 'reduced-dynamics play'
@@ -80,7 +81,16 @@ def register_command(commands: Any) -> None:
     parser.add_argument('--qos-depth', type=int, default=DEFAULT_QOS_DEPTH,
                         help='history depth of the reliable publishers, 0: keep all '
                              f'(default {DEFAULT_QOS_DEPTH})')
+    parser.add_argument('--remap', nargs='+', default=[], metavar='FROM:=TO', type=_remap,
+                        help='publish bag topic FROM as TO (e.g. into a namespace)')
     parser.set_defaults(func=_run)
+
+
+def _remap(text: str) -> tuple[str, str]:
+    try:
+        return parse_remap(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def _names(values: list[str]) -> tuple[str, ...]:
@@ -94,7 +104,7 @@ def options_from_args(args: argparse.Namespace) -> PlayOptions:
         bag=args.bag, rate=args.rate, topics=_names(args.topics), loop=args.loop,
         start_paused=args.start_paused, clock_hz=args.clock, restamp=args.restamp,
         wait_for_subscribers=_names(args.wait_for_subscribers), qos_depth=args.qos_depth,
-        wait_timeout=args.wait_timeout)
+        wait_timeout=args.wait_timeout, remap=tuple(getattr(args, 'remap', ())))
 
 
 class _StopOnSignal:
@@ -174,7 +184,7 @@ class _Shell:
         self.node = rclpy.create_node(NODE_NAME)
         self.offset_ns = 0
         self._pass_start: Optional[int] = None
-        self.restamp_failures = 0
+        self.failed: dict[str, int] = {}
         types = RclpyTypes()
         self.topics = dict(topics)
         self.publishers: dict[str, Any] = {}
@@ -199,7 +209,8 @@ class _Shell:
             else:
                 qos = QoSProfile(depth=options.qos_depth, history=HistoryPolicy.KEEP_LAST,
                                  reliability=ReliabilityPolicy.RELIABLE)
-            self.publishers[topic] = self.node.create_publisher(cls, topic, qos)
+            self.publishers[topic] = self.node.create_publisher(
+                cls, options.published_name(topic), qos)
             self.classes[topic] = cls
         self._clock_publisher = None
         if options.clock_hz > 0:
@@ -251,8 +262,7 @@ class _Shell:
         if publisher is None:
             return False
         if not self.options.restamp:
-            publisher.publish(bytes(message.data))
-            return True
+            return self._publish(publisher, message.topic, bytes(message.data))
         if self._pass_start is not None:  # the first message of a pass: playing now
             self.offset_ns = restamp_offset_ns(self.clock, self._pass_start, time.time_ns())
             self._pass_start = None
@@ -260,13 +270,24 @@ class _Shell:
             msg = self._deserialize(bytes(message.data), self.classes[message.topic])
             shift_stamps(msg, self.offset_ns)
         except Exception as error:  # a message that does not deserialize or shift
-            if not self.restamp_failures:
-                print(f'{PROG}: cannot restamp a message of {message.topic}: {error}; '
-                      'skipping (counted)', file=sys.stderr)
-            self.restamp_failures += 1
+            self._fail(message.topic, f'cannot restamp: {error}')
             return False
-        publisher.publish(msg)
+        return self._publish(publisher, message.topic, msg)
+
+    def _publish(self, publisher: Any, topic: str, message: Any) -> bool:
+        try:
+            publisher.publish(message)
+        except Exception as error:  # rclpy's RCLError (e.g. a full keep-all history)
+            self._fail(topic, f'cannot publish: {error}')
+            return False
         return True
+
+    def _fail(self, topic: str, reason: str) -> None:
+        """Say once per topic why its messages are skipped (the summary counts them)."""
+        if topic not in self.failed:
+            print(f'{PROG}: skipping messages of {topic}: {reason}'.replace('\n', ' '),
+                  file=sys.stderr, flush=True)
+        self.failed[topic] = self.failed.get(topic, 0) + 1
 
     def wait_for_subscribers(self, topics: tuple[str, ...], timeout: float) -> bool:
         """Wait until each topic's publisher is matched by a subscription (False: timed out)."""
@@ -325,7 +346,8 @@ def run(options: PlayOptions, topics: dict[str, str], start_ns: int,
             return 1
         if clock.stopped:  # a signal while rclpy loaded
             return 0
-        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+        # No command-line arguments for rcl: it would take FROM:=TO words as remaps.
+        rclpy.init(args=[PROG], signal_handler_options=SignalHandlerOptions.NO)
         shell = None
         try:
             shell = _Shell(rclpy, options, topics, latched or set(), refused or {}, clock)

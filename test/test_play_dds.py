@@ -199,6 +199,32 @@ def test_a_signal_stops_playback_with_exit_0_and_one_summary_line(sig, sign):
         assert summary.endswith(', stopped)'), summary
 
 
+def test_a_stamp_that_cannot_move_is_skipped_and_counted(tmp_path):
+    """--restamp of a stamp near the end of int32 seconds: one line, counted, no crash."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import get_typestore, Stores
+    store = get_typestore(Stores.ROS2_JAZZY)
+    types = store.types
+    msgtype = 'geometry_msgs/msg/PointStamped'
+
+    def stamped(sec):
+        header = types['std_msgs/msg/Header'](
+            stamp=types['builtin_interfaces/msg/Time'](sec=sec, nanosec=0), frame_id='map')
+        point = types['geometry_msgs/msg/Point'](x=1.0, y=2.0, z=3.0)
+        return store.serialize_cdr(types[msgtype](header=header, point=point), msgtype)
+    with Writer(tmp_path / 'bag', version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        far = writer.add_connection('/far', msgtype, typestore=store)
+        near = writer.add_connection('/near', msgtype, typestore=store)
+        writer.write(far, 1, stamped(2**31 - 10))  # a year-2038 stamp: now + it overflows
+        writer.write(near, 2, stamped(1))
+    code, out, err = finish(start_player(tmp_path / 'bag', '--restamp', '--rate', '1000'))
+    assert code == 0, out + err
+    line, = err.splitlines()
+    assert line.startswith('reduced-dynamics play: skipping messages of /far: cannot '
+                           'restamp: a shifted stamp') and 'builtin_interfaces/Time' in line
+    assert 'published 1 messages on 1 topic(s)' in out and '1 skipped' in out
+
+
 # ------------------------------------------------------------------ into the node
 def test_bag_played_into_the_node_gives_replays_outputs(install, tmp_path):  # noqa: F811
     """
@@ -259,15 +285,19 @@ def test_bag_played_into_the_node_gives_replays_outputs(install, tmp_path):  # n
 
 # ------------------------------------------------------------------ paused start
 def test_start_paused_plays_when_the_resume_service_is_called(tmp_path):
-    """``--start-paused``: nothing until ~/resume (std_srvs/Trigger); then the whole bag."""
+    """``--start-paused``: nothing until ~/resume (std_srvs/Trigger); then the whole bag.
+
+    Played under another name (``--remap``), as into a namespaced node.
+    """
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from std_srvs.srv import Trigger
     sent = _bag_raw(DATA / 'paper_constant', '/joint_states')
     recorder = start_recorder(tmp_path / 'got.json',
-                              [f'/joint_states:sensor_msgs/msg/JointState:{len(sent)}'])
+                              [f'/sc1/joint_states:sensor_msgs/msg/JointState:{len(sent)}'])
     player = start_player(DATA / 'paper_constant', '--start-paused', '--rate', '20',
-                          '--topics', '/joint_states', '--qos-depth', '0')
+                          '--topics', '/joint_states', '--qos-depth', '0',
+                          '--remap', '/joint_states:=/sc1/joint_states')
     context = rclpy.Context()
     rclpy.init(context=context)
     node = rclpy.create_node('test_resume', context=context)
@@ -297,5 +327,5 @@ def test_start_paused_plays_when_the_resume_service_is_called(tmp_path):
             if proc.poll() is None:
                 proc.kill()
     got = [bytes.fromhex(h) for h in json.loads((tmp_path / 'got.json').read_text())
-           ['/joint_states']]
+           ['/sc1/joint_states']]
     assert got == sent

@@ -238,12 +238,21 @@ def test_a_stamp_moved_out_of_range_is_refused():
 
 
 def test_restamp_offset_is_the_system_time_the_bag_start_was_due_at():
-    fake, clock = _clock(bag0=100 * S)
+    fake, clock = _clock(bag0=100 * S, rate=2.0)
     fake.now += 3 * S  # the first message of the pass goes out 3 s after the start
     assert restamp_offset_ns(clock, 100 * S, 2_000 * S) == 2_000 * S - 3 * S - 100 * S
-    clock.pause()
-    with pytest.raises(ValueError, match='while playing'):
-        restamp_offset_ns(clock, 100 * S, 0)
+    clock.pause()  # paused meanwhile (the ~/pause service): the same start
+    fake.now += 10 * S
+    assert restamp_offset_ns(clock, 100 * S, 2_010 * S) == 2_000 * S - 3 * S - 100 * S + 10 * S
+
+
+def test_remap_names_the_published_topic():
+    from reduced_dynamics.bag.playback import parse_remap
+    options = PlayOptions('b', remap=(parse_remap('/joint_states:=/sc1/joint_states'),))
+    assert options.published_name('/joint_states') == '/sc1/joint_states'
+    assert options.published_name('/odom') == '/odom'
+    with pytest.raises(ValueError, match='FROM:=TO'):
+        parse_remap('/joint_states')
 
 
 def test_the_clock_topic_follows_bag_time_and_the_stamps():

@@ -57,6 +57,7 @@ class PlayOptions:
     wait_for_subscribers: tuple[str, ...] = ()
     qos_depth: int = DEFAULT_QOS_DEPTH  # 0: keep all
     wait_timeout: float = 0.0  # seconds waiting for subscribers, 0: for ever
+    remap: tuple[tuple[str, str], ...] = ()  # (bag topic, published topic)
 
     def problems(self) -> list[str]:
         """Return what is wrong with the options (empty when usable)."""
@@ -69,7 +70,22 @@ class PlayOptions:
             out.append(f'--qos-depth must be >= 0 (0: keep all), got {self.qos_depth}')
         if not (math.isfinite(self.wait_timeout) and self.wait_timeout >= 0):
             out.append(f'--wait-timeout must be >= 0 s, got {self.wait_timeout}')
+        for source, target in self.remap:
+            if not source or not target:
+                out.append(f'--remap takes FROM:=TO, got {source}:={target}')
         return out
+
+    def published_name(self, topic: str) -> str:
+        """Return the name ``topic`` is published under (after --remap)."""
+        return dict(self.remap).get(topic, topic)
+
+
+def parse_remap(text: str) -> tuple[str, str]:
+    """Split ``FROM:=TO`` (ValueError otherwise)."""
+    source, sep, target = text.partition(':=')
+    if not sep or not source.strip() or not target.strip():
+        raise ValueError(f'--remap takes FROM:=TO, got {text!r}')
+    return source.strip(), target.strip()
 
 
 def played_topics(reader: BagReader, options: PlayOptions) -> dict[str, str]:
@@ -340,15 +356,13 @@ def restamp_offset_ns(clock: PlaybackClock, bag_start_ns: int, epoch_now_ns: int
     """
     Return the stamp shift of a pass: bag start to the system time it was due at.
 
-    The bag start was due at ``clock.due_ns(bag_start_ns)`` (monotonic); the system
-    time of that moment is ``epoch_now_ns`` minus the monotonic time elapsed since.
-    A message whose stamp is its log time is then stamped with the moment it is due
-    (at rate 1). Call it while playing (not paused).
+    The bag time of now is ``(now - due of the start) * rate`` past the start, so the
+    start was due ``(bag time - start) / rate`` before ``epoch_now_ns`` (also while
+    paused: bag time stands still). A message whose stamp is its log time is then
+    stamped with the moment it is due (at rate 1).
     """
-    due = clock.due_ns(bag_start_ns)
-    if due is None:
-        raise ValueError('the restamp offset is taken while playing, not paused')
-    return int(epoch_now_ns) - (clock.now_ns() - due) - int(bag_start_ns)
+    elapsed = round((clock.bag_time_ns() - int(bag_start_ns)) / clock.rate)
+    return int(epoch_now_ns) - elapsed - int(bag_start_ns)
 
 
 def clock_time_ns(clock: PlaybackClock, offset_ns: int = 0) -> int:
