@@ -298,15 +298,15 @@ def test_start_paused_plays_when_the_resume_service_is_called(tmp_path):
                               [f'/sc1/joint_states:sensor_msgs/msg/JointState:{len(sent)}'])
     player = start_player(DATA / 'paper_constant', '--start-paused', '--rate', '20',
                           '--topics', '/joint_states', '--qos-depth', '0',
-                          '--remap', '/joint_states:=/sc1/joint_states')
+                          '--remap', '/joint_states:=/sc1/joint_states',
+                          '--wait-for-subscribers', '/joint_states')
     context = rclpy.Context()
     rclpy.init(context=context)
     node = rclpy.create_node('test_resume', context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     try:
-        wait_for_line(player, 'paused')
-        wait_for_line(recorder, 'ready')  # matched while paused: nothing was lost
+        wait_for_line(player, 'paused')  # after its writer matched the recorder's reader
 
         def call(name, attempts=30):
             """Return (attempt, success, message) of the first answered request."""
