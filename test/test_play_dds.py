@@ -254,8 +254,10 @@ def test_bag_played_into_the_node_gives_replays_outputs(install, tmp_path):  # n
     recorder = start_recorder(tmp_path / 'got.json', specs, exclude=NODE_STATUS_NAME)
     node = player = None
     try:
+        # No wall-time prediction budget: replay has none, a loaded machine would make the
+        # node drop predictions (issue 24.1).
         node = dds.start_node(install, f'-p urdf_path:={shlex.quote(urdf)}',
-                              '-p use_sim_time:=true',
+                              '-p use_sim_time:=true', '-p prediction_max_wall_time:=0.0',
                               *(f'-p {arg}' for arg in dds.RELIABLE_INPUTS), *keep_outputs)
         wait_for_line(recorder, 'ready')  # the node's outputs are matched
         # As launch/replay_bag.launch.py runs it (its wait_for default: one word).
