@@ -24,7 +24,7 @@ shell's (:mod:`reduced_dynamics.player_node`); it hands in a ``publish``
 function, so everything here runs and is tested without rclpy.
 """
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 import dataclasses
 from dataclasses import dataclass
 import math
@@ -283,12 +283,6 @@ def play_messages(
         if not options.loop or empty or clock.stopped:
             stats.stopped = clock.stopped
             return stats
-
-
-def bag_messages(options: PlayOptions) -> Iterator[RawBagMessage]:
-    """Yield one pass of the played messages in log-time order (no timing)."""
-    with open_bag(options.bag) as reader:
-        yield from reader.raw_messages(list(played_topics(reader, options)))
 
 
 # --------------------------------------------------------------------- stamps
