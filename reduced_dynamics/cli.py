@@ -16,7 +16,7 @@
 Command line: ``reduced-dynamics validate | symmetries | simulate | replay | ...``.
 
 Subcommands: validate, symmetries, simulate, replay, replay-many, predict, tune, bench,
-identify, correlate.
+identify, correlate, play.
 
 One subcommand per task; ``--help`` on each lists its options.
 """
@@ -110,6 +110,7 @@ LAZY_COMMANDS = {
     'identify': ('identify', 'identify a grasped payload\'s inertial parameters from a bag'),
     'correlate': ('correlate', 'correlation and gain of the wrench estimate with a thruster '
                                'command, per axis'),
+    'play': ('player_node', 'publish a bag over DDS with rclpy, as ros2 bag play does'),
 }
 
 

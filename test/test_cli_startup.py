@@ -91,7 +91,8 @@ def _required(name: str) -> list[str]:
     return {'simulate': ['-o', 'x'], 'replay': ['bag', '-o', 'x'],
             'predict': ['--trajectory', 'x'], 'tune': ['bag', '-o', 'x'],
             'bench': [], 'replay-many': ['bag', '-o', 'x'],
-            'identify': ['bag', '--link', 'l'], 'correlate': ['out']}[name]
+            'identify': ['bag', '--link', 'l'], 'correlate': ['out'],
+            'play': ['bag']}[name]
 
 
 def test_validate_loads_only_the_model_and_the_integrators():

@@ -133,16 +133,67 @@ def test_replay_launch_arguments_and_actions():
             arguments['namespace']) == ('1.0', '2.0', '', '')
     passed = _definitions(REPLAY_LAUNCH, {'PASSED_THROUGH'})['PASSED_THROUGH']
     assert set(passed) <= set(_declared_arguments(NODE_LAUNCH))
-    play, = _calls(_tree(REPLAY_LAUNCH), 'ExecuteProcess')
-    assert ast.unparse(_keywords(play)['cmd']) == (
+    ros2_play, own_play = _calls(_tree(REPLAY_LAUNCH), 'ExecuteProcess')
+    assert ast.unparse(_keywords(ros2_play)['cmd']) == (
         "['ros2', 'bag', 'play', LaunchConfiguration('bag'), '--rate', "
         "LaunchConfiguration('rate'), '--clock']")
+    assert ast.unparse(_keywords(ros2_play)['condition']) == "_player_is('ros2')"
+    assert ast.unparse(_keywords(own_play)['condition']) == "_player_is('reduced_dynamics')"
     text = REPLAY_LAUNCH.read_text()
     assert "node_arguments['use_sim_time'] = 'true'" in text  # the bag's /clock drives it
     assert "'reduced_dynamics.launch.py'" in text and NODE_LAUNCH.is_file()
+    # Only ros2 bag play waits the fixed delay; reduced-dynamics play waits for the node.
+    timer, = _calls(_tree(REPLAY_LAUNCH), 'TimerAction')
+    assert ast.unparse(_keywords(timer)['actions']) == '[ros2_play]'
     on_exit, = _calls(_tree(REPLAY_LAUNCH), 'OnProcessExit')
     assert ast.unparse(_keywords(on_exit)['target_action']) == 'play'
+    assert 'for play in (ros2_play, own_play)' in text
     assert _calls(_tree(REPLAY_LAUNCH), 'Shutdown')  # the bag's end ends the launch
+
+
+def _command_with_defaults(call: ast.Call) -> list:
+    """Return an ExecuteProcess cmd with each LaunchConfiguration at its default."""
+    arguments = _declared_arguments(REPLAY_LAUNCH)
+    arguments['bag'] = str(REPO_ROOT / 'test' / 'data' / 'paper_constant')
+    out = []
+    for element in _keywords(call)['cmd'].elts:
+        if isinstance(element, ast.Constant):
+            out.append(element.value)
+        else:
+            name = ast.literal_eval(element.args[0])
+            default = arguments[name]
+            if isinstance(default, ast.Name):  # a module constant (WAIT_FOR)
+                default = _definitions(REPLAY_LAUNCH, {default.id})[default.id]
+            out.append(default)
+    return out
+
+
+def test_replay_launch_runs_reduced_dynamics_play_with_options_it_takes():
+    from reduced_dynamics.cli import build_parser
+    from reduced_dynamics.player_node import options_from_args
+    _, own_play = _calls(_tree(REPLAY_LAUNCH), 'ExecuteProcess')
+    command = _command_with_defaults(own_play)
+    assert command[:2] == ['reduced-dynamics', 'play']
+    options = options_from_args(build_parser('play').parse_args(command[1:]))
+    assert options.clock_hz > 0 and options.rate == 1.0  # /clock for use_sim_time
+    # The node's default inputs (odom or pose input); the player skips those not in the bag.
+    assert options.wait_for_subscribers == ('/joint_states', '/odom', '/base_pose')
+
+
+@pytest.mark.parametrize('ros2, ros2bag, expected', [
+    ('/opt/ros/jazzy/bin/ros2', True, 'ros2'), (None, False, 'reduced_dynamics'),
+    ('/usr/bin/ros2', False, 'reduced_dynamics')])
+def test_replay_launch_plays_with_ros2_bag_only_where_installed(
+        monkeypatch, ros2, ros2bag, expected):
+    import importlib.util as util
+    import shutil
+    default_player = _definitions(REPLAY_LAUNCH, {'default_player'})['default_player']
+    monkeypatch.setattr(shutil, 'which', lambda name: ros2 if name == 'ros2' else None)
+    real_find_spec = util.find_spec
+    monkeypatch.setattr(util, 'find_spec', lambda name, *a: (
+        (object() if ros2bag else None) if name == 'ros2bag' else real_find_spec(name, *a)))
+    assert default_player() == expected
+    assert expected in _definitions(REPLAY_LAUNCH, {'PLAYERS'})['PLAYERS']
 
 
 def _import_real_launch():

@@ -34,7 +34,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, NamedTuple, Optional, Union
 
-from rosbags.interfaces import Connection, MessageDefinitionFormat
+from rosbags.interfaces import Connection, MessageDefinitionFormat, QosDurability
 from rosbags.typesys import (
     get_types_from_idl,
     get_types_from_msg,
@@ -247,6 +247,12 @@ class BagReader:
         for conn in self._connections:
             out.setdefault(conn.topic, conn.msgtype)
         return out
+
+    def latched_topics(self) -> set[str]:
+        """Return the topics recorded from transient-local ("latched") publishers."""
+        return {c.topic for c in self._connections
+                if any(getattr(q, 'durability', None) == QosDurability.TRANSIENT_LOCAL
+                       for q in getattr(c.ext, 'offered_qos_profiles', None) or [])}
 
     def message_count(self, topic: Optional[str] = None) -> int:
         """Return the message count of ``topic`` (or of the whole bag when None)."""
