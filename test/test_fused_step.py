@@ -66,7 +66,7 @@ def test_fused_step_equals_propagate_then_update_bit_for_bit(name: str, with_twi
         lin.joint_cov, flt._pose_var, stamp_twist, sigma, flt._twist_var, gate, weight,
         flt._basis, flt._pinv, flt._whole, flt._ad_rows, flt._form_rows)
     expected = (g0, x0, p0, phi) + tuple(updated)
-    assert len(fused) == len(expected) + 2
+    assert len(fused) == len(expected) + 3
     for got, want in zip(fused, expected):
         assert np.array_equal(np.asarray(got), np.asarray(want))
     accepted, g1, x1 = updated[0], updated[5], updated[6]
@@ -78,6 +78,8 @@ def test_fused_step_equals_propagate_then_update_bit_for_bit(name: str, with_twi
         assert np.array_equal(fused[16], stamp_twist + weight * (twist - stamp_twist))
     else:
         assert np.array_equal(fused[16], stamp_twist)
+    # The wrench test of the resulting state, as the event detector asks it.
+    assert fused[17] == kernels.significance(updated[6], updated[7], n)
 
 
 def test_covariance_health_names_what_is_wrong() -> None:

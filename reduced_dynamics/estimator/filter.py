@@ -260,6 +260,8 @@ class MomentumFilter:
         # H of a pose measurement, [1 0 0] (the step test's signatures need it).
         self._h_pose = np.zeros((n, dim))
         self._h_pose[:, :n] = np.eye(n)
+        #: (P, x, w^T P_ww^-1 w) of the last fused step (kernels.propagate_update)
+        self._fused_significance: Optional[tuple] = None
 
     # --- the pose -----------------------------------------------------------------
     @property
@@ -351,6 +353,9 @@ class MomentumFilter:
                 cov = self.p[2 * n:3 * n, 2 * n:3 * n] + command_gain.mismatch_covariance(
                     self.p, n, self._adjoint_inverse(self.g).T, self._command, unidentified)
                 return float(w @ np.linalg.solve(cov, w))
+        fused = self._fused_significance
+        if fused is not None and self.p is fused[0] and self.x is fused[1]:
+            return fused[2]  # computed by the last fused step, for this very state
         return kernels.significance(self.x, self.p, self.n)
 
     def _adjoint(self, g: pin.SE3) -> np.ndarray:
@@ -625,6 +630,7 @@ class MomentumFilter:
             return None
         self._g, self.x, self.p = fused[0], fused[1], fused[2]
         self.stamp_ns = stamp_ns
+        self._fused_significance = (fused[11], fused[10], fused[17])
         self.step_test.propagate(stamp_ns, fused[3])
         return fused
 

@@ -478,9 +478,10 @@ def propagate_update(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.nda
     call (the filter's common step: a measurement at the step's end). Return
     (g, x, P, Phi) predicted, then :func:`update`'s eleven results, then the
     health of the resulting covariance (:func:`covariance_health`: of the update's
-    P when accepted, else of the prediction's) and the stamp-noise twist average
+    P when accepted, else of the prediction's), the stamp-noise twist average
     moved ``twist_weight`` towards the updated twist (accepted and
-    ``twist_weight`` >= 0; else ``stamp_twist``).
+    ``twist_weight`` >= 0; else ``stamp_twist``) and :func:`significance` of the
+    resulting state (NaN when its covariance is not healthy).
     """
     phi, q = transition(g, x, locked, step_inverse, step_connection_qd, step_joint_cov, dt,
                         jerk_var, basis, pinv, whole, ad_rows, form_rows)
@@ -491,10 +492,12 @@ def propagate_update(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.nda
         g0, x0, p0, pose, measured, with_twist, inverse_locked, connection_qd, joint_cov,
         pose_var, stamp_twist, stamp_sigma, twist_var, gate, basis, pinv, whole, form_rows)
     health = covariance_health(p1 if accepted else p0)
+    # w^T P_ww^-1 w of the result (the event detector reads it after each row).
+    wrench_test = significance(x1, p1, inverse_locked.shape[0]) if health == 0 else np.nan
     averaged = stamp_twist
     if accepted and twist_weight >= 0.0:
         n = inverse_locked.shape[0]
         averaged = stamp_twist + twist_weight * (
             twist(g1, x1[:n], inverse_locked, connection_qd, basis, pinv, whole) - stamp_twist)
     return (g0, x0, p0, phi, accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain, health,
-            averaged)
+            averaged, wrench_test)
