@@ -35,8 +35,8 @@ def _problem(n: int, seed: int):
 @pytest.mark.parametrize('name,with_twist,gate', [
     ('SE(3)', True, np.inf), ('SE(3)', False, np.inf), ('SE(2)', True, np.inf),
     ('SE(3)', True, 0.0)])
-def test_fused_step_equals_propagate_then_update_bit_for_bit(name: str, with_twist: bool,
-                                                              gate: float) -> None:
+def test_fused_step_equals_propagate_then_update_bit_for_bit(
+        name: str, with_twist: bool, gate: float) -> None:
     """One compiled call per step gives what propagate then update gave, to the bit."""
     group = SUBGROUPS[name]
     n = group.dim
