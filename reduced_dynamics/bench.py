@@ -417,6 +417,8 @@ def bench_update(report: Report, robot, settings: Settings) -> None:
             note='the same samples and repeats; estimator/fixed_lag.py'))
     report.add(make_figure('update', 'crba (paper robot)', 'us/call',
                            [1e6 * c for c in crbas], note='baseline'))
+    from reduced_dynamics.bench_floor import bench_floor
+    bench_floor(report, robot, settings)  # what the targets leave for the interpreter
     bench_first_call(report, settings)
 
 

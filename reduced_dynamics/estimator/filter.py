@@ -140,6 +140,8 @@ STAMP_TWIST_TIME = 0.5
 ITERATIONS = kernels.ITERATIONS
 LOG_2PI = math.log(2.0 * math.pi)
 _EMPTY = np.zeros(0)
+#: Restart causes by ``kernels.covariance_health`` code (0: healthy).
+_HEALTH_CAUSES = (None, 'covariance not finite', 'negative variance')
 
 
 def _axis_kinds(group: BaseGroup) -> np.ndarray:
@@ -258,6 +260,8 @@ class MomentumFilter:
         # H of a pose measurement, [1 0 0] (the step test's signatures need it).
         self._h_pose = np.zeros((n, dim))
         self._h_pose[:, :n] = np.eye(n)
+        #: (P, x, w^T P_ww^-1 w) of the last fused step (kernels.propagate_update)
+        self._fused_significance: Optional[tuple] = None
 
     # --- the pose -----------------------------------------------------------------
     @property
@@ -349,6 +353,9 @@ class MomentumFilter:
                 cov = self.p[2 * n:3 * n, 2 * n:3 * n] + command_gain.mismatch_covariance(
                     self.p, n, self._adjoint_inverse(self.g).T, self._command, unidentified)
                 return float(w @ np.linalg.solve(cov, w))
+        fused = self._fused_significance
+        if fused is not None and self.p is fused[0] and self.x is fused[1]:
+            return fused[2]  # computed by the last fused step, for this very state
         return kernels.significance(self.x, self.p, self.n)
 
     def _adjoint(self, g: pin.SE3) -> np.ndarray:
@@ -559,23 +566,89 @@ class MomentumFilter:
             if stamp <= self.stamp_ns:
                 continue
             fraction = (stamp - start) / span
-            transition = self._propagate(stamp, between(before, lin, 0.5 * (done + fraction)),
-                                         None if commands is None else commands[index])
+            self._step_to(stamp, between(before, lin, 0.5 * (done + fraction)),
+                          None if commands is None else commands[index], measurement,
+                          between(before, lin, fraction), False, gated)
             done = fraction
-            self._measure(stamp, transition, measurement, between(before, lin, fraction),
-                          False, gated)
-        transition = self._propagate(stamp_ns, between(before, lin, 0.5 * (done + 1.0)),
-                                     None if commands is None else commands[-1])
-        self._measure(stamp_ns, transition, last, lin, True, gated)
+        self._step_to(stamp_ns, between(before, lin, 0.5 * (done + 1.0)),
+                      None if commands is None else commands[-1], last, lin, True, gated)
         return gated
+
+    def _step_to(self, stamp_ns: int, step: Linearisation, command: Optional[Command],
+                 measurement: Optional[Measurement], lin: Linearisation, output: bool,
+                 gated: list) -> None:
+        """
+        Propagate to ``stamp_ns`` with inputs ``step``, then measure (:meth:`_measure`).
+
+        The common step (no commanded wrench, the noise parameters, not a burst) runs
+        as one compiled call (``kernels.propagate_update``) doing the same operations
+        as :meth:`_propagate` and :meth:`_update` one after the other.
+        """
+        burst = None
+        if measurement is not None and not self.command and measurement.noise is None \
+                and stamp_ns > self.stamp_ns:
+            burst = self.stalls.in_burst(measurement.stamp_ns) \
+                and measurement.stamp_sigma is None
+            if not burst:
+                fused = self._fused_step(stamp_ns, step, measurement, lin)
+                if fused is not None:
+                    self._measure(stamp_ns, fused[3], measurement, lin, output, gated,
+                                  burst=False, fused=fused)
+                    return
+        transition = self._propagate(stamp_ns, step, command)
+        self._measure(stamp_ns, transition, measurement, lin, output, gated, burst=burst)
+
+    def _fused_step(self, stamp_ns: int, step: Linearisation, measurement: Measurement,
+                    lin: Linearisation) -> Optional[tuple]:
+        """
+        Run ``kernels.propagate_update``; take its prediction as :meth:`_propagate` does.
+
+        Return its results, or None when it raised (the caller then takes the two
+        steps one by one, which raise or restart as they always did).
+        """
+        twist = measurement.twist
+        with_twist = twist is not None
+        values = _EMPTY if twist is None else np.asarray(twist, dtype=float)
+        sigma, weight = 0.0, -1.0
+        if self.noise.pose_stamp > 0.0:
+            sigma = self.noise.pose_stamp if measurement.stamp_sigma is None \
+                else measurement.stamp_sigma
+            # The stamp twist's average weight of _update (the time since its last move).
+            last = self._stamp_twist_ns
+            dt = 0.0 if last is None else max(stamp_ns - last, 0) * 1e-9
+            weight = min(1.0, dt / STAMP_TWIST_TIME)
+        try:
+            fused = kernels.propagate_update(
+                self._g, self.x, self.p, step.locked, step.locked_inverse,
+                step.connection_qd, step.joint_cov, (stamp_ns - self.stamp_ns) * 1e-9,
+                self._jerk_var, np.ascontiguousarray(measurement.pose.homogeneous), values,
+                with_twist, lin.locked_inverse, lin.connection_qd, lin.joint_cov,
+                self._pose_var, self._stamp_twist, sigma, self._twist_var,
+                self._gates[2 * self.n if with_twist else self.n], weight, self._basis,
+                self._pinv, self._whole, self._ad_rows, self._form_rows)
+        except (np.linalg.LinAlgError, ZeroDivisionError):
+            return None
+        self._g, self.x, self.p = fused[0], fused[1], fused[2]
+        self.stamp_ns = stamp_ns
+        self._fused_significance = (fused[11], fused[10], fused[17])
+        self.step_test.propagate(stamp_ns, fused[3])
+        return fused
 
     def _measure(self, stamp_ns: int, transition: np.ndarray,
                  measurement: Optional[Measurement], lin: Linearisation, output: bool,
-                 gated: list) -> None:
-        """Update with ``measurement`` (if any) at the current time and record the step."""
+                 gated: list, burst: Optional[bool] = None,
+                 fused: Optional[tuple] = None) -> None:
+        """
+        Update with ``measurement`` (if any) at the current time and record the step.
+
+        ``burst``: whether the measurement is a burst's (None: ask the stall detector).
+        ``fused``: ``kernels.propagate_update``'s results (the update already done).
+        """
         g_pred, x_pred, p_pred = self._g, self.x, self.p
-        if measurement is not None and self.stalls.in_burst(measurement.stamp_ns) \
-                and measurement.stamp_sigma is None:
+        if burst is None:
+            burst = measurement is not None and self.stalls.in_burst(measurement.stamp_ns) \
+                and measurement.stamp_sigma is None
+        if burst:
             # A frame of a burst after a stall (core/stalls.py): its stamp says nothing of
             # when it was taken. A re-timed stamp (its own sigma) is a frame time: kept.
             self.burst_skipped += 1
@@ -584,8 +657,11 @@ class MomentumFilter:
             cause = None
             try:
                 accepted = self._update(measurement.pose, measurement.twist, lin,
-                                        measurement.stamp_sigma, measurement.noise)
-                if not np.isfinite(self.p).all():
+                                        measurement.stamp_sigma, measurement.noise, fused)
+                if fused is not None and self.p is fused[11]:
+                    # The compiled call checked this covariance already.
+                    cause = _HEALTH_CAUSES[fused[15]]
+                elif not np.isfinite(self.p).all():
                     cause = 'covariance not finite'
                 elif not (np.diag(self.p) >= 0.0).all():
                     cause = 'negative variance'
@@ -630,7 +706,8 @@ class MomentumFilter:
 
     def _update(self, pose: pin.SE3, twist: Optional[np.ndarray],
                 lin: Linearisation, stamp_sigma: Optional[float] = None,
-                noise: Optional[tuple] = None) -> bool:
+                noise: Optional[tuple] = None, fused: Optional[tuple] = None) -> bool:
+        """Update with a measurement (``fused``: the compiled call's results, already done)."""
         n = self.n
         g0, x0, p0 = self._g, self.x, self.p
         measured = np.ascontiguousarray(pose.homogeneous)
@@ -644,7 +721,9 @@ class MomentumFilter:
             # A re-timed stamp (a frame time, estimator/retiming.py) carries its own.
             sigma = self.noise.pose_stamp if stamp_sigma is None else stamp_sigma
         size = 2 * n if with_twist else n
-        if noise is None:
+        if fused is not None:
+            accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain = fused[4:15]
+        elif noise is None:
             accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain = kernels.update(
                 g0, x0, p0, measured, values, with_twist, lin.locked_inverse,
                 lin.connection_qd, lin.joint_cov, self._pose_var, self._stamp_twist, sigma,
@@ -701,7 +780,11 @@ class MomentumFilter:
         self._gated_run = 0
         self._gated_residuals = []
         self._g, self.x, self.p = g1, x1, p1
-        if self.noise.pose_stamp > 0.0:
+        if self.noise.pose_stamp > 0.0 and fused is not None and p1 is fused[11]:
+            # Accepted at once: the compiled call moved the average (same operations).
+            self._stamp_twist_ns = self.stamp_ns
+            self._stamp_twist = fused[16]
+        elif self.noise.pose_stamp > 0.0:
             last, self._stamp_twist_ns = self._stamp_twist_ns, self.stamp_ns
             dt = 0.0 if last is None else max(self.stamp_ns - last, 0) * 1e-9
             weight = min(1.0, dt / STAMP_TWIST_TIME)

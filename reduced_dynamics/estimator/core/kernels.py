@@ -445,3 +445,59 @@ def significance(x: np.ndarray, p: np.ndarray, n: int) -> float:
     w = x[n:2 * n].copy()
     block = np.ascontiguousarray(p[2 * n:3 * n, 2 * n:3 * n])
     return w @ np.linalg.solve(block, w)
+
+
+@njit(cache=True)
+def covariance_health(p: np.ndarray) -> int:
+    """Return 0 for a usable covariance, 1 when not finite, 2 with a negative variance."""
+    dim = p.shape[0]
+    for i in range(dim):
+        for j in range(dim):
+            if not np.isfinite(p[i, j]):
+                return 1
+    for i in range(dim):
+        if not p[i, i] >= 0.0:
+            return 2
+    return 0
+
+
+@njit(cache=True)
+def propagate_update(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
+                     step_inverse: np.ndarray, step_connection_qd: np.ndarray,
+                     step_joint_cov: np.ndarray, dt: float, jerk_var: np.ndarray,
+                     pose: np.ndarray, measured: np.ndarray, with_twist: bool,
+                     inverse_locked: np.ndarray, connection_qd: np.ndarray,
+                     joint_cov: np.ndarray, pose_var: np.ndarray, stamp_twist: np.ndarray,
+                     stamp_sigma: float, twist_var: np.ndarray, gate: float,
+                     twist_weight: float, basis: np.ndarray, pinv: np.ndarray, whole: bool,
+                     ad_rows: np.ndarray, form_rows: np.ndarray) -> tuple:
+    """
+    Propagate (3n filter, ``step_*`` the step's inputs) and update: one call per step.
+
+    The same operations as :func:`propagate` then :func:`update`, in one compiled
+    call (the filter's common step: a measurement at the step's end). Return
+    (g, x, P, Phi) predicted, then :func:`update`'s eleven results, then the
+    health of the resulting covariance (:func:`covariance_health`: of the update's
+    P when accepted, else of the prediction's), the stamp-noise twist average
+    moved ``twist_weight`` towards the updated twist (accepted and
+    ``twist_weight`` >= 0; else ``stamp_twist``) and :func:`significance` of the
+    resulting state (NaN when its covariance is not healthy).
+    """
+    phi, q = transition(g, x, locked, step_inverse, step_connection_qd, step_joint_cov, dt,
+                        jerk_var, basis, pinv, whole, ad_rows, form_rows)
+    g0, x0 = propagate_mean(g, x, step_inverse, step_connection_qd, dt, np.empty(0), False,
+                            basis, pinv, whole)
+    p0 = symmetric(_chain_product(phi, p, dt) + q)
+    accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain = update(
+        g0, x0, p0, pose, measured, with_twist, inverse_locked, connection_qd, joint_cov,
+        pose_var, stamp_twist, stamp_sigma, twist_var, gate, basis, pinv, whole, form_rows)
+    health = covariance_health(p1 if accepted else p0)
+    # w^T P_ww^-1 w of the result (the event detector reads it after each row).
+    wrench_test = significance(x1, p1, inverse_locked.shape[0]) if health == 0 else np.nan
+    averaged = stamp_twist
+    if accepted and twist_weight >= 0.0:
+        n = inverse_locked.shape[0]
+        averaged = stamp_twist + twist_weight * (
+            twist(g1, x1[:n], inverse_locked, connection_qd, basis, pinv, whole) - stamp_twist)
+    return (g0, x0, p0, phi, accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain, health,
+            averaged, wrench_test)

@@ -1,0 +1,186 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The floor under the update and replay figures: what a sample costs without Python.
+
+Issue 19's targets (streaming <= 20 x ``crba``, batched <= 10 x, replay >= 0.5 of
+``rosbags`` decoding) are measured on the whole estimator. This section times the
+parts no restructuring of the per-row Python can remove, in steady state (the
+step test's bank full), each as a multiple of one ``crba``:
+
+* ``mechanics``: the kernel's per-row inputs of the filter (``crba`` and the
+  chunk algebra: I^-1, A qbar_dot, A Sigma A^T, pbar), one row at a time (the
+  streaming path) and per row of a 1 000-row chunk (batched);
+* ``filter step``: ``kernels.propagate_update`` (propagation + iterated Joseph
+  update of the 18-state filter) run in a compiled loop, i.e. without the
+  interpreter, and the same called from Python;
+* ``step test``: the wrench-step test's compiled kernels (``absorb`` +
+  ``evaluate`` over a full bank of onsets), in a compiled loop.
+
+Their sum is the floor of a sample of the current algorithm; with the rosbags
+decode of the same two messages it bounds the replay ratio.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+#: Steady state: the step test's bank is full after 2 s of 1 kHz samples.
+WARMUP_SAMPLES = 2100
+
+
+def _capture(robot) -> dict:
+    """Run the estimator to steady state; return the arguments of its compiled calls."""
+    from reduced_dynamics.bench import update_samples
+    from reduced_dynamics.estimator import step_kernels
+    from reduced_dynamics.estimator.config import EstimatorConfig
+    from reduced_dynamics.estimator.core import kernels
+    from reduced_dynamics.estimator.pipeline import Estimator
+    joints, bases = update_samples(robot, WARMUP_SAMPLES + 2)
+    estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0, smoothing_lag=0.0))
+    messages = [m for pair in zip(joints, bases) for m in pair]
+    estimator.add_samples(messages[:2 * WARMUP_SAMPLES])
+    captured: dict = {}
+    originals = {(kernels, 'propagate_update'): kernels.propagate_update,
+                 (step_kernels, 'absorb'): step_kernels.absorb,
+                 (step_kernels, 'evaluate'): step_kernels.evaluate}
+
+    def recorder(name: str, function: Callable) -> Callable:
+        def record(*args: Any) -> Any:
+            # Copies: absorb and evaluate work in place on the bank's arrays.
+            captured[name] = tuple(a.copy() if isinstance(a, np.ndarray) else a
+                                   for a in args)
+            return function(*args)
+        return record
+
+    for (module, name), function in originals.items():
+        setattr(module, name, recorder(name, function))
+    try:
+        estimator.add_samples(messages[2 * WARMUP_SAMPLES:])
+    finally:
+        for (module, name), function in originals.items():
+            setattr(module, name, function)
+    captured['qbar'] = np.array([j.position for j in joints[-1000:]])
+    captured['qbar_dot'] = np.array([j.velocity for j in joints[-1000:]])
+    captured['bases'] = np.array([np.r_[b.position, b.orientation_xyzw, b.twist_linear,
+                                        b.twist_angular] for b in bases[-1000:]])
+    captured['variance'] = estimator.config.joint_velocity_noise ** 2
+    captured['kernel'] = estimator.kernel
+    return captured
+
+
+_LOOPS: dict = {}
+
+
+def _compiled_loop(function: Callable) -> Callable:
+    """Return a compiled ``loop(count, args)`` calling ``function(*args)`` count times."""
+    if function in _LOOPS:
+        return _LOOPS[function]
+    from numba import njit
+
+    @njit
+    def loop(count: int, args: tuple) -> int:
+        for _ in range(count):
+            function(*args)
+        return count
+
+    _LOOPS[function] = loop
+    return loop
+
+
+def _seconds_per_call(run: Callable[[], Any], calls: int) -> float:
+    start = time.perf_counter()
+    for _ in range(calls):
+        run()
+    return (time.perf_counter() - start) / calls
+
+
+def _looped(function: Callable, args: tuple, calls: int) -> float:
+    loop = _compiled_loop(function)
+    loop(1, args)  # compiles
+    start = time.perf_counter()
+    loop(calls, args)
+    return (time.perf_counter() - start) / calls
+
+
+def measure_floor(robot, calls: int = 2000) -> dict:
+    """
+    Return seconds per sample of each floor part (see the module docstring), and crba's.
+
+    Keys: ``crba``, ``mechanics_streaming``, ``mechanics_batched``,
+    ``filter_step_compiled``, ``filter_step_called``, ``step_test_compiled``,
+    ``floor_streaming`` and ``floor_batched`` (the sums with the compiled parts).
+    """
+    from reduced_dynamics.bench import time_crba
+    from reduced_dynamics.estimator import step_kernels
+    from reduced_dynamics.estimator.core import kernels
+    captured = _capture(robot)
+    kernel, variance = captured['kernel'], captured['variance']
+    qbar, qbar_dot, bases = captured['qbar'], captured['qbar_dot'], captured['bases']
+    out = {'crba': time_crba(robot, 4 * calls)}
+    one = (qbar[:1], qbar_dot[:1], bases[:1], variance)
+    out['mechanics_streaming'] = _seconds_per_call(lambda: kernel.filter_inputs(*one), calls)
+    chunks = max(1, calls // len(qbar))
+    out['mechanics_batched'] = _seconds_per_call(
+        lambda: kernel.filter_inputs(qbar, qbar_dot, bases, variance), chunks) / len(qbar)
+    step = captured['propagate_update']
+    out['filter_step_compiled'] = _looped(kernels.propagate_update, step, calls)
+    out['filter_step_called'] = _seconds_per_call(lambda: kernels.propagate_update(*step),
+                                                  calls)
+    absorb, evaluate = captured['absorb'], captured['evaluate']
+    out['step_test_compiled'] = _looped(step_kernels.absorb, absorb, calls) \
+        + _looped(step_kernels.evaluate, evaluate, calls)
+    compiled = out['filter_step_compiled'] + out['step_test_compiled']
+    out['floor_streaming'] = out['mechanics_streaming'] + compiled
+    out['floor_batched'] = out['mechanics_batched'] + compiled
+    return out
+
+
+#: Rows of :func:`bench_floor`: (key, figure name, note).
+FLOOR_ROWS = (
+    ('floor_streaming', 'update floor, streaming: mechanics + compiled filter step + step test',
+     'no interpreter in the filter: filter_inputs of one row, kernels.propagate_update and '
+     'the step-test kernels in compiled loops (bench_floor.py)'),
+    ('floor_batched', 'update floor, batched: the same, mechanics per row of 1 000',
+     'as above, filter_inputs over a 1 000-row chunk'),
+    ('filter_step_compiled', 'update floor: compiled filter step alone',
+     'kernels.propagate_update (propagation + iterated Joseph update), compiled loop'),
+    ('filter_step_called', 'update floor: compiled filter step called from Python',
+     'the same call with numba dispatch (arguments in, 18 results out)'),
+    ('step_test_compiled', 'update floor: step-test kernels (absorb + evaluate)',
+     'a full bank of onsets, compiled loop'),
+    ('mechanics_streaming', 'update floor: mechanics of one row (crba + chunk algebra)',
+     'UpdateKernel.filter_inputs, one row'),
+    ('mechanics_batched', 'update floor: mechanics per row of a 1 000-row chunk',
+     'UpdateKernel.filter_inputs, 1 000 rows'))
+
+
+def bench_floor(report: Any, robot, settings: Any) -> None:
+    """Add the floor rows (section update), each against ``crba`` timed in the same repeat."""
+    from reduced_dynamics.bench import make_figure
+    runs = [measure_floor(robot) for _ in range(settings.repeats)]
+    crbas = [run['crba'] for run in runs]
+    targets = {'floor_streaming': 20.0, 'floor_batched': 10.0}
+    for key, name, note in FLOOR_ROWS:
+        values = [run[key] for run in runs]
+        bound = targets.get(key)
+        report.add(make_figure(
+            'update', name, 'us/sample', [1e6 * v for v in values], 'crba',
+            [1e6 * c for c in crbas], [v / c for v, c in zip(values, crbas)],
+            '' if bound is None else f'ratio <= {bound:g} (reachable?)',
+            None if bound is None else (lambda r, bound=bound: r <= bound), note))

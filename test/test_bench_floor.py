@@ -1,0 +1,37 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""The bench's update floor (reduced_dynamics/bench_floor.py)."""
+
+import math
+
+from reduced_dynamics import bench_floor
+from reduced_dynamics.robot.model import load_robot
+
+
+def test_floor_times_the_steady_state_calls_and_adds_them_up() -> None:
+    """Captured in steady state (a full step-test bank), each part timed, sums consistent."""
+    robot = load_robot()
+    captured = bench_floor._capture(robot)
+    # evaluate(c, b0, j0, bound_inv, bounded, count, ...): onsets open, as in steady state.
+    assert captured['evaluate'][5] >= 10
+    step = captured['propagate_update']
+    assert step[2].shape == (3 * robot.n, 3 * robot.n) and step[11]  # an Odometry update
+    floor = bench_floor.measure_floor(robot, calls=50)
+    assert all(math.isfinite(v) and v > 0.0 for v in floor.values())
+    compiled = floor['filter_step_compiled'] + floor['step_test_compiled']
+    assert math.isclose(floor['floor_streaming'], floor['mechanics_streaming'] + compiled)
+    assert math.isclose(floor['floor_batched'], floor['mechanics_batched'] + compiled)
+    # One row's mechanics include at least one crba.
+    assert floor['mechanics_streaming'] > floor['crba']
