@@ -30,6 +30,7 @@ import numpy as np
 import pinocchio as pin
 
 from reduced_dynamics.integrators import Budget, DiscreteGradient, integrate_adaptive
+from reduced_dynamics.reduction.lean_field import LeanField
 from reduced_dynamics.reduction.vector_field import ReducedSystem
 from reduced_dynamics.robot.state import FreeFloatingState, TorqueLaw, zero_torque
 
@@ -51,6 +52,7 @@ class ReducedPropagator:
         self.torque = torque or zero_torque(system.m)
         self.g_seg = pin.SE3(g0)
         self.nz = system.k + 2 * system.m
+        self._lean: Optional[LeanField] = None
 
     @classmethod
     def from_full_state(cls, robot, state: FreeFloatingState,
@@ -69,12 +71,14 @@ class ReducedPropagator:
 
     def rhs(self, t: float, y: np.ndarray) -> np.ndarray:
         """dy/dt: Theorem 54 (:meth:`ReducedSystem.vector_field`) and g_dot = g xi."""
-        nz = self.nz
-        out = np.empty(y.shape)
-        _, xi = self.system.vector_field(y[:nz], self._torque_at(t), out)
-        # g = g_seg exp(eta): eta_dot = Jr(eta)^-1 xi.
-        np.matmul(self.group.right_jacobian_inverse(y[nz:]), xi, out=out[nz:])
-        return out
+        # The compiled route (lean_field.py): the same field as vector_field, with
+        # eta_dot = Jr(eta)^-1 xi for g = g_seg exp(eta).
+        return self._lean_field()(t, y, self.torque)
+
+    def _lean_field(self) -> LeanField:
+        if self._lean is None or self._lean.system is not self.system:
+            self._lean = LeanField(self.system)
+        return self._lean
 
     def chart_size(self, y: np.ndarray) -> float:
         """Largest of the orbit-chart and base-chart coordinate norms."""
@@ -91,9 +95,8 @@ class ReducedPropagator:
 
     def observe(self, t: float, y: np.ndarray) -> np.ndarray:
         """[g (16), pi(q~1), qbar, qbar_dot, pbar, H~]."""
-        z = y[:self.nz]
-        _, qbar, pbar = self.system.split(z)
-        pi, _, qbar_dot, energy = self.system.kinematics(z)
+        _, qbar, pbar = self.system.split(y[:self.nz])
+        pi, _, qbar_dot, energy = self._lean_field().kinematics(y)
         return np.concatenate([self.pose(y).homogeneous.ravel(), pi, qbar, qbar_dot, pbar,
                                [energy]])
 
