@@ -43,15 +43,13 @@ import numpy as np
 from numba import njit
 import pinocchio as pin
 
-from reduced_dynamics.estimator.core.lie import action
-
 #: Cholesky pivot below which M is reported as not positive definite.
 _PIVOT_FLOOR = 0.0
 
 
 @njit(cache=True)
 def _mm3(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    """out = a b for 3 x 3 (loops into scratch: BLAS and allocation cost more here)."""
+    """Write a b into out, 3 x 3 (loops into scratch: BLAS and allocation cost more here)."""
     for i in range(3):
         for j in range(3):
             out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
@@ -246,7 +244,7 @@ def _solve_factor(factor: np.ndarray, size: int, rhs: np.ndarray) -> None:
 
 @njit(cache=True)
 def _exp_times(twist: np.ndarray, g: np.ndarray, out: np.ndarray, s3: np.ndarray) -> None:
-    """out = exp6(twist) g (``pin.exp6``'s closed form, in loops: no BLAS for 3 x 3)."""
+    """Write exp6(twist) g into out (``pin.exp6``'s closed form, in loops: no BLAS)."""
     w0, w1, w2 = twist[3], twist[4], twist[5]
     t2 = w0 * w0 + w1 * w1 + w2 * w2
     t = math.sqrt(t2)
@@ -493,7 +491,7 @@ class LeanField:
             self.g_ref[:, :] = chart.g_ref.homogeneous
 
     def _momenta(self, y: np.ndarray) -> None:
-        """crba and :func:`momenta_kernel` at y: fills pi, u~, A and v."""
+        """Run crba and :func:`momenta_kernel` at y: fills pi, u~, A and v."""
         if self._chart is not self.system.chart:
             self._refresh_chart()
         work = self.work
