@@ -63,8 +63,8 @@ def test_lean_rhs_equals_vector_field(name, cls):
 @pytest.mark.parametrize('scale', [0.0, 1e-9, 1e-5, 0.05, 0.3, 0.8])
 def test_se3_jacobians_equal_pinocchio(scale):
     # Jl(x) = Jexp6(-x) and Jr(x)^-1 = Jlog6(exp6(x)) (rotations below pi). Around 1e-3
-    # rad Pinocchio's closed forms lose ~1e-10 to cancellation (checked against a 40-digit reference when this
-    # was written), so that range is left out here.
+    # rad Pinocchio's closed forms lose ~1e-10 to cancellation (checked against a
+    # 40-digit reference when this was written), so that range is left out here.
     rng = np.random.default_rng(int(1e3 * scale) + 1)
     for _ in range(5):
         twist = scale * rng.standard_normal(6)
