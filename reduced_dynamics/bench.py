@@ -693,6 +693,9 @@ def bench_prediction(report: Report, robot, settings: Settings) -> None:
                                [1e3 * s for s in row['seconds']],
                                note=f'error {row["error"]:.1e} rad, {row["evaluations"]} '
                                     'evaluations (baseline sweep)'))
+    # What the reduction costs: the random-tree row and the Pinocchio floors (issue 26).
+    from reduced_dynamics.reduction_bench import bench_reduction_cost
+    bench_reduction_cost(report, robot, settings)
 
 
 def _count_evaluations(system: Any, counter: Optional[list]) -> None:

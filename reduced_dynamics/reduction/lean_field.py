@@ -451,6 +451,129 @@ def rates_kernel(coriolis: np.ndarray, v: np.ndarray, drift: np.ndarray,
     return True
 
 
+@njit(cache=True)
+def gradient_kernel(d_mu: np.ndarray, d_mw: np.ndarray, v: np.ndarray, drift: np.ndarray,
+                    connection: np.ndarray, pi: np.ndarray, twist: np.ndarray,
+                    g_ref: np.ndarray, chart_twist: np.ndarray, basis: np.ndarray,
+                    pinv: np.ndarray, whole: bool, gradient: np.ndarray,
+                    structure: np.ndarray, s3: np.ndarray) -> None:
+    """
+    Fill grad H~ and the structure matrix of Theorem 54 (:meth:`.ReducedSystem.evaluate`).
+
+    ``d_mu``, ``d_mw``: RNEA derivatives ``d(M u~)/dq`` and ``d(M w)/dq`` (all nv
+    columns; the shape ones are used). ``dH~/dqbar = -1/2 u~^T d_iM u~ - 1/2 w^T
+    d_iM w``, curvature ``C = P^T - P`` with ``P = [-A; 1]^T dM u~``
+    (hamiltonian.py), ``U[q~1, q~1] = L^T W L``, ``U[qbar, q~1] = A^T W L``,
+    ``dH~/dq~1 = -(W L)^T I^-1 pi`` (magnetic.py) with L the chart's body
+    Jacobian and ``W = S^T W6(S+^T pi) S``, ``W6(f, t) = [[0, -[f]], [-[f], -[t]]]``
+    the Kirillov form on se(3). The potential's gradient is the caller's.
+    """
+    n = pi.shape[0]
+    size = v.shape[0]
+    m = size - n
+    k = chart_twist.shape[1]
+    for j in range(m):
+        total = 0.0
+        for a in range(n):
+            total -= 0.5 * drift[a] * d_mu[a, n + j]
+        for a in range(size):
+            wa = v[a] - drift[a] if a < n else v[a]
+            total -= 0.5 * wa * d_mw[a, n + j]
+        gradient[k + j] = total
+        gradient[k + m + j] = v[n + j]
+    structure[:, :] = 0.0
+    # P[i, j] = (d_mu[n + i] - A^T d_mu[:n])[j]; C = P^T - P.
+    p_mat = np.empty((m, m))
+    for i in range(m):
+        for j in range(m):
+            total = d_mu[n + i, n + j]
+            for a in range(n):
+                total -= connection[a, i] * d_mu[a, n + j]
+            p_mat[i, j] = total
+    for i in range(m):
+        for j in range(m):
+            structure[k + i, k + j] = p_mat[j, i] - p_mat[i, j]
+        structure[k + i, k + m + i] = -1.0
+        structure[k + m + i, k + i] = 1.0
+    if not k:
+        return
+    # L = S+ Ad(g_ref^-1) Jr(S C q~1) S C  (n x k): CosetChart.body_jacobian.
+    jac = np.empty((6, 6))
+    negated = np.empty(6)
+    for i in range(6):
+        negated[i] = -twist[i]
+    left_jacobian6_into(negated, jac, s3)
+    body = np.zeros((6, k))
+    for i in range(6):
+        for j in range(k):
+            total = 0.0
+            for a in range(6):
+                total += jac[i, a] * chart_twist[a, j]
+            body[i, j] = total
+    # Ad(g^-1) x = [R^T (v - p x w); R^T w] for x = (v, w)
+    lift = np.zeros((6, k))
+    for j in range(k):
+        for i in range(3):
+            a, b = (i + 1) % 3, (i + 2) % 3
+            s3[0, 0, i] = body[i, j] - (g_ref[a, 3] * body[3 + b, j]
+                                        - g_ref[b, 3] * body[3 + a, j])
+        for i in range(3):
+            lift[i, j] = g_ref[0, i] * s3[0, 0, 0] + g_ref[1, i] * s3[0, 0, 1] \
+                + g_ref[2, i] * s3[0, 0, 2]
+            lift[3 + i, j] = g_ref[0, i] * body[3, j] + g_ref[1, i] * body[4, j] \
+                + g_ref[2, i] * body[5, j]
+    # W6 L6 with W6(f, t) = [[0, -[f]], [-[f], -[t]]], pi6 = S+^T pi.
+    pi6 = np.empty(6)
+    for i in range(6):
+        if whole:
+            pi6[i] = pi[i]
+        else:
+            total = 0.0
+            for a in range(n):
+                total += pinv[a, i] * pi[a]
+            pi6[i] = total
+    wl6 = np.zeros((6, k))
+    for j in range(k):
+        for i in range(3):
+            a, b = (i + 1) % 3, (i + 2) % 3
+            # -[f] x = x x f ; rows v: -[f] w_part ; rows w: -[f] v_part - [t] w_part
+            wl6[i, j] = lift[3 + a, j] * pi6[b] - lift[3 + b, j] * pi6[a]
+            wl6[3 + i, j] = lift[a, j] * pi6[b] - lift[b, j] * pi6[a] \
+                + lift[3 + a, j] * pi6[3 + b] - lift[3 + b, j] * pi6[3 + a]
+    # Project: L = S+ lift (lift lies in span S), W L = S^T wl6.
+    chart_jac = np.zeros((n, k))
+    wl = np.zeros((n, k))
+    for i in range(n):
+        for j in range(k):
+            if whole:
+                chart_jac[i, j] = lift[i, j]
+                wl[i, j] = wl6[i, j]
+            else:
+                t1 = 0.0
+                t2 = 0.0
+                for a in range(6):
+                    t1 += pinv[i, a] * lift[a, j]
+                    t2 += basis[a, i] * wl6[a, j]
+                chart_jac[i, j] = t1
+                wl[i, j] = t2
+    for j in range(k):
+        total = 0.0
+        for a in range(n):
+            total -= wl[a, j] * drift[a]
+        gradient[j] = total
+        for i in range(k):
+            total = 0.0
+            for a in range(n):
+                total += chart_jac[a, i] * wl[a, j]
+            structure[i, j] = total
+        for i in range(m):
+            total = 0.0
+            for a in range(n):
+                total += connection[a, i] * wl[a, j]
+            structure[k + i, j] = total
+            structure[j, k + i] = -total
+
+
 class LeanField:
     """
     The reduced right-hand side of a :class:`.ReducedPropagator`, compiled.
@@ -482,6 +605,8 @@ class LeanField:
         self.connection = np.zeros((self.n, self.m))
         self.v = np.zeros(size)
         self.s3 = np.zeros((SCRATCH3, 3, 3))
+        self._w = np.zeros(size)
+        self._zero = np.zeros(size)
         self._chart = None
 
     def _refresh_chart(self) -> None:
@@ -519,6 +644,46 @@ class LeanField:
             energy += self.system.robot.potential_energy(y[k:k + m])
         return pi, v[:n].copy(), qbar_dot, energy
 
+    def energy(self, z: np.ndarray) -> float:
+        """Return H~ at z = (q~1, qbar, pbar) (5.36), as :meth:`.ReducedSystem.hamiltonian`."""
+        self._momenta(z)
+        k, m, n = self.k, self.m, self.n
+        energy = 0.5 * float(self.pi @ self.drift[:n]) + 0.5 * float(z[k + m:self.nz]
+                                                                    @ self.v[n:])
+        if self.potential:
+            energy += self.system.robot.potential_energy(z[k:k + m])
+        return energy
+
+    def evaluate(self, z: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """
+        Return (H~, grad H~, structure) at z: :meth:`.ReducedSystem.evaluate` without tau.
+
+        What the discrete gradient needs, from crba, two RNEA-derivative calls and
+        :func:`gradient_kernel`. Leaves v = [xi; qbar_dot] in :attr:`v`.
+        """
+        self._momenta(z)
+        k, m, n = self.k, self.m, self.n
+        work = self.work
+        drift, v = self.drift, self.v
+        w = self._w
+        np.subtract(v, drift, out=w)
+        derivatives = pin.computeRNEADerivatives
+        # Pinocchio hands back its Data's dtau_dq: copy before the second call overwrites it.
+        d_mu = derivatives(work.kinetic_model, work.kinetic_data, work.q, self._zero,
+                           drift)[0].copy()
+        d_mw = derivatives(work.kinetic_model, work.kinetic_data, work.q, self._zero, w)[0]
+        gradient = np.empty(self.nz)
+        structure = np.empty((self.nz, self.nz))
+        gradient_kernel(d_mu, d_mw, v, drift, self.connection, self.pi, self.twist,
+                        self.g_ref, self.chart_twist, self.basis, self.pinv, self.whole,
+                        gradient, structure, self.s3)
+        energy = 0.5 * float(self.pi @ drift[:n]) + 0.5 * float(z[k + m:self.nz] @ v[n:])
+        if self.potential:
+            qbar = z[k:k + m]
+            gradient[k:k + m] += self.system.robot.potential_gradient(qbar)
+            energy += self.system.robot.potential_energy(qbar)
+        return energy, gradient, structure
+
     def __call__(self, t: float, y: np.ndarray, torque: Callable,
                  out: Optional[np.ndarray] = None) -> np.ndarray:
         """Return dy/dt for y = (q~1, qbar, pbar, eta) under ``torque(t, qbar, qbar_dot)``."""
@@ -537,3 +702,34 @@ class LeanField:
                             self.basis, self.pinv, self.whole, out, self.s3):
             raise np.linalg.LinAlgError('orbit form L^T W L is singular')
         return out
+
+
+_warm = False
+
+
+def warm_up() -> None:
+    """
+    Run every kernel of this module once in this process (load or compile them).
+
+    Called where predictions are configured, so the first prediction's wall-time
+    budget does not pay numba's load (or compilation) of these kernels.
+    """
+    global _warm
+    if _warm:
+        return
+    from reduced_dynamics.reduction.reconstruction import ReducedPropagator
+    from reduced_dynamics.robot.model import load_robot
+    from reduced_dynamics.robot.random_tree import random_tree_urdf
+    from reduced_dynamics.robot.state import FreeFloatingState
+    robot = load_robot(random_tree_urdf(2, seed=0))
+    state = FreeFloatingState(pin.SE3.Identity(), np.full(robot.n, 0.01), np.full(robot.m, 0.1),
+                              np.full(robot.m, 0.02))
+    propagator, y = ReducedPropagator.from_full_state(robot, state)
+    propagator.rhs(0.0, y)
+    propagator.observe(0.0, y)
+    field = propagator._lean_field()
+    field.evaluate(y[:field.nz])
+    field.energy(y[:field.nz])
+    left_jacobian6(np.zeros(6))
+    right_jacobian6_inverse(np.zeros(6))
+    _warm = True

@@ -120,23 +120,31 @@ class ReducedPropagator:
         return ReducedTrajectory(self.system, times, records)
 
     def fixed_step_integrator(self) -> DiscreteGradient:
-        """Return the discrete-gradient integrator for this system's z (time set per step)."""
+        """
+        Return the discrete-gradient integrator for this system's z (time set per step).
+
+        H~, its gradient and the structure matrix come from the compiled route
+        (:meth:`.LeanField.evaluate`, held equal to :meth:`.ReducedSystem.evaluate`
+        in the tests); the forcing reads qbar_dot from the same buffers.
+        """
         system = self.system
 
         def evaluate(z: np.ndarray):
-            evaluation = system.evaluate(z, np.zeros(system.m))
-            return evaluation.energy, evaluation.gradient, evaluation.structure
+            return self._lean_field().evaluate(z)
+
+        def energy(z: np.ndarray) -> float:
+            return self._lean_field().energy(z)
 
         def forcing(t: float, z: np.ndarray) -> np.ndarray:
-            _, qbar, pbar = system.split(z)
-            if not self._has_torque:
-                return np.zeros_like(z)
-            qbar_dot = np.linalg.solve(system.robot.metric_blocks(qbar).reduced_metric, pbar)
             out = np.zeros_like(z)
+            if not self._has_torque:
+                return out
+            _, qbar, _ = system.split(z)
+            _, _, qbar_dot, _ = self._lean_field().kinematics(z)
             out[system.k:system.k + system.m] = self.torque(t, qbar, qbar_dot)
             return out
 
-        return DiscreteGradient(evaluate, system.hamiltonian, forcing)
+        return DiscreteGradient(evaluate, energy, forcing)
 
     @property
     def _has_torque(self) -> bool:
@@ -148,21 +156,27 @@ class ReducedPropagator:
         y = self.recentre(np.asarray(y0, dtype=float))
         t = float(times[0])
         records = [self.observe(t, y)]
-        energy = self.system.hamiltonian(y[:self.nz])
+        lean = self._lean_field()
+        energy = lean.energy(y[:self.nz])
         for target in times[1:]:
             while t < target - 1e-12:
                 h = min(step, target - t)
                 z0 = y[:self.nz]
                 before = stepper.stats.iterations
-                z1 = stepper.step(t, z0, h, energy)
+                # Start the fixed point from an explicit midpoint step (error O(h^3)
+                # instead of O(h) from z0): fewer iterations to the same tolerance.
+                half = y + 0.5 * h * self.rhs(t, y)
+                guess = z0 + h * self.rhs(t + 0.5 * h, half)[:self.nz]
+                z1 = stepper.step(t, z0, h, energy, guess)
                 if budget is not None:
-                    budget.charge(stepper.stats.iterations - before)
+                    # The iterations and the two evaluations of the starting guess.
+                    budget.charge(stepper.stats.iterations - before + 2)
                 zm = 0.5 * (z0 + z1)
-                xi_mid = self.system.evaluate(zm, np.zeros(self.system.m)).xi
+                xi_mid = lean.kinematics(zm)[1]
                 # g_{n+1} = g_n exp(h xi(z_mid)): second order, like the scheme.
                 self.g_seg = self.pose(y) * self.group.exp(h * xi_mid)
                 y = np.concatenate([z1, np.zeros(self.group.dim)])
-                energy = self.system.hamiltonian(z1) if self._has_torque else energy
+                energy = lean.energy(z1) if self._has_torque else energy
                 t += h
                 if self.chart_size(y) > 0.5:
                     y = self.recentre(y)
