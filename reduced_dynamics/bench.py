@@ -606,6 +606,8 @@ def bench_prediction(report: Report, robot, settings: Settings) -> None:
     from reduced_dynamics.reduction.reconstruction import ReducedPropagator
     from reduced_dynamics.validation import random_scenario
 
+    from reduced_dynamics.reduction.lean_field import warm_up
+    warm_up()  # the compiled kernels' first call is not what these rows measure
     scenario = random_scenario(robot, MomentumClass.GENERIC, 0)
     state, torque = scenario.state, scenario.torque
     times = np.linspace(0.0, HORIZON, settings.prediction_points)

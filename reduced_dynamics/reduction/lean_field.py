@@ -648,8 +648,8 @@ class LeanField:
         """Return H~ at z = (q~1, qbar, pbar) (5.36), as :meth:`.ReducedSystem.hamiltonian`."""
         self._momenta(z)
         k, m, n = self.k, self.m, self.n
-        energy = 0.5 * float(self.pi @ self.drift[:n]) + 0.5 * float(z[k + m:self.nz]
-                                                                    @ self.v[n:])
+        pbar = z[k + m:self.nz]
+        energy = 0.5 * float(self.pi @ self.drift[:n]) + 0.5 * float(pbar @ self.v[n:])
         if self.potential:
             energy += self.system.robot.potential_energy(z[k:k + m])
         return energy

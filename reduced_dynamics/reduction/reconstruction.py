@@ -128,9 +128,15 @@ class ReducedPropagator:
         in the tests); the forcing reads qbar_dot from the same buffers.
         """
         system = self.system
+        # qbar_dot of the last evaluate(z): the integrator asks for the forcing at the
+        # same z right after (identity checked), which then needs no crba of its own.
+        last: list = [None, None]
 
         def evaluate(z: np.ndarray):
-            return self._lean_field().evaluate(z)
+            lean = self._lean_field()
+            out = lean.evaluate(z)
+            last[0], last[1] = z, lean.v[system.robot.n:].copy()
+            return out
 
         def energy(z: np.ndarray) -> float:
             return self._lean_field().energy(z)
@@ -140,7 +146,10 @@ class ReducedPropagator:
             if not self._has_torque:
                 return out
             _, qbar, _ = system.split(z)
-            _, _, qbar_dot, _ = self._lean_field().kinematics(z)
+            if z is last[0]:
+                qbar_dot = last[1]
+            else:
+                qbar_dot = self._lean_field().kinematics(z)[2]
             out[system.k:system.k + system.m] = self.torque(t, qbar, qbar_dot)
             return out
 
