@@ -43,6 +43,9 @@ import numpy as np
 from numba import njit
 import pinocchio as pin
 
+_crba = pin.crba
+_coriolis = pin.computeCoriolisMatrix
+
 #: Cholesky pivot below which M is reported as not positive definite.
 _PIVOT_FLOOR = 0.0
 
@@ -338,11 +341,11 @@ def momenta_kernel(q1: np.ndarray, pbar: np.ndarray, mass: np.ndarray,
 
 
 @njit(cache=True)
-def rates_kernel(coriolis: np.ndarray, v: np.ndarray, drift: np.ndarray,
-                 connection: np.ndarray, tau: np.ndarray, twist: np.ndarray,
-                 chi: np.ndarray, eta: np.ndarray, chart_twist: np.ndarray,
+def rates_kernel(coriolis: np.ndarray, tau: np.ndarray, eta: np.ndarray, out: np.ndarray,
+                 v: np.ndarray, drift: np.ndarray, connection: np.ndarray,
+                 twist: np.ndarray, chi: np.ndarray, chart_twist: np.ndarray,
                  kirillov_mu_t: np.ndarray, basis: np.ndarray, pinv: np.ndarray,
-                 whole: bool, out: np.ndarray, s3: np.ndarray) -> bool:
+                 whole: bool, s3: np.ndarray) -> bool:
     """
     Fill out = (q~1_dot, qbar_dot, pbar_dot, eta_dot) from C(q, v) and the momenta.
 
@@ -607,6 +610,20 @@ class LeanField:
         self.s3 = np.zeros((SCRATCH3, 3, 3))
         self._w = np.zeros(size)
         self._zero = np.zeros(size)
+        work = self.work
+        self._q, self._model, self._data = work.q, work.model, work.data
+        self._kinetic_model, self._kinetic_data = work.kinetic_model, work.kinetic_data
+        k, m, nz = self.k, self.m, self.nz
+        self._q_shape = slice(work.nq_base, None)
+        self._q1, self._shape = slice(0, k), slice(k, k + m)
+        self._pbar, self._eta = slice(k + m, nz), slice(nz, None)
+        # Buffers and constants, in the kernels' argument order (updated in place).
+        self._momenta_args = (self.chart_twist, self.g_ref, self.mu6, self.basis, self.whole,
+                              self.factor, self.twist, self.chi, self.pi, self.drift,
+                              self.connection, self.v, self.s3)
+        self._rates_args = (self.v, self.drift, self.connection, self.twist, self.chi,
+                            self.chart_twist, self.kirillov_mu_t, self.basis, self.pinv,
+                            self.whole, self.s3)
         self._chart = None
 
     def _refresh_chart(self) -> None:
@@ -619,13 +636,10 @@ class LeanField:
         """Run crba and :func:`momenta_kernel` at y: fills pi, u~, A and v."""
         if self._chart is not self.system.chart:
             self._refresh_chart()
-        work = self.work
-        work.q[work.nq_base:] = y[self.k:self.k + self.m]
-        mass = pin.crba(work.model, work.data, work.q)
-        k, m = self.k, self.m
-        if not momenta_kernel(y[:k], y[k + m:self.nz], mass, self.chart_twist, self.g_ref,
-                              self.mu6, self.basis, self.whole, self.factor, self.twist,
-                              self.chi, self.pi, self.drift, self.connection, self.v, self.s3):
+        q = self._q
+        q[self._q_shape] = y[self._shape]
+        mass = _crba(self._model, self._data, q)
+        if not momenta_kernel(y[self._q1], y[self._pbar], mass, *self._momenta_args):
             raise np.linalg.LinAlgError('mass matrix M is not positive definite')
 
     def kinematics(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
@@ -687,22 +701,25 @@ class LeanField:
     def __call__(self, t: float, y: np.ndarray, torque: Callable,
                  out: Optional[np.ndarray] = None) -> np.ndarray:
         """Return dy/dt for y = (q~1, qbar, pbar, eta) under ``torque(t, qbar, qbar_dot)``."""
-        self._momenta(y)
-        work = self.work
-        qbar = y[self.k:self.k + self.m]
+        # _momenta inlined, attributes bound once: this is the integrator's inner loop.
+        if self._chart is not self.system.chart:
+            self._refresh_chart()
+        q = self._q
+        qbar = y[self._shape]
+        q[self._q_shape] = qbar
+        mass = _crba(self._model, self._data, q)
+        if not momenta_kernel(y[self._q1], y[self._pbar], mass, *self._momenta_args):
+            raise np.linalg.LinAlgError('mass matrix M is not positive definite')
         v = self.v
-        coriolis = pin.computeCoriolisMatrix(work.kinetic_model, work.kinetic_data, work.q, v)
+        coriolis = _coriolis(self._kinetic_model, self._kinetic_data, q, v)
         tau = torque(t, qbar, v[self.n:])
         if self.potential:
             tau = tau - self.system.robot.potential_gradient(qbar)
         if out is None:
             out = np.empty(y.shape)
-        if not rates_kernel(coriolis, v, self.drift, self.connection, tau, self.twist,
-                            self.chi, y[self.nz:], self.chart_twist, self.kirillov_mu_t,
-                            self.basis, self.pinv, self.whole, out, self.s3):
+        if not rates_kernel(coriolis, tau, y[self._eta], out, *self._rates_args):
             raise np.linalg.LinAlgError('orbit form L^T W L is singular')
         return out
-
 
 _warm = False
 
