@@ -721,6 +721,7 @@ class LeanField:
             raise np.linalg.LinAlgError('orbit form L^T W L is singular')
         return out
 
+
 _warm = False
 
 
