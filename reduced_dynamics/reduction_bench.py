@@ -44,8 +44,8 @@ def pinocchio_costs(robot, state, calls: int = FLOOR_CALLS, repeats: int = 9) ->
     """
     Return seconds per ``crba``, ``computeCoriolisMatrix`` and ``aba`` call at ``state``.
 
-    The three loops take turns (a change of machine load hits all three) and each
-    keeps its fastest repeat.
+    CPU time, as the prediction rows; the three loops take turns (a change of
+    machine load hits all three) and each keeps its fastest repeat.
     """
     model = robot.model
     data = model.createData()
@@ -58,10 +58,10 @@ def pinocchio_costs(robot, state, calls: int = FLOOR_CALLS, repeats: int = 9) ->
     out = {name: np.inf for name in runs}
     for _ in range(repeats):
         for name, call in runs.items():
-            start = time.perf_counter()
+            start = time.process_time()
             for _ in range(calls):
                 call()
-            out[name] = min(out[name], (time.perf_counter() - start) / calls)
+            out[name] = min(out[name], (time.process_time() - start) / calls)
     return out
 
 
@@ -113,7 +113,8 @@ def bench_reduction_cost(report: Any, robot, settings: Any) -> None:
 
 
 def _bench_tree(report: Any, settings: Any, horizon: float) -> None:
-    from reduced_dynamics.bench import _count_evaluations, _timed, make_figure, matched_time
+    from reduced_dynamics.bench import _count_evaluations, _timed, make_figure, matched_time, \
+        PREDICTION_CLOCK
     from reduced_dynamics.full_dynamics import FullDynamics
     from reduced_dynamics.geometry.isotropy import MomentumClass
     from reduced_dynamics.reduction.reconstruction import ReducedPropagator
@@ -148,7 +149,7 @@ def _bench_tree(report: Any, settings: Any, horizon: float) -> None:
     # Round-robin repeats, as in bench_prediction (load changes hit both alike).
     for _ in range(settings.repeats):
         for index, (_, _, run) in enumerate(runs):
-            results[index], timing = _timed(run, 1)
+            results[index], timing = _timed(run, 1, PREDICTION_CLOCK)
             seconds[index] += timing
     rows = []
     for (kind, rtol, _), result, timing in zip(runs, results, seconds):
