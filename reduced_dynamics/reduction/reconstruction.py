@@ -70,7 +70,7 @@ class ReducedPropagator:
         return lambda qbar, qbar_dot: self.torque(t, qbar, qbar_dot)
 
     def rhs(self, t: float, y: np.ndarray) -> np.ndarray:
-        """dy/dt: Theorem 54 (:meth:`ReducedSystem.vector_field`) and g_dot = g xi."""
+        """dy/dt: Theorem 54 (as :meth:`ReducedSystem.vector_field`) and g_dot = g xi."""
         # The compiled route (lean_field.py): the same field as vector_field, with
         # eta_dot = Jr(eta)^-1 xi for g = g_seg exp(eta).
         return self._lean_field()(t, y, self.torque)
