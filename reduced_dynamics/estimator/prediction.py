@@ -379,8 +379,10 @@ class Predictor:
         self.mode = mode
         self.horizon = horizon
         self.step = step
-        # Load the compiled reduced right-hand side now, not inside the first budget.
-        warm_up_reduced_field()
+        # Modes that integrate the reduced dynamics: load its compiled right-hand side
+        # now, not inside the first prediction's wall-time budget.
+        if mode not in PRESCRIBED_MODES and not self.cyclic_joints:
+            warm_up_reduced_field()
         self.active: list[PredictionJob] = []
         self.finished: list[FinishedPrediction] = []
         self.made = 0
