@@ -96,7 +96,7 @@ def test_not_positive_definite_mass_is_reported():
     field = propagator._lean_field()
     bad = -np.eye(robot.n + robot.m)
     ok = lean_field.momenta_kernel(
-        y0[:field.k], y0[field.k + field.m:field.nz], bad, field.chart_twist, field.g_ref,
+        y0[:field.k], y0[field.k + field.m:field.nz], bad, True, field.chart_twist, field.g_ref,
         field.mu6, field.basis, field.whole, field.factor, field.twist, field.chi, field.pi,
         field.drift, field.connection, field.v, field.s3)
     assert not ok

@@ -280,12 +280,15 @@ def _exp_times(twist: np.ndarray, g: np.ndarray, out: np.ndarray, s3: np.ndarray
 
 @njit(cache=True)
 def momenta_kernel(q1: np.ndarray, pbar: np.ndarray, mass: np.ndarray,
-                   chart_twist: np.ndarray, g_ref: np.ndarray, mu6: np.ndarray,
-                   basis: np.ndarray, whole: bool, factor: np.ndarray, twist: np.ndarray,
-                   chi: np.ndarray, pi: np.ndarray, drift: np.ndarray,
+                   with_connection: bool, chart_twist: np.ndarray, g_ref: np.ndarray,
+                   mu6: np.ndarray, basis: np.ndarray, whole: bool, factor: np.ndarray,
+                   twist: np.ndarray, chi: np.ndarray, pi: np.ndarray, drift: np.ndarray,
                    connection: np.ndarray, v: np.ndarray, s3: np.ndarray) -> bool:
     """
-    Fill chi, pi, u~ = [I^-1 pi; 0], A = I^-1 B and v = u~ + M^-1 [0; pbar].
+    Fill chi, pi, u~ = [I^-1 pi; 0], v = u~ + M^-1 [0; pbar] (and A = I^-1 B).
+
+    ``factor`` receives the lower Cholesky factor L of M; A only
+    ``with_connection`` (the right-hand side contracts it through L instead).
 
     ``pi = S^T Ad_chi^T (S+)^T mu`` with ``chi = exp(S C q~1) g_ref``
     (REDUCED_MODEL.md 5); ``w = M^-1 [0; pbar] = [-A qbar_dot; qbar_dot]`` since
@@ -326,12 +329,13 @@ def momenta_kernel(q1: np.ndarray, pbar: np.ndarray, mass: np.ndarray,
     drift[:] = 0.0
     drift[:n] = pi
     _solve_factor(factor, n, drift)
-    column = np.empty(n)
-    for j in range(size - n):
-        for i in range(n):
-            column[i] = mass[i, n + j]
-        _solve_factor(factor, n, column)
-        connection[:, j] = column
+    if with_connection:
+        column = np.empty(n)
+        for j in range(size - n):
+            for i in range(n):
+                column[i] = mass[i, n + j]
+            _solve_factor(factor, n, column)
+            connection[:, j] = column
     v[:n] = 0.0
     v[n:] = pbar
     _solve_factor(factor, size, v)
@@ -342,7 +346,7 @@ def momenta_kernel(q1: np.ndarray, pbar: np.ndarray, mass: np.ndarray,
 
 @njit(cache=True)
 def rates_kernel(coriolis: np.ndarray, tau: np.ndarray, eta: np.ndarray, out: np.ndarray,
-                 v: np.ndarray, drift: np.ndarray, connection: np.ndarray,
+                 v: np.ndarray, drift: np.ndarray, factor: np.ndarray,
                  twist: np.ndarray, chi: np.ndarray, chart_twist: np.ndarray,
                  kirillov_mu_t: np.ndarray, basis: np.ndarray, pinv: np.ndarray,
                  whole: bool, s3: np.ndarray) -> bool:
@@ -351,8 +355,9 @@ def rates_kernel(coriolis: np.ndarray, tau: np.ndarray, eta: np.ndarray, out: np
 
     ``pbar_dot = [-A; 1]^T (C^T w - C u~) + tau`` and ``L^T W^T L q~1_dot =
     L^T W^T xi`` written with W(mu) through coadjoint equivariance
-    (:meth:`.ReducedSystem.vector_field`); ``eta_dot = Jr(eta)^-1 xi``. Returns
-    False when the orbit form is singular.
+    (:meth:`.ReducedSystem.vector_field`); ``eta_dot = Jr(eta)^-1 xi``. With L
+    the Cholesky factor of M (:func:`momenta_kernel`), ``A^T h_base = L21 L11^-1
+    h_base``: no A needed. Returns False when the orbit form is singular.
     """
     n = basis.shape[1]
     size = v.shape[0]
@@ -368,10 +373,17 @@ def rates_kernel(coriolis: np.ndarray, tau: np.ndarray, eta: np.ndarray, out: np
         for i in range(n):
             total -= coriolis[j, i] * drift[i]
         h[j] = total
+    # y = L11^-1 h_base; A^T h_base = L21 y (B = L11 L21^T, I = L11 L11^T).
+    y = np.empty(n)
+    for i in range(n):
+        total = h[i]
+        for p in range(i):
+            total -= factor[i, p] * y[p]
+        y[i] = total / factor[i, i]
     for j in range(m):
         total = h[n + j] + tau[j]
         for i in range(n):
-            total -= connection[i, j] * h[i]
+            total -= factor[n + j, i] * y[i]
         out[k + m + j] = total
         out[k + j] = v[n + j]
     xi6 = np.empty(6)
@@ -621,7 +633,7 @@ class LeanField:
         self._momenta_args = (self.chart_twist, self.g_ref, self.mu6, self.basis, self.whole,
                               self.factor, self.twist, self.chi, self.pi, self.drift,
                               self.connection, self.v, self.s3)
-        self._rates_args = (self.v, self.drift, self.connection, self.twist, self.chi,
+        self._rates_args = (self.v, self.drift, self.factor, self.twist, self.chi,
                             self.chart_twist, self.kirillov_mu_t, self.basis, self.pinv,
                             self.whole, self.s3)
         self._chart = None
@@ -632,14 +644,15 @@ class LeanField:
             self._chart = chart
             self.g_ref[:, :] = chart.g_ref.homogeneous
 
-    def _momenta(self, y: np.ndarray) -> None:
-        """Run crba and :func:`momenta_kernel` at y: fills pi, u~, A and v."""
+    def _momenta(self, y: np.ndarray, with_connection: bool = False) -> None:
+        """Run crba and :func:`momenta_kernel` at y: fills pi, u~, v (and A)."""
         if self._chart is not self.system.chart:
             self._refresh_chart()
         q = self._q
         q[self._q_shape] = y[self._shape]
         mass = _crba(self._model, self._data, q)
-        if not momenta_kernel(y[self._q1], y[self._pbar], mass, *self._momenta_args):
+        if not momenta_kernel(y[self._q1], y[self._pbar], mass, with_connection,
+                              *self._momenta_args):
             raise np.linalg.LinAlgError('mass matrix M is not positive definite')
 
     def kinematics(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
@@ -675,7 +688,7 @@ class LeanField:
         What the discrete gradient needs, from crba, two RNEA-derivative calls and
         :func:`gradient_kernel`. Leaves v = [xi; qbar_dot] in :attr:`v`.
         """
-        self._momenta(z)
+        self._momenta(z, True)
         k, m, n = self.k, self.m, self.n
         work = self.work
         drift, v = self.drift, self.v
@@ -708,7 +721,7 @@ class LeanField:
         qbar = y[self._shape]
         q[self._q_shape] = qbar
         mass = _crba(self._model, self._data, q)
-        if not momenta_kernel(y[self._q1], y[self._pbar], mass, *self._momenta_args):
+        if not momenta_kernel(y[self._q1], y[self._pbar], mass, False, *self._momenta_args):
             raise np.linalg.LinAlgError('mass matrix M is not positive definite')
         v = self.v
         coriolis = _coriolis(self._kinetic_model, self._kinetic_data, q, v)
