@@ -39,6 +39,7 @@ from typing import Callable, Optional, Protocol, Sequence
 
 import numpy as np
 import scipy
+from scipy.linalg.lapack import dgesv
 
 
 def _dop853_tableau() -> ModuleType:
@@ -402,12 +403,18 @@ class DiscreteGradient:
         for iteration in range(1, self.max_iterations + 1):
             zm = 0.5 * (z0 + z1)
             _, grad_m, omega = self.evaluate(zm)
+            # Right after evaluate(zm): a system may reuse that evaluation's buffers.
+            forcing = self.forcing(t + 0.5 * h, zm)
             dz = z1 - z0
             norm2 = float(dz @ dz)
             dgrad = grad_m
             if norm2 > 0.0:
                 dgrad = grad_m + (self.energy(z1) - energy0 - grad_m @ dz) / norm2 * dz
-            new = z0 + h * np.linalg.solve(omega, dgrad - self.forcing(t + 0.5 * h, zm))
+            # LAPACK's gesv directly (np.linalg.solve's routine, without its wrapper).
+            _, _, step, info = dgesv(omega, dgrad - forcing)
+            if info:
+                raise np.linalg.LinAlgError('discrete gradient: singular structure matrix')
+            new = z0 + h * step
             previous = residual
             residual = float(np.max(np.abs(new - z1) / scale))
             z1 = new

@@ -194,6 +194,8 @@ def validation_table(robot: RobotModel, duration: float = 10.0, seed: int = 0,
                      classes: Optional[list[MomentumClass]] = None,
                      rtol: float = 1e-12) -> list[Comparison]:
     """Compare reduced and full dynamics for each momentum class the base group has."""
+    from reduced_dynamics.reduction.lean_field import warm_up
+    warm_up()  # the table times the runs: not the compiled kernels' first load
     rows = []
     for index, cls in enumerate(classes or list(MomentumClass)):
         try:

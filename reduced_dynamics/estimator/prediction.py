@@ -54,6 +54,7 @@ from reduced_dynamics.integrators import Budget, BudgetExceeded
 from reduced_dynamics.messages.samples import PosePath, ShapePrediction
 from reduced_dynamics.reduction.prescribed import (attitude_angles, PrescribedReconstruction,
                                                    relative_angles)
+from reduced_dynamics.reduction.lean_field import warm_up as warm_up_reduced_field
 from reduced_dynamics.reduction.reconstruction import ReducedPropagator
 from reduced_dynamics.reduction.second_stage import (CyclicSplit, second_stage_blocks,
                                                      SecondStagePropagator, SecondStageSystem)
@@ -378,6 +379,10 @@ class Predictor:
         self.mode = mode
         self.horizon = horizon
         self.step = step
+        # Modes that integrate the reduced dynamics: load its compiled right-hand side
+        # now, not inside the first prediction's wall-time budget.
+        if mode not in PRESCRIBED_MODES and not self.cyclic_joints:
+            warm_up_reduced_field()
         self.active: list[PredictionJob] = []
         self.finished: list[FinishedPrediction] = []
         self.made = 0

@@ -32,8 +32,9 @@ Two evaluations of the same field: :meth:`ReducedSystem.evaluate` forms H~, its
 gradient and U explicitly (the discrete-gradient integrator needs them; the
 signs are validated against full dynamics), and
 :meth:`ReducedSystem.vector_field` contracts the magnetic terms through
-Pinocchio's Coriolis matrix, about four times cheaper, for DOP853. The tests
-hold the two equal.
+Pinocchio's Coriolis matrix, about four times cheaper. The tests hold the two
+equal. :class:`.ReducedPropagator` integrates a compiled copy of the latter
+(:mod:`.lean_field`), held equal to it in the tests.
 """
 
 from __future__ import annotations
