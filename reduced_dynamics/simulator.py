@@ -18,8 +18,10 @@ Simulated sensor bags: full free-floating dynamics written as a rosbag2 (MCAP) b
 ``reduced-dynamics simulate`` (and :func:`simulate_bag`) integrates the full
 dynamics (Pinocchio ``aba``, DOP853 at rtol = atol = 1e-13) and writes, at a fixed
 rate, ``/joint_states`` (robots with shape joints), ``/odom`` (or ``/base_pose``) and
-the noise-free ground truth ``/ground_truth/momentum`` and
-``/ground_truth/external_wrench``. The measured topics go through a sensor model
+the noise-free ground truth ``/ground_truth/momentum``,
+``/ground_truth/external_wrench`` and ``/ground_truth/base_pose``. A joint that
+leaves its URDF limits stops the run with a clear message (as a near-singular
+shape does), never a bag that replay rejects. The measured topics go through a sensor model
 (noise, quantisation, stamp jitter and bunching, latency, dropouts:
 :mod:`reduced_dynamics.sensor_model`); binary thrusters
 (:mod:`reduced_dynamics.thrusters`) add ``/commanded_wrench``. Torque holds, thruster
@@ -84,6 +86,8 @@ TOPIC_ODOM = '/odom'
 TOPIC_BASE_POSE = '/base_pose'
 TOPIC_MOMENTUM = '/ground_truth/momentum'
 TOPIC_EXTERNAL_WRENCH = '/ground_truth/external_wrench'
+#: the true base pose (geometry_msgs/PoseStamped, world frame, every sample)
+TOPIC_TRUE_POSE = '/ground_truth/base_pose'
 TOPIC_STATUS = '/simulator/status'
 TOPIC_COMMAND = '/commanded_wrench'
 #: the planned trajectory of ``--trajectory`` (what the estimator's planned mode follows)
@@ -737,6 +741,7 @@ def bag_topics(options: SimulationOptions, robot: Optional[RobotModel] = None
         topics[TOPIC_ODOM] = 'nav_msgs/msg/Odometry'
     topics[TOPIC_MOMENTUM] = 'geometry_msgs/msg/WrenchStamped'
     topics[TOPIC_EXTERNAL_WRENCH] = 'geometry_msgs/msg/WrenchStamped'
+    topics[TOPIC_TRUE_POSE] = 'geometry_msgs/msg/PoseStamped'
     if options.thruster_set() is not None:
         topics[TOPIC_COMMAND] = 'geometry_msgs/msg/WrenchStamped'
     if options.status:
@@ -783,6 +788,7 @@ class _Recorder:
         self.pose_cov, self.twist_cov = self.noise.covariances()
         self.status_every = max(1, int(round(options.rate / STATUS_RATE)))
         self.reference_cond: Optional[float] = None
+        self.limit_index = _limit_table(robot)
         self.base_topic = TOPIC_BASE_POSE if options.base_pose_only else TOPIC_ODOM
         timing = options.timing()
         # Each measured topic publishes every `every` samples; its timing model counts
@@ -836,6 +842,7 @@ class _Recorder:
         """Queue every topic for sample k and write what can no longer be overtaken."""
         robot, options, types = self.robot, self.options, self.types
         self._check_regular(k, state.qbar)
+        self._check_limits(k, state.qbar, state.qbar_dot, tau)
         stamp = self.stamp(k)
         t = k / options.rate
         self._commands(t)
@@ -867,6 +874,9 @@ class _Recorder:
         self._push(stamp, TOPIC_MOMENTUM, wrench_to_ros(_wrench(mu, robot, stamp), types))
         self._push(stamp, TOPIC_EXTERNAL_WRENCH,
                    wrench_to_ros(_wrench(external, robot, stamp), types))
+        truth = BaseStateSample(stamp, WORLD_FRAME, robot.base_link, state.g.translation,
+                                _quaternion_xyzw(state.g.rotation), np.zeros(3), np.zeros(3))
+        self._push(stamp, TOPIC_TRUE_POSE, base_state_to_pose_stamped(truth, types))
         if options.status and k % self.status_every == 0:
             self._status(stamp, state, body_wrench)
 
@@ -886,6 +896,33 @@ class _Recorder:
             kinetic_energy=kinetic, potential_energy=robot.potential_energy(state.qbar))
         self._push(stamp, TOPIC_STATUS, msg)
 
+    def _check_limits(self, k: int, qbar: np.ndarray, qbar_dot: np.ndarray,
+                      tau: np.ndarray) -> None:
+        """
+        Stop when a joint leaves its URDF ``<limit>`` (replay would reject its samples).
+
+        The truth is checked against the limits themselves: the estimator's gate
+        adds a margin and a factor for the noise, not for a robot outside its range.
+        """
+        if self.limit_index is None:
+            return
+        index, lower, upper, velocity, effort = self.limit_index
+        t = k / self.options.rate
+        names = self.names
+        for j, low, high, speed, force in zip(index, lower, upper, velocity, effort):
+            what = None
+            if not low <= qbar[j] <= high:
+                what = f'position {qbar[j]:.6g} outside [{low:.6g}, {high:.6g}]'
+            elif not abs(qbar_dot[j]) <= speed:
+                what = f'velocity {qbar_dot[j]:.6g} beyond {speed:.6g}'
+            elif not abs(tau[j]) <= force:
+                what = f'effort {tau[j]:.6g} beyond {force:.6g}'
+            if what is not None:
+                raise ValueError(
+                    f'joint {names[j]} left its URDF limits at t = {t:g} s ({what}); '
+                    f'replay would reject these samples (joint_*_limit): use a smaller '
+                    f'--torque-scale, --torque pd, a shorter --duration or another --seed')
+
     def _check_regular(self, k: int, qbar: np.ndarray) -> None:
         cond = float(np.linalg.cond(self.robot.mass_matrix(qbar)))
         if self.reference_cond is None:
@@ -896,6 +933,20 @@ class _Recorder:
                 f'{k / self.options.rate:g} s (mass matrix condition number {cond:.2e}, '
                 f'e.g. the gimbal lock of a spherical joint); use --torque pd, a shorter '
                 f'--duration or another --seed')
+
+
+def _limit_table(robot: RobotModel) -> Optional[tuple]:
+    """Return (index, lower, upper, |velocity|, |effort|) of the limited shape joints."""
+    rows = []
+    for j, name in enumerate(robot.shape_joint_names):
+        limit = robot.shape_joint_limits.get(name)
+        if limit is None:
+            continue
+        rows.append((j, -math.inf if limit.lower is None else limit.lower,
+                     math.inf if limit.upper is None else limit.upper,
+                     math.inf if limit.velocity is None else limit.velocity,
+                     math.inf if limit.effort is None else limit.effort))
+    return tuple(zip(*rows)) if rows else None
 
 
 def _constant_wrench(wrench: np.ndarray) -> Callable[[float], np.ndarray]:
@@ -1150,8 +1201,9 @@ def register_command(subparsers: Any) -> None:
         'simulate', help='simulate full dynamics and write a rosbag2 (MCAP) bag',
         description='Integrate the full free-floating dynamics (Pinocchio aba, DOP853) and '
                     'write /joint_states, /odom (or /base_pose) and the ground truth '
-                    '/ground_truth/momentum and /ground_truth/external_wrench as a rosbag2 '
-                    'bag with MCAP storage.')
+                    '/ground_truth/momentum, /ground_truth/external_wrench and '
+                    '/ground_truth/base_pose as a rosbag2 bag with MCAP storage. A joint '
+                    'that leaves its URDF limits stops the run with a message.')
     add_robot_arguments(parser)
     parser.add_argument('-o', '--output', required=True, metavar='OUT',
                         help='bag directory to create')
