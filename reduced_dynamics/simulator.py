@@ -47,6 +47,8 @@ import numpy as np
 import pinocchio as pin
 
 from reduced_dynamics.bag.writer import BagWriter
+from reduced_dynamics.estimator.config import EstimatorConfig
+from reduced_dynamics.estimator.plausibility import JointBounds
 from reduced_dynamics.full_dynamics import FullDynamics, FullTrajectory, PrescribedShapeDynamics
 from reduced_dynamics.geometry.isotropy import MomentumClass
 from reduced_dynamics.messages.convert import (
@@ -788,7 +790,7 @@ class _Recorder:
         self.pose_cov, self.twist_cov = self.noise.covariances()
         self.status_every = max(1, int(round(options.rate / STATUS_RATE)))
         self.reference_cond: Optional[float] = None
-        self.limit_index = _limit_table(robot)
+        self.bounds = JointBounds(robot, EstimatorConfig())
         self.base_topic = TOPIC_BASE_POSE if options.base_pose_only else TOPIC_ODOM
         timing = options.timing()
         # Each measured topic publishes every `every` samples; its timing model counts
@@ -899,29 +901,19 @@ class _Recorder:
     def _check_limits(self, k: int, qbar: np.ndarray, qbar_dot: np.ndarray,
                       tau: np.ndarray) -> None:
         """
-        Stop when a joint leaves its URDF ``<limit>`` (replay would reject its samples).
+        Stop when a joint leaves what replay accepts of its URDF ``<limit>``.
 
-        The truth is checked against the limits themselves: the estimator's gate
-        adds a margin and a factor for the noise, not for a robot outside its range.
+        The true state goes through replay's own plausibility gate at its
+        defaults (:class:`~reduced_dynamics.estimator.plausibility.JointBounds`:
+        limits plus ``joint_limit_margin``, ``limit_factor`` times the velocity
+        and effort limits): a bag past it would have its samples rejected.
         """
-        if self.limit_index is None:
-            return
-        index, lower, upper, velocity, effort = self.limit_index
-        t = k / self.options.rate
-        names = self.names
-        for j, low, high, speed, force in zip(index, lower, upper, velocity, effort):
-            what = None
-            if not low <= qbar[j] <= high:
-                what = f'position {qbar[j]:.6g} outside [{low:.6g}, {high:.6g}]'
-            elif not abs(qbar_dot[j]) <= speed:
-                what = f'velocity {qbar_dot[j]:.6g} beyond {speed:.6g}'
-            elif not abs(tau[j]) <= force:
-                what = f'effort {tau[j]:.6g} beyond {force:.6g}'
-            if what is not None:
-                raise ValueError(
-                    f'joint {names[j]} left its URDF limits at t = {t:g} s ({what}); '
-                    f'replay would reject these samples (joint_*_limit): use a smaller '
-                    f'--torque-scale, --torque pd, a shorter --duration or another --seed')
+        verdict = self.bounds.check(qbar.tolist(), qbar_dot.tolist(), list(tau))
+        if verdict is not None:
+            raise ValueError(
+                f'a joint left its URDF limits at t = {k / self.options.rate:g} s '
+                f'({verdict[0]}: {verdict[1]}); replay would reject these samples: use a '
+                f'smaller --torque-scale, --torque pd, a shorter --duration or another --seed')
 
     def _check_regular(self, k: int, qbar: np.ndarray) -> None:
         cond = float(np.linalg.cond(self.robot.mass_matrix(qbar)))
@@ -933,20 +925,6 @@ class _Recorder:
                 f'{k / self.options.rate:g} s (mass matrix condition number {cond:.2e}, '
                 f'e.g. the gimbal lock of a spherical joint); use --torque pd, a shorter '
                 f'--duration or another --seed')
-
-
-def _limit_table(robot: RobotModel) -> Optional[tuple]:
-    """Return (index, lower, upper, |velocity|, |effort|) of the limited shape joints."""
-    rows = []
-    for j, name in enumerate(robot.shape_joint_names):
-        limit = robot.shape_joint_limits.get(name)
-        if limit is None:
-            continue
-        rows.append((j, -math.inf if limit.lower is None else limit.lower,
-                     math.inf if limit.upper is None else limit.upper,
-                     math.inf if limit.velocity is None else limit.velocity,
-                     math.inf if limit.effort is None else limit.effort))
-    return tuple(zip(*rows)) if rows else None
 
 
 def _constant_wrench(wrench: np.ndarray) -> Callable[[float], np.ndarray]:
