@@ -1046,7 +1046,10 @@ class _Shell:
                 return
             for name, sample in (('prediction/shape', messages.shape),
                                  ('prediction/base_path', messages.path),
-                                 ('prediction/geometric_phase_path', messages.phase_path)):
+                                 ('prediction/geometric_phase_path', messages.phase_path),
+                                 ('prediction/base_at_horizon', messages.horizon),
+                                 ('prediction/covariance_ellipsoids', messages.ellipsoids),
+                                 ('prediction/shape_covariance', messages.shape_covariance)):
                 if sample is not None:
                     publishers[name].publish(self._encoders[name](sample))
 
