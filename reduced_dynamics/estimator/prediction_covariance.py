@@ -60,6 +60,8 @@ from reduced_dynamics.robot.model import RobotModel
 NS = 1_000_000_000
 #: Largest RK4 step [s] of the sigma-point batch (a multiple of the prediction step).
 COVARIANCE_STEP = 0.2
+#: Largest turn [rad] of any point's base or joint in one RK4 step.
+MAX_TURN = 0.25
 
 
 @dataclass(frozen=True)
@@ -198,6 +200,16 @@ class _Batch:
         derivative[:, n:n + m] = state[:, n + m:]
         return xi @ basis.T, derivative
 
+    def rate(self, t: float, state: np.ndarray) -> float:
+        """Return the fastest turning rate [rad/s] of any point's base or joint."""
+        if self.shape_path is not None:
+            joints = self.shape_path(t)[1]
+            base = 0.0
+        else:
+            joints = state[:, self.n + self.m:]
+            base = float(np.max(np.abs(state[:, :self.n] @ self.basis[3:].T)))
+        return max(base, float(np.max(np.abs(joints))) if joints.size else 0.0)
+
     def step(self, t: float, h: float, rotation: np.ndarray, position: np.ndarray,
              state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One RK4 step of (g, state); g by g exp(eta), eta_dot = xi + [eta, xi] / 2."""
@@ -317,9 +329,15 @@ def propagate_covariance(robot: RobotModel, mode: str, g: pin.SE3, mu: np.ndarra
     t = float(times[0])
     for j, index in enumerate(nodes):
         target = float(times[index])
-        if target > t:
-            rotation, position, state = batch.step(t, target - t, rotation, position, state)
-            t = target
+        while target - t > 1e-12:
+            # RK4 turns each point by at most MAX_TURN per step (stability and accuracy
+            # of fast light links; the steps stay common to all points).
+            h = min(target - t, MAX_TURN / max(batch.rate(t, state), 1e-9))
+            if h < (target - float(times[0])) * 1e-4:
+                raise ArithmeticError('the covariance propagation diverged (sample points '
+                                      'turning too fast)')
+            rotation, position, state = batch.step(t, h, rotation, position, state)
+            t = t + h if target - (t + h) > 1e-12 else target
         pose_cov[j], poses[j] = _pose_statistics(rotation, position, nominal_poses[index])
     xi6, _ = batch.twists(t, rotation, position, state)
     batch.evaluations -= 1
