@@ -200,7 +200,7 @@ PARAMETERS: dict[str, ParameterSpec] = {
         2.0, 1e-3, 1e4, (),
         'time constant [s] with which the held-torque estimate follows a slow change of the '
         'measured efforts (a local-level Kalman filter: its variance is about '
-        'joint_effort_noise^2 dt / (2 T)); a change far beyond the noise is taken at once '
+        'joint_effort_noise^2 dt / T); a change far beyond the noise is taken at once '
         '(CUSUM test)'),
     'diagnostics_rate': ParameterSpec(1.0, 0.0, 100.0, (),
                                       'diagnostics messages per second of stamp time (0: off)'),

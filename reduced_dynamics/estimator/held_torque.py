@@ -26,12 +26,14 @@ the torque instead::
 
 With the process density tied to the sample period dt and the follow time T
 (``held_torque_follow_time``), the steady-state gain is about dt / T: an
-exponential mean over the last T seconds, variance about ``r^2 dt / (2 T)``.
+exponential mean over the last T seconds. Its variance is about ``r^2 dt / T``
+(the error under the random-walk model; a torque that stays constant is known
+twice as well, ``r^2 dt / (2 T)``).
 A torque step much larger than that variance (a controller switching) is
 caught by a two-sided CUSUM test on the normalised innovations (Page 1954;
-drift 0.5, threshold ``CUSUM_THRESHOLD``): the estimate restarts from the mean
-of the efforts since the test began to accumulate (the change's onset),
-with variance r^2 / count. The covariance (diagonal) goes with the estimate
+drift 0.5, threshold ``CUSUM_THRESHOLD``): the estimate restarts from the
+latest effort with one sample's variance, and the filter's gains then average
+the efforts since the change (a recursive mean). The covariance (diagonal) goes with the estimate
 into the prediction's uncertainty (:mod:`.prediction_covariance`).
 """
 
@@ -61,10 +63,6 @@ class HeldTorqueEstimator:
         self.changes = 0
         self._up = np.zeros(m)
         self._down = np.zeros(m)
-        self._sum_up = np.zeros(m)
-        self._sum_down = np.zeros(m)
-        self._count_up = np.zeros(m)
-        self._count_down = np.zeros(m)
 
     @property
     def covariance(self) -> np.ndarray:
@@ -87,34 +85,22 @@ class HeldTorqueEstimator:
         innovation = effort - self.estimate
         scale = np.sqrt(prior + self.r)
         z = innovation / scale
-        # Two-sided CUSUM; the sums since each side last was zero give the onset's mean.
-        self._up, self._sum_up, self._count_up = _side(self._up, z - CUSUM_DRIFT, effort,
-                                                       self._sum_up, self._count_up)
-        self._down, self._sum_down, self._count_down = _side(
-            self._down, -z - CUSUM_DRIFT, effort, self._sum_down, self._count_down)
+        # Two-sided CUSUM of the normalised innovations.
+        self._up = np.maximum(self._up + z - CUSUM_DRIFT, 0.0)
+        self._down = np.maximum(self._down - z - CUSUM_DRIFT, 0.0)
         gain = prior / (prior + self.r)
         self.estimate = self.estimate + gain * innovation
         self.variance = (1.0 - gain) * prior
-        for side, sums, counts in ((self._up, self._sum_up, self._count_up),
-                                   (self._down, self._sum_down, self._count_down)):
-            alarm = side > CUSUM_THRESHOLD
-            if alarm.any():
-                self.changes += int(alarm.sum())
-                self.estimate[alarm] = sums[alarm] / counts[alarm]
-                self.variance[alarm] = self.r / counts[alarm]
-                self._reset(alarm)
+        alarm = (self._up > CUSUM_THRESHOLD) | (self._down > CUSUM_THRESHOLD)
+        if alarm.any():
+            # Restart at the change: the latest effort, one sample's variance; the filter's
+            # gains then make a recursive mean of the efforts since.
+            self.changes += int(alarm.sum())
+            self.estimate[alarm] = effort[alarm]
+            self.variance[alarm] = self.r
+            self._reset(alarm)
 
     def _reset(self, joints: np.ndarray) -> None:
-        for array in (self._up, self._down, self._sum_up, self._sum_down, self._count_up,
-                      self._count_down):
-            array[joints] = 0.0
+        self._up[joints] = 0.0
+        self._down[joints] = 0.0
 
-
-def _side(statistic: np.ndarray, step: np.ndarray, effort: np.ndarray, sums: np.ndarray,
-          counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Advance one side of the CUSUM; restart its effort sums where it fell to zero."""
-    value = np.maximum(statistic + step, 0.0)
-    running = value > 0.0
-    sums = np.where(running, sums + effort, 0.0)
-    counts = np.where(running, counts + 1.0, 0.0)
-    return value, sums, counts
