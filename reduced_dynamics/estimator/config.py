@@ -197,7 +197,7 @@ PARAMETERS: dict[str, ParameterSpec] = {
         'standard deviation [N m or N] of a measured joint effort (the held-torque '
         'estimate of prediction_mode held_torque)'),
     'held_torque_follow_time': ParameterSpec(
-        2.0, 1e-3, 1e4, (),
+        4.0, 1e-3, 1e4, (),
         'time constant [s] with which the held-torque estimate follows a slow change of the '
         'measured efforts (a local-level Kalman filter: its variance is about '
         'joint_effort_noise^2 dt / T); a change far beyond the noise is taken at once '
