@@ -1415,6 +1415,8 @@ def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
     if 'prediction' in sections:
         say('prediction...')
         bench_prediction(report, robot, settings)
+        from reduced_dynamics.covariance_bench import bench_covariance
+        bench_covariance(report, robot, settings)
     if 'replay' in sections:
         say('replay...')
         workdir = tempfile.mkdtemp(prefix='reduced_dynamics_bench_')

@@ -121,7 +121,7 @@ def test_covariance_matches_monte_carlo(mode):
     # Messages: the horizon's stamp, the world-frame covariance, one ellipsoid per node.
     assert messages.horizon.base.stamp_ns == job.end_ns == 2 * 10**9
     assert np.allclose(messages.horizon.pose_covariance, covariance.pose_cov[-1])
-    assert len(messages.ellipsoids.stamps_ns) == len(covariance.times) == 11
+    assert len(messages.ellipsoids.stamps_ns) == len(covariance.times) == 6
     assert messages.shape_covariance.covariance.shape == (2 * m, 2 * m)
     # The batch costs its points times a few tens of evaluations, not DOP853's hundreds.
     assert covariance.points == 3 * n + 2 * m + (m if mode == 'held_torque' else 0) + 2
@@ -190,7 +190,7 @@ def test_planned_predictions_are_consistent(tmp_path, seed):
             counts['/reduced_dynamics/prediction/base_path']
     assert topics[HORIZON] == 'nav_msgs/msg/Odometry'
     markers = first.msg.markers
-    assert len(markers) == 11 and {mk.type for mk in markers} == {2}
+    assert len(markers) == 6 and {mk.type for mk in markers} == {2}
     assert all(mk.scale.x > 0.0 for mk in markers[1:])
 
 
