@@ -20,7 +20,8 @@ at rest); the base starts at ``--base-pose`` with momentum ``--mu`` (world
 frame, about the origin). Prints the final base pose, the largest attitude
 deviation and the attitude change split into drift and geometric phase;
 with ``--pose-sigma``/``--mu-sigma`` (the initial covariance, diagonal) also the
-final pose's standard deviations (docs/prediction_uncertainty.md); ``-o`` writes the path (CSV, or JSON by extension).
+final pose's standard deviations (docs/prediction_uncertainty.md); ``-o``
+writes the path (CSV, or JSON by extension).
 """
 
 from __future__ import annotations

@@ -29,8 +29,8 @@ from reduced_dynamics.messages.convert import (
     diagnostics_to_ros, joint_state_to_ros, pose_path_to_ros, shape_prediction_to_ros,
     twist_to_ros, wrench_to_ros)
 from reduced_dynamics.messages.types import MessageTypes, RosbagsTypes
-from reduced_dynamics.messages.uncertainty import (ellipsoids_to_ros, predicted_odometry_to_ros,
-                                                    shape_covariance_to_ros)
+from reduced_dynamics.messages.uncertainty import (
+    ellipsoids_to_ros, predicted_odometry_to_ros, shape_covariance_to_ros)
 
 NODE_NAME = 'reduced_dynamics'
 DIAGNOSTICS_TOPIC = '/diagnostics'

@@ -449,8 +449,8 @@ def test_ground_truth_pose_is_the_true_base_pose(tmp_path: Path) -> None:
     assert 0.005 < float(np.median(offsets)) < 0.05
 
 
-def test_leaving_the_joint_limits_stops_with_a_message(tmp_path: Path,
-                                                        capsys: pytest.CaptureFixture) -> None:
+def test_leaving_the_joint_limits_stops_with_a_message(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """The issue's seed 3 leaves j4's range: a clear message, no bag replay would reject."""
     argv = ['simulate', '-o', str(tmp_path / 'bag'), '--rate', '100', '--seed', '3',
             '--torque', 'constant', '--torque-scale', '0.05', '--duration', '12']

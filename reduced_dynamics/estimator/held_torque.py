@@ -66,7 +66,7 @@ class HeldTorqueEstimator:
 
     @property
     def covariance(self) -> np.ndarray:
-        """Return the estimate's covariance (m x m, diagonal)."""
+        """Return the covariance of the estimate (m x m, diagonal)."""
         return np.diag(self.variance)
 
     def update(self, stamp_ns: int, effort: np.ndarray) -> None:
@@ -103,4 +103,3 @@ class HeldTorqueEstimator:
     def _reset(self, joints: np.ndarray) -> None:
         self._up[joints] = 0.0
         self._down[joints] = 0.0
-

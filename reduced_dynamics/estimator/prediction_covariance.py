@@ -167,7 +167,7 @@ class _Batch:
 
     def twists(self, t: float, rotation: np.ndarray, position: np.ndarray,
                state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Return (body twists (K, 6), d state/dt) at time t (state: xi, qbar, qbar_dot)."""
+        """Return each point's body twist (6 values) and d state/dt at t (xi, qbar, qbar_dot)."""
         self.evaluations += 1
         n, m, basis = self.n, self.m, self.basis
         count = len(rotation)
@@ -406,8 +406,8 @@ def with_uncertainty(job: Any, result: Any, messages: Any) -> Any:
     own messages still go out).
     """
     from reduced_dynamics.messages.samples import BaseStateSample
-    from reduced_dynamics.messages.uncertainty import (CovarianceEllipsoids,
-                                                        PredictedOdometry, ShapeCovariance)
+    from reduced_dynamics.messages.uncertainty import (
+        CovarianceEllipsoids, PredictedOdometry, ShapeCovariance)
     robot, settings = job.robot, job.settings
     try:
         plan = job.plan if job.mode == 'planned' else None
@@ -417,9 +417,9 @@ def with_uncertainty(job: Any, result: Any, messages: Any) -> Any:
                 robot, job.mode, job.g, job.mu, job.qbar, job.qbar_dot, job.tau,
                 job.uncertainty, result.times, result.poses, nominal_twist,
                 (result.qbar[-1], result.qbar_dot[-1]), plan)
-        if not all(np.isfinite(a).all() for a in (covariance.pose_cov, covariance.poses,
-                                                 covariance.twist, covariance.twist_cov,
-                                                 covariance.shape_cov)):
+        arrays = (covariance.pose_cov, covariance.poses, covariance.twist,
+                  covariance.twist_cov, covariance.shape_cov)
+        if not all(np.isfinite(a).all() for a in arrays):
             # A start so uncertain that the sample points leave the model's good region.
             raise ArithmeticError('the covariance propagation diverged (start too uncertain)')
     except (RuntimeError, ValueError, ArithmeticError, np.linalg.LinAlgError) as error:

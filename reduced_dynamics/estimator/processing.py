@@ -266,7 +266,8 @@ class ChunkProcessing:
         else:
             wrench, cov = x[n:2 * n], p[:3 * n, :3 * n]
         held = self.held_torque
-        return StartUncertainty(cov, np.array(wrench), np.full(m, config.joint_position_noise ** 2),
+        return StartUncertainty(cov, np.array(wrench),
+                                np.full(m, config.joint_position_noise ** 2),
                                 np.full(m, config.joint_velocity_noise ** 2),
                                 None if held is None else held.covariance)
 
