@@ -21,8 +21,9 @@ the simulator's ``/ground_truth/base_pose``, or a measured pose topic (motion
 capture) on real data. For each prediction, the pose error at the horizon,
 ``e = (p_ref - p, log(R_ref R^T))`` (world frame, the message's covariance order),
 gives the normalised estimation error squared ``NEES = e^T P^-1 e`` (6 degrees
-of freedom: mean 6 for a consistent prediction) and whether the reference lies
-in the 95 % ellipsoid (NEES below the chi-square 95 % quantile, 12.59).
+of freedom, 3 on a planar base: their mean for a consistent prediction) and
+whether the reference lies in the 95 % ellipsoid (NEES below the chi-square 95 %
+quantile: 12.59 for 6).
 A measured reference carries its own noise: coverage then measures both.
 """
 
@@ -52,6 +53,8 @@ class Consistency:
     #: stamp [ns] each prediction is for, and how far [s] its reference pose was from it
     stamps_ns: np.ndarray
     gaps: np.ndarray
+    #: degrees of freedom of each (the base group's dimension: 6 for SE(3), 3 for SE(2))
+    dofs: np.ndarray
 
     @property
     def count(self) -> int:
@@ -60,18 +63,22 @@ class Consistency:
 
     @property
     def mean_nees(self) -> float:
-        """Return the mean NEES (6 expected)."""
+        """Return the mean NEES (the degrees of freedom expected)."""
         return float(np.mean(self.nees)) if self.count else float('nan')
 
     @property
     def coverage(self) -> float:
         """Return the fraction of references inside their 95 % ellipsoid."""
-        return float(np.mean(self.nees <= BOUND_95)) if self.count else float('nan')
+        if not self.count:
+            return float('nan')
+        bounds = np.array([chi2.isf(0.05, int(d)) for d in self.dofs])
+        return float(np.mean(self.nees <= bounds))
 
     def text(self) -> str:
         """Return a one-line summary."""
-        return (f'{self.count} predictions: mean NEES {self.mean_nees:.3g} (6 expected), '
-                f'{100 * self.coverage:.1f} % inside their 95 % ellipsoid')
+        expected = f'{np.mean(self.dofs):g}' if self.count else '6'
+        return (f'{self.count} predictions: mean NEES {self.mean_nees:.3g} ({expected} '
+                f'expected), {100 * self.coverage:.1f} % inside their 95 % ellipsoid')
 
 
 def _pose_of(msg: Any) -> pin.SE3:
@@ -107,7 +114,7 @@ def measure(output_bag: Union[str, Path], reference_bag: Union[str, Path],
     order = np.argsort(stamps, kind='stable')
     stamps = stamps[order]
     poses = [references[i][1] for i in order]
-    nees, at, gaps = [], [], []
+    nees, at, gaps, dofs = [], [], [], []
     with open_bag(output_bag) as bag:
         for message in bag.messages([horizon_topic]):
             msg = message.msg
@@ -119,8 +126,12 @@ def measure(output_bag: Union[str, Path], reference_bag: Union[str, Path],
             if gap > max_gap:
                 continue
             cov = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)
-            error = pose_error(_pose_of(msg), poses[j])
-            nees.append(float(error @ np.linalg.lstsq(cov, error, rcond=1e-12)[0]))
+            # A planar base: the covariance's zero rows (z, roll, pitch) are no freedom.
+            free = np.flatnonzero(np.diag(cov) > 0.0)
+            error = pose_error(_pose_of(msg), poses[j])[free]
+            nees.append(float(error @ np.linalg.solve(cov[np.ix_(free, free)], error)))
+            dofs.append(len(free))
             at.append(stamp)
             gaps.append(gap)
-    return Consistency(np.array(nees), np.array(at, dtype=np.int64), np.array(gaps))
+    return Consistency(np.array(nees), np.array(at, dtype=np.int64), np.array(gaps),
+                       np.array(dofs, dtype=int))

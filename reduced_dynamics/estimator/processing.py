@@ -152,7 +152,9 @@ class ChunkProcessing:
                             # mu moves by the commanded impulses too: no window test.
                             mu_cov[k] if disturbance is None else None)
             poses.append(g)
-            states.append((x, p))
+            # Commanded wrench: the total wrench (delivered command + disturbance) at this
+            # row is what mu does over a prediction from it.
+            states.append((x, p) if disturbance is None else (x, p, rate[k], w_cov[k]))
             quiet.append(not detector.in_event)
         # Drift twist I^-1 pi, stacked (the same kernel per row, whatever the chunk).
         drift = np.matmul(inverse, pi[:, :, None])[:, :, 0]
@@ -254,12 +256,10 @@ class ChunkProcessing:
         config = self.config
         if not config.prediction_covariance:
             return None
-        x, p = state
+        x, p = state[:2]
         n, m = self.robot.n, self.robot.m
-        flt = self.filter
-        if flt.command:
-            # The total wrench (delivered command + disturbance) is what mu does.
-            wrench, wrench_cov = flt.total_wrench()
+        if len(state) > 2:
+            wrench, wrench_cov = state[2], state[3]
             cov = np.zeros((3 * n, 3 * n))
             cov[:2 * n, :2 * n] = p[:2 * n, :2 * n]
             cov[2 * n:, 2 * n:] = wrench_cov

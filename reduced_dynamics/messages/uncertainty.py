@@ -42,7 +42,8 @@ from reduced_dynamics.messages.types import MessageTypes
 
 #: Squared Mahalanobis radius of the 95 % ellipsoid in 3 dimensions.
 RADIUS2_95 = float(chi2.isf(0.05, 3))
-_COLOR = (0.2, 0.6, 1.0, 0.3)
+#: RGBA exact in float32 (ColorRGBA), so a decoded message equals the one built.
+_COLOR = (0.25, 0.5, 1.0, 0.375)
 
 
 @dataclass(frozen=True, eq=False)
