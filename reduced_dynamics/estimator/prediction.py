@@ -24,7 +24,8 @@ Four modes (parameter ``prediction_mode``):
   the prediction's start, ``held_velocity`` stands in (reported as such).
 * ``held_velocity``: the shape keeps its current joint velocities (prescribed).
 * ``coast``: zero joint torques, the reduced dynamics at the current momentum.
-* ``held_torque``: the last measured joint torques held (reduced dynamics).
+* ``held_torque``: the estimated joint torques held (reduced dynamics;
+  :mod:`.held_torque`).
 
 A :class:`PredictionJob` holds everything a prediction needs (start state,
 momentum level, plan snapshot, settings) and its own robot copy (own
