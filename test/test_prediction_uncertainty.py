@@ -212,3 +212,20 @@ def test_predict_prints_the_final_pose_sigma(capsys):
     sigma = [float(v.lstrip('+-')) for v in line.split(':')[1].split()]
     # A pure pose uncertainty of 1 mm stays about 1 mm (the rotation moves it a little).
     assert all(0.0009 < s < 0.002 for s in sigma)
+
+
+# --------------------------------------------------------------------------- bench rows
+def test_bench_rows_compare_with_and_without_covariance():
+    from dataclasses import asdict
+
+    from reduced_dynamics.bench import machine_info, Report, Settings
+    from reduced_dynamics.covariance_bench import bench_covariance, MODES
+    settings = Settings(repeats=1)
+    report = Report(machine_info(), asdict(settings))
+    bench_covariance(report, paper_robot(), settings)
+    rows = {f.name: f for f in report.figures}
+    assert set(rows) == {f'{mode} prediction with covariance' for mode in MODES}
+    for figure in rows.values():
+        assert figure.section == 'prediction' and figure.target == 'ratio <= 3'
+        assert np.isfinite(figure.ratio) and figure.ratio > 0.0
+        assert 'sample points in one batch' in figure.note
