@@ -176,6 +176,7 @@ def test_planned_predictions_are_consistent(tmp_path, seed):
     bag = _simulate(tmp_path, f'plan{seed}', duration=12.0, seed=seed, trajectory=str(PLAN))
     summary = _replay(tmp_path, bag, prediction_mode='planned', prediction_rate=4.0)
     assert summary['prediction_residuals']['planned']['compared'] >= 30
+    assert summary['prediction_covariance_failures'] == 0
     result = measure(tmp_path / f'{bag.name}_out', bag)
     assert result.count >= 30
     assert 3.0 <= result.mean_nees <= 12.0, result.text()
