@@ -98,6 +98,7 @@ TOPIC_TRAJECTORY = '/joint_trajectory'
 SENSOR_TOPICS = (TOPIC_JOINT_STATES, TOPIC_ODOM, TOPIC_BASE_POSE)
 
 TORQUE_MODES = ('zero', 'constant', 'sinusoid', 'pd', 'multisine')
+JOINT_LIMIT_POLICIES = ('stop', 'ignore')
 MOMENTUM_CLASSES = {
     'generic': MomentumClass.GENERIC,
     'pure_angular': MomentumClass.PURE_ANGULAR,
@@ -254,6 +255,9 @@ class SimulationOptions:
     #: a planned joint trajectory file (YAML/CSV, :mod:`reduced_dynamics.trajectory_file`):
     #: the shape follows it exactly, the base by the full dynamics (no torque law)
     trajectory: str = ''
+    #: a joint leaving what replay accepts of its URDF limits: ``stop`` the run with a
+    #: message, or ``ignore`` (explicitly: replay then rejects those samples)
+    joint_limits: str = 'stop'
 
     def __post_init__(self) -> None:
         """Validate every field (ValueError with the offending option)."""
@@ -304,6 +308,9 @@ class SimulationOptions:
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) \
                 or self.seed < 0:
             raise ValueError(f'seed must be a non-negative integer, got {self.seed!r}')
+        if self.joint_limits not in JOINT_LIMIT_POLICIES:
+            raise ValueError(f'unknown joint_limits {self.joint_limits!r}; choose from '
+                             f'{JOINT_LIMIT_POLICIES}')
         if self.torque not in TORQUE_MODES:
             raise ValueError(f'unknown torque mode {self.torque!r}; choose from {TORQUE_MODES}')
         if self.momentum_class not in MOMENTUM_CLASSES:
@@ -790,7 +797,8 @@ class _Recorder:
         self.pose_cov, self.twist_cov = self.noise.covariances()
         self.status_every = max(1, int(round(options.rate / STATUS_RATE)))
         self.reference_cond: Optional[float] = None
-        self.bounds = JointBounds(robot, EstimatorConfig())
+        self.bounds = JointBounds(robot, EstimatorConfig()) \
+            if options.joint_limits == 'stop' else None
         self.base_topic = TOPIC_BASE_POSE if options.base_pose_only else TOPIC_ODOM
         timing = options.timing()
         # Each measured topic publishes every `every` samples; its timing model counts
@@ -908,12 +916,15 @@ class _Recorder:
         limits plus ``joint_limit_margin``, ``limit_factor`` times the velocity
         and effort limits): a bag past it would have its samples rejected.
         """
+        if self.bounds is None:
+            return
         verdict = self.bounds.check(qbar.tolist(), qbar_dot.tolist(), list(tau))
         if verdict is not None:
             raise ValueError(
                 f'a joint left its URDF limits at t = {k / self.options.rate:g} s '
                 f'({verdict[0]}: {verdict[1]}); replay would reject these samples: use a '
-                f'smaller --torque-scale, --torque pd, a shorter --duration or another --seed')
+                f'smaller --torque-scale, --torque pd, a shorter --duration or another --seed '
+                f'(--joint-limits ignore writes the bag anyway)')
 
     def _check_regular(self, k: int, qbar: np.ndarray) -> None:
         cond = float(np.linalg.cond(self.robot.mass_matrix(qbar)))
@@ -1294,6 +1305,10 @@ def register_command(subparsers: Any) -> None:
                         help='play a planned joint trajectory (YAML/CSV, see reduced-dynamics '
                              'predict): the shape follows it exactly, the base by the full '
                              f'dynamics; the plan is recorded on {TOPIC_TRAJECTORY}')
+    parser.add_argument('--joint-limits', choices=JOINT_LIMIT_POLICIES, default='stop',
+                        help='a joint that leaves what replay accepts of its URDF limits: '
+                             'stop the run with a message (default), or ignore it (replay '
+                             'then rejects those samples)')
     parser.add_argument('--payload', metavar='LINK,MASS,CX,CY,CZ,IXX,IYY,IZZ[,IXY,IXZ,IYZ]',
                         help='the robot holds a rigid payload on LINK: mass (kg), centre of '
                              'mass in the link frame (m), inertia about it (kg m^2); the bag '
@@ -1329,6 +1344,7 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         thruster_force=args.thruster_force, firings=tuple(args.fire),
         thrust_gain=tuple(args.thrust_gain), thrust_bias=tuple(args.thrust_bias),
         command_rate=args.command_rate, trajectory=args.trajectory or '',
+        joint_limits=args.joint_limits,
         joint_rate=args.joint_rate, base_rate=args.base_rate,
         momentum_class=args.momentum_class, status=args.status, overwrite=args.overwrite,
         start_time_ns=int(round(args.start_time * NS_PER_S)))

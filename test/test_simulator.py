@@ -468,3 +468,9 @@ def test_leaving_the_joint_limits_stops_with_a_message(
     assert len(joints) == 701
     assert all(bounds.check(list(m.position), list(m.velocity), list(m.effort)) is None
                for m in joints)
+    # Explicitly ignored, the run goes on and replay's gate rejects what left the range.
+    assert main(argv + ['--joint-limits', 'ignore', '--overwrite']) == 0
+    _, joints = read_topic(tmp_path / 'bag', '/joint_states')
+    assert len(joints) == 1201
+    assert any(bounds.check(list(m.position), list(m.velocity), list(m.effort)) is not None
+               for m in joints)
