@@ -135,7 +135,7 @@ def bench_payload(report: Any, robot: Any, settings: Any, workdir: str) -> None:
     bag = os.path.join(workdir, 'payload_input')
     simulate_bag(with_payload(robot, payload), bag,
                  SimulationOptions(duration=settings.payload_seconds, rate=100.0, seed=4,
-                                   **SENSOR_OPTIONS))
+                                   joint_limits='ignore', **SENSOR_OPTIONS))
     params = {**defaults(), **SENSOR_PARAMETERS}
     out = os.path.join(workdir, 'payload_replay')
     identifies, replays, ratios = [], [], []
