@@ -92,7 +92,8 @@ setup(
         # Real ROS 2 Jazzy rclpy (Fast DDS) and the message packages the node uses, as PyPI
         # wheels, for machines without a ROS 2 install (the rosdep keys of package.xml
         # are the same dependencies for a ROS 2 install). lifecycle_msgs comes with rclpy.
-        'ros': ['ros-jazzy-rclpy[fastrtps]', 'ros-jazzy-common-interfaces'],
+        'ros': ['ros-jazzy-rclpy[fastrtps]', 'ros-jazzy-common-interfaces',
+                'ros-jazzy-visualization-msgs'],
         # replay-many's distributed backends (--backend ray | dask); the local process
         # pool needs neither.
         'fleet': ['ray', 'dask[distributed]'],

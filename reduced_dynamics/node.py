@@ -72,12 +72,13 @@ from reduced_dynamics.estimator.core.warmup import warm_up
 from reduced_dynamics.messages import (
     cdr, command_from_ros, DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample,
     joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros,
-    pose_stamped_from_ros, pose_with_covariance_stamped_from_ros, RclpyTypes,
+    pose_stamped_from_ros, pose_with_covariance_stamped_from_ros, RclpyTypes, RosbagsTypes,
     string_from_ros)
 from reduced_dynamics.messages.samples import with_receive_time
 from reduced_dynamics.params import ALL_PARAMETERS, check_any_parameter, RUNTIME_PARAMETERS
 from reduced_dynamics.robot.model import load_robot, ModelError
-from reduced_dynamics.topics import (active_topics, DIAGNOSTICS_TOPIC, FIXED_LAG_TOPICS,
+from reduced_dynamics.topics import (active_topics, cdr_encoder, DIAGNOSTICS_TOPIC,
+                                     FIXED_LAG_TOPICS,
                                      NODE_NAME, OUTPUT_TOPICS)
 
 try:
@@ -758,7 +759,10 @@ class _Shell:
                 topic.name if topic.name.startswith('/') else '~/' + topic.name,
                 reliable_qos(), qos_overriding_options=overridable,
                 event_callbacks=quiet_publisher_events())
-            self._encoders[topic.name] = cdr.ENCODERS[topic.msgtype]
+            # Types without a fixed-layout encoder (prediction covariance): the typestore's
+            # serializer, as replay writes them (same bytes).
+            self._encoders[topic.name] = cdr.ENCODERS.get(topic.msgtype) \
+                or cdr_encoder(topic, RosbagsTypes())
         self._subscribe_inputs(overridable)
         latched = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL,
@@ -1069,7 +1073,10 @@ class _Shell:
                 return
             for name, sample in (('prediction/shape', messages.shape),
                                  ('prediction/base_path', messages.path),
-                                 ('prediction/geometric_phase_path', messages.phase_path)):
+                                 ('prediction/geometric_phase_path', messages.phase_path),
+                                 ('prediction/base_at_horizon', messages.horizon),
+                                 ('prediction/covariance_ellipsoids', messages.ellipsoids),
+                                 ('prediction/shape_covariance', messages.shape_covariance)):
                 if sample is not None:
                     publishers[name].publish(self._encoders[name](sample))
 

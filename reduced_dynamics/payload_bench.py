@@ -81,9 +81,12 @@ def acceptance_bag(name: str, seed: int, path: str, duration: float = 20.0) -> N
     from reduced_dynamics.payload import Payload, with_payload
     from reduced_dynamics.simulator import simulate_bag, SimulationOptions
     spec, torque, scale = ACCEPTANCE_CASES[name]
+    # The strong excitation takes the paper robot's j5 past its URDF range (seed 1 at
+    # 10.9 s); identification reads the bag itself, so the run goes on (explicitly).
     simulate_bag(with_payload(acceptance_robot(name), Payload.parse(spec)), path,
                  SimulationOptions(duration=duration, rate=100.0, seed=seed, torque=torque,
-                                   torque_scale=scale, **SENSOR_OPTIONS))
+                                   torque_scale=scale, joint_limits='ignore',
+                                   **SENSOR_OPTIONS))
 
 
 def acceptance_errors(name: str, estimate: Any) -> dict[str, Any]:
@@ -132,7 +135,7 @@ def bench_payload(report: Any, robot: Any, settings: Any, workdir: str) -> None:
     bag = os.path.join(workdir, 'payload_input')
     simulate_bag(with_payload(robot, payload), bag,
                  SimulationOptions(duration=settings.payload_seconds, rate=100.0, seed=4,
-                                   **SENSOR_OPTIONS))
+                                   joint_limits='ignore', **SENSOR_OPTIONS))
     params = {**defaults(), **SENSOR_PARAMETERS}
     out = os.path.join(workdir, 'payload_replay')
     identifies, replays, ratios = [], [], []

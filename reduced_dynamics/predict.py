@@ -19,14 +19,16 @@ The arm starts at the plan's first point (joints the plan leaves out at zero,
 at rest); the base starts at ``--base-pose`` with momentum ``--mu`` (world
 frame, about the origin). Prints the final base pose, the largest attitude
 deviation and the attitude change split into drift and geometric phase;
-``-o`` writes the path (CSV, or JSON by extension).
+with ``--pose-sigma``/``--mu-sigma`` (the initial covariance, diagonal) also the
+final pose's standard deviations (docs/prediction_uncertainty.md); ``-o``
+writes the path (CSV, or JSON by extension).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 import pinocchio as pin
@@ -56,6 +58,9 @@ def _run(args: argparse.Namespace) -> int:
     answer = predict_base_motion(robot, trajectory, g0, mu, qbar0, np.zeros(robot.m), 0,
                                  args.step, args.tolerance)
     print(format_answer(answer))
+    if answer.failure is None and (args.pose_sigma or args.mu_sigma):
+        print(format_sigma(final_covariance(robot, trajectory, answer, g0, mu, qbar0,
+                                            args.pose_sigma, args.mu_sigma)))
     if args.output:
         write_answer(args.output, answer)
     return 0 if answer.failure is None else 1
@@ -77,6 +82,47 @@ def format_answer(answer: BaseMotionAnswer) -> str:
         f'({np.degrees(answer.max_attitude_deviation):.4g} deg)',
         f'attitude change at the end: {answer.attitude_change:.6g} rad; geometric phase '
         f'alone (same plan at zero momentum): {answer.phase_attitude_change:.6g} rad'])
+
+
+def final_covariance(robot: Any, trajectory: Any, answer: BaseMotionAnswer, g0: pin.SE3,
+                     mu: np.ndarray, qbar0: np.ndarray, pose_sigma: Optional[list],
+                     mu_sigma: Optional[list]) -> np.ndarray:
+    """
+    Return the world-frame covariance (x, y, z, rot X, Y, Z) of the final pose.
+
+    The start's uncertainty: base pose (body frame, ``pose_sigma``) and momentum
+    (world frame, ``mu_sigma``), independent, through the plan's reconstruction
+    (:mod:`reduced_dynamics.estimator.prediction_covariance`).
+    """
+    from reduced_dynamics.estimator.base_motion import plan_of
+    from reduced_dynamics.estimator.prediction_covariance import (propagate_covariance,
+                                                                  StartUncertainty)
+    n, m, group = robot.n, robot.m, robot.group
+    variances = np.zeros(3 * n)
+    if pose_sigma:
+        variances[:n] = group.algebra_pinv @ np.square(np.array(pose_sigma, dtype=float))
+    if mu_sigma:
+        variances[n:2 * n] = group.algebra_pinv @ np.square(np.array(mu_sigma, dtype=float))
+    path = plan_of(robot, trajectory, 0).path_from(0, qbar0, np.zeros(m))
+    times = (answer.path.stamps_ns - answer.path.stamps_ns[0]) / NS
+    poses = np.array([pin.XYZQUATToSE3(np.r_[p, q]).homogeneous for p, q in
+                      zip(answer.path.positions, answer.path.orientations_xyzw)])
+    zeros = np.zeros(m)
+    uncertainty = StartUncertainty(np.diag(np.abs(variances)), np.zeros(n), zeros, zeros)
+    covariance = propagate_covariance(robot, 'planned', g0, mu, qbar0, zeros, zeros,
+                                      uncertainty, times, poses, np.zeros(n),
+                                      (qbar0, zeros), path)
+    return covariance.pose_cov[-1]
+
+
+def format_sigma(cov: np.ndarray) -> str:
+    """Return the final pose's standard deviations in two lines."""
+    sigma = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return '\n'.join([
+        'final base position sigma [m] (world x y z): '
+        + ' '.join(f'+-{v:.6f}' for v in sigma[:3]),
+        'final base rotation sigma [rad] (about world X Y Z): '
+        + ' '.join(f'+-{v:.6f}' for v in sigma[3:])])
 
 
 def write_answer(path: str, answer: BaseMotionAnswer) -> None:
@@ -121,6 +167,14 @@ def register_command(commands: Any) -> None:
                         help='spacing of the output poses [s] (default 0.05)')
     parser.add_argument('--tolerance', type=float, default=1e-10,
                         help='DOP853 relative and absolute tolerance (default 1e-10)')
+    parser.add_argument('--pose-sigma', type=float, nargs=6, default=None,
+                        metavar=('X', 'Y', 'Z', 'RX', 'RY', 'RZ'),
+                        help='standard deviations of the initial base pose (base frame: m, '
+                             'rad); prints the final pose +- sigma (world frame)')
+    parser.add_argument('--mu-sigma', type=float, nargs=6, default=None,
+                        metavar=('PX', 'PY', 'PZ', 'LX', 'LY', 'LZ'),
+                        help='standard deviations of the momentum (world frame); prints the '
+                             'final pose +- sigma')
     parser.add_argument('-o', '--output', metavar='FILE',
                         help='write the path: .json (with the geometric-phase path) or CSV')
     parser.set_defaults(func=_run)

@@ -18,8 +18,10 @@ Simulated sensor bags: full free-floating dynamics written as a rosbag2 (MCAP) b
 ``reduced-dynamics simulate`` (and :func:`simulate_bag`) integrates the full
 dynamics (Pinocchio ``aba``, DOP853 at rtol = atol = 1e-13) and writes, at a fixed
 rate, ``/joint_states`` (robots with shape joints), ``/odom`` (or ``/base_pose``) and
-the noise-free ground truth ``/ground_truth/momentum`` and
-``/ground_truth/external_wrench``. The measured topics go through a sensor model
+the noise-free ground truth ``/ground_truth/momentum``,
+``/ground_truth/external_wrench`` and ``/ground_truth/base_pose``. A joint that
+leaves its URDF limits stops the run with a clear message (as a near-singular
+shape does), never a bag that replay rejects. The measured topics go through a sensor model
 (noise, quantisation, stamp jitter and bunching, latency, dropouts:
 :mod:`reduced_dynamics.sensor_model`); binary thrusters
 (:mod:`reduced_dynamics.thrusters`) add ``/commanded_wrench``. Torque holds, thruster
@@ -45,6 +47,8 @@ import numpy as np
 import pinocchio as pin
 
 from reduced_dynamics.bag.writer import BagWriter
+from reduced_dynamics.estimator.config import EstimatorConfig
+from reduced_dynamics.estimator.plausibility import JointBounds
 from reduced_dynamics.full_dynamics import FullDynamics, FullTrajectory, PrescribedShapeDynamics
 from reduced_dynamics.geometry.isotropy import MomentumClass
 from reduced_dynamics.messages.convert import (
@@ -84,6 +88,8 @@ TOPIC_ODOM = '/odom'
 TOPIC_BASE_POSE = '/base_pose'
 TOPIC_MOMENTUM = '/ground_truth/momentum'
 TOPIC_EXTERNAL_WRENCH = '/ground_truth/external_wrench'
+#: the true base pose (geometry_msgs/PoseStamped, world frame, every sample)
+TOPIC_TRUE_POSE = '/ground_truth/base_pose'
 TOPIC_STATUS = '/simulator/status'
 TOPIC_COMMAND = '/commanded_wrench'
 #: the planned trajectory of ``--trajectory`` (what the estimator's planned mode follows)
@@ -92,6 +98,7 @@ TOPIC_TRAJECTORY = '/joint_trajectory'
 SENSOR_TOPICS = (TOPIC_JOINT_STATES, TOPIC_ODOM, TOPIC_BASE_POSE)
 
 TORQUE_MODES = ('zero', 'constant', 'sinusoid', 'pd', 'multisine')
+JOINT_LIMIT_POLICIES = ('stop', 'ignore')
 MOMENTUM_CLASSES = {
     'generic': MomentumClass.GENERIC,
     'pure_angular': MomentumClass.PURE_ANGULAR,
@@ -248,6 +255,9 @@ class SimulationOptions:
     #: a planned joint trajectory file (YAML/CSV, :mod:`reduced_dynamics.trajectory_file`):
     #: the shape follows it exactly, the base by the full dynamics (no torque law)
     trajectory: str = ''
+    #: a joint leaving what replay accepts of its URDF limits: ``stop`` the run with a
+    #: message, or ``ignore`` (explicitly: replay then rejects those samples)
+    joint_limits: str = 'stop'
 
     def __post_init__(self) -> None:
         """Validate every field (ValueError with the offending option)."""
@@ -298,6 +308,9 @@ class SimulationOptions:
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) \
                 or self.seed < 0:
             raise ValueError(f'seed must be a non-negative integer, got {self.seed!r}')
+        if self.joint_limits not in JOINT_LIMIT_POLICIES:
+            raise ValueError(f'unknown joint_limits {self.joint_limits!r}; choose from '
+                             f'{JOINT_LIMIT_POLICIES}')
         if self.torque not in TORQUE_MODES:
             raise ValueError(f'unknown torque mode {self.torque!r}; choose from {TORQUE_MODES}')
         if self.momentum_class not in MOMENTUM_CLASSES:
@@ -737,6 +750,7 @@ def bag_topics(options: SimulationOptions, robot: Optional[RobotModel] = None
         topics[TOPIC_ODOM] = 'nav_msgs/msg/Odometry'
     topics[TOPIC_MOMENTUM] = 'geometry_msgs/msg/WrenchStamped'
     topics[TOPIC_EXTERNAL_WRENCH] = 'geometry_msgs/msg/WrenchStamped'
+    topics[TOPIC_TRUE_POSE] = 'geometry_msgs/msg/PoseStamped'
     if options.thruster_set() is not None:
         topics[TOPIC_COMMAND] = 'geometry_msgs/msg/WrenchStamped'
     if options.status:
@@ -783,6 +797,8 @@ class _Recorder:
         self.pose_cov, self.twist_cov = self.noise.covariances()
         self.status_every = max(1, int(round(options.rate / STATUS_RATE)))
         self.reference_cond: Optional[float] = None
+        self.bounds = JointBounds(robot, EstimatorConfig()) \
+            if options.joint_limits == 'stop' else None
         self.base_topic = TOPIC_BASE_POSE if options.base_pose_only else TOPIC_ODOM
         timing = options.timing()
         # Each measured topic publishes every `every` samples; its timing model counts
@@ -836,6 +852,7 @@ class _Recorder:
         """Queue every topic for sample k and write what can no longer be overtaken."""
         robot, options, types = self.robot, self.options, self.types
         self._check_regular(k, state.qbar)
+        self._check_limits(k, state.qbar, state.qbar_dot, tau)
         stamp = self.stamp(k)
         t = k / options.rate
         self._commands(t)
@@ -867,6 +884,9 @@ class _Recorder:
         self._push(stamp, TOPIC_MOMENTUM, wrench_to_ros(_wrench(mu, robot, stamp), types))
         self._push(stamp, TOPIC_EXTERNAL_WRENCH,
                    wrench_to_ros(_wrench(external, robot, stamp), types))
+        truth = BaseStateSample(stamp, WORLD_FRAME, robot.base_link, state.g.translation,
+                                _quaternion_xyzw(state.g.rotation), np.zeros(3), np.zeros(3))
+        self._push(stamp, TOPIC_TRUE_POSE, base_state_to_pose_stamped(truth, types))
         if options.status and k % self.status_every == 0:
             self._status(stamp, state, body_wrench)
 
@@ -885,6 +905,26 @@ class _Recorder:
             base_wrench=np.asarray(body_wrench, dtype=np.float64),
             kinetic_energy=kinetic, potential_energy=robot.potential_energy(state.qbar))
         self._push(stamp, TOPIC_STATUS, msg)
+
+    def _check_limits(self, k: int, qbar: np.ndarray, qbar_dot: np.ndarray,
+                      tau: np.ndarray) -> None:
+        """
+        Stop when a joint leaves what replay accepts of its URDF ``<limit>``.
+
+        The true state goes through replay's own plausibility gate at its
+        defaults (:class:`~reduced_dynamics.estimator.plausibility.JointBounds`:
+        limits plus ``joint_limit_margin``, ``limit_factor`` times the velocity
+        and effort limits): a bag past it would have its samples rejected.
+        """
+        if self.bounds is None:
+            return
+        verdict = self.bounds.check(qbar.tolist(), qbar_dot.tolist(), list(tau))
+        if verdict is not None:
+            raise ValueError(
+                f'a joint left its URDF limits at t = {k / self.options.rate:g} s '
+                f'({verdict[0]}: {verdict[1]}); replay would reject these samples: use a '
+                f'smaller --torque-scale, --torque pd, a shorter --duration or another --seed '
+                f'(--joint-limits ignore writes the bag anyway)')
 
     def _check_regular(self, k: int, qbar: np.ndarray) -> None:
         cond = float(np.linalg.cond(self.robot.mass_matrix(qbar)))
@@ -1150,8 +1190,9 @@ def register_command(subparsers: Any) -> None:
         'simulate', help='simulate full dynamics and write a rosbag2 (MCAP) bag',
         description='Integrate the full free-floating dynamics (Pinocchio aba, DOP853) and '
                     'write /joint_states, /odom (or /base_pose) and the ground truth '
-                    '/ground_truth/momentum and /ground_truth/external_wrench as a rosbag2 '
-                    'bag with MCAP storage.')
+                    '/ground_truth/momentum, /ground_truth/external_wrench and '
+                    '/ground_truth/base_pose as a rosbag2 bag with MCAP storage. A joint '
+                    'that leaves its URDF limits stops the run with a message.')
     add_robot_arguments(parser)
     parser.add_argument('-o', '--output', required=True, metavar='OUT',
                         help='bag directory to create')
@@ -1264,6 +1305,10 @@ def register_command(subparsers: Any) -> None:
                         help='play a planned joint trajectory (YAML/CSV, see reduced-dynamics '
                              'predict): the shape follows it exactly, the base by the full '
                              f'dynamics; the plan is recorded on {TOPIC_TRAJECTORY}')
+    parser.add_argument('--joint-limits', choices=JOINT_LIMIT_POLICIES, default='stop',
+                        help='a joint that leaves what replay accepts of its URDF limits: '
+                             'stop the run with a message (default), or ignore it (replay '
+                             'then rejects those samples)')
     parser.add_argument('--payload', metavar='LINK,MASS,CX,CY,CZ,IXX,IYY,IZZ[,IXY,IXZ,IYZ]',
                         help='the robot holds a rigid payload on LINK: mass (kg), centre of '
                              'mass in the link frame (m), inertia about it (kg m^2); the bag '
@@ -1299,6 +1344,7 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         thruster_force=args.thruster_force, firings=tuple(args.fire),
         thrust_gain=tuple(args.thrust_gain), thrust_bias=tuple(args.thrust_bias),
         command_rate=args.command_rate, trajectory=args.trajectory or '',
+        joint_limits=args.joint_limits,
         joint_rate=args.joint_rate, base_rate=args.base_rate,
         momentum_class=args.momentum_class, status=args.status, overwrite=args.overwrite,
         start_time_ns=int(round(args.start_time * NS_PER_S)))

@@ -29,6 +29,8 @@ from reduced_dynamics.messages.convert import (
     diagnostics_to_ros, joint_state_to_ros, pose_path_to_ros, shape_prediction_to_ros,
     twist_to_ros, wrench_to_ros)
 from reduced_dynamics.messages.types import MessageTypes, RosbagsTypes
+from reduced_dynamics.messages.uncertainty import (
+    ellipsoids_to_ros, predicted_odometry_to_ros, shape_covariance_to_ros)
 
 NODE_NAME = 'reduced_dynamics'
 DIAGNOSTICS_TOPIC = '/diagnostics'
@@ -77,6 +79,20 @@ OUTPUT_TOPICS: tuple[OutputTopic, ...] = (
                 'prescribed prediction modes (planned, held_velocity): the base path the '
                 'arm motion alone causes (geometric phase -A qbar_dot, i.e. the same motion at '
                 'zero momentum), world frame; base_path minus this is the drift\'s share'),
+    OutputTopic('prediction/base_at_horizon', 'nav_msgs/msg/Odometry', 'prediction_horizon',
+                predicted_odometry_to_ros,
+                'prediction_covariance: the predicted base at the horizon, stamped with the '
+                'time it predicts; pose covariance in the world frame (x, y, z, rotation '
+                'about X, Y, Z), body twist with its covariance'),
+    OutputTopic('prediction/covariance_ellipsoids', 'visualization_msgs/msg/MarkerArray',
+                'prediction_ellipsoids', ellipsoids_to_ros,
+                'prediction_covariance: the 95 % position ellipsoids along the predicted '
+                'path (SPHERE markers, world frame, for RViz)'),
+    OutputTopic('prediction/shape_covariance', 'std_msgs/msg/Float64MultiArray',
+                'prediction_shape_covariance', shape_covariance_to_ros,
+                'prediction_covariance: covariance of (qbar, qbar_dot) at the horizon, '
+                '2m x 2m row-major; dims 2.. label the order (qbar:<joint>, '
+                'qbar_dot:<joint>)'),
     OutputTopic(DIAGNOSTICS_TOPIC, 'diagnostic_msgs/msg/DiagnosticArray', 'diagnostics',
                 diagnostics_to_ros, 'estimator status'),
 )
@@ -136,7 +152,7 @@ def cdr_encoder(topic: OutputTopic, types: RosbagsTypes) -> Callable[[Any], byte
     applies to ``types.typestore``, else the converter plus the typestore's
     generic serializer (same bytes, about ten times slower).
     """
-    if cdr.fast_path_applies(types.typestore, topic.msgtype):
+    if topic.msgtype in cdr.ENCODERS and cdr.fast_path_applies(types.typestore, topic.msgtype):
         return cdr.ENCODERS[topic.msgtype]
     store, to_ros, msgtype = types.typestore, topic.to_ros, topic.msgtype
     return lambda sample: bytes(store.serialize_cdr(to_ros(sample, types), msgtype))

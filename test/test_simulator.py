@@ -33,6 +33,8 @@ import yaml
 from conftest_robots import paper_robot, planar_robot
 from reduced_dynamics.bag import open_bag
 from reduced_dynamics.cli import main
+from reduced_dynamics.estimator.config import EstimatorConfig
+from reduced_dynamics.estimator.plausibility import JointBounds
 from reduced_dynamics.full_dynamics import FullDynamics
 from reduced_dynamics.simulator import (
     initial_state,
@@ -50,6 +52,7 @@ SHIPPED = ('paper_thruster', 'planar_pose_only', 'paper_constant')
 #: Bags with realistic sensors (jitter, latency, bunching: stamps off the grid); see
 #: test_simulated_sensors.py for their contents.
 REALISTIC = ('paper_realistic', 'freeflyer_realistic', 'paper_spacecraft', 'freeflyer_testbed')
+TRUE_POSE = '/ground_truth/base_pose'
 
 
 # --------------------------------------------------------------------------- helpers
@@ -179,10 +182,13 @@ def test_shipped_bags_are_reproducible(name: str, tmp_path: Path,
     fresh, shipped = summary_of(name), json.loads((tmp_path / f'{name}.summary.json').read_text())
     for key in ('bag', 'initial_momentum', 'final_momentum', 'pulses', 'firings'):
         fresh.pop(key), shipped.pop(key)
+    # The shipped bags predate the ground-truth pose; a fresh run writes it every sample.
+    assert shipped['message_counts'].pop(TRUE_POSE) == shipped['samples']
+    assert shipped['topic_types'].pop(TRUE_POSE) == 'geometry_msgs/msg/PoseStamped'
     assert fresh == shipped
     with open_bag(DATA / name) as old, open_bag(tmp_path / name) as new:
         topics = sorted(old.topics())
-        assert sorted(new.topics()) == topics
+        assert sorted(set(new.topics()) - {TRUE_POSE}) == topics
         pairs = zip(old.messages(topics), new.messages(topics), strict=True)
         for (topic_a, _, t_a, msg_a), (topic_b, _, t_b, msg_b) in pairs:
             assert (topic_a, t_a) == (topic_b, t_b)
@@ -297,7 +303,9 @@ def test_memory_stays_flat(tmp_path: Path) -> None:
     peaks = []
     for duration in (4.0, 8.0):
         tracemalloc.start()
-        simulate_bag(robot, tmp_path / f'bag{duration:g}', SimulationOptions(duration=duration))
+        # PD torques: the default sinusoid leaves j5's URDF limits at 3.9 s (a stop).
+        simulate_bag(robot, tmp_path / f'bag{duration:g}',
+                     SimulationOptions(duration=duration, torque='pd'))
         peaks.append(tracemalloc.get_traced_memory()[1])
         tracemalloc.stop()
     # Twice the messages (about 1.3 MB more) but the same peak: only a chunk is held.
@@ -415,3 +423,54 @@ def test_pulse_after_the_end_from_cli(tmp_path: Path, capsys: pytest.CaptureFixt
                  '--thruster', '2,1,1,0,0,0,0,0']) == 2
     assert 'after the end of the run' in capsys.readouterr().err
     assert not (tmp_path / 'bag').exists()
+
+
+# --------------------------------------------------------------------------- issue 26 item 6
+def test_ground_truth_pose_is_the_true_base_pose(tmp_path: Path) -> None:
+    """Every sample carries the true base pose: the noise-free /odom pose, world frame."""
+    options = SimulationOptions(duration=1.0, rate=50.0, seed=2, torque='constant',
+                                torque_scale=0.05)
+    summary = simulate_bag(paper_robot(), tmp_path / 'bag', options)
+    assert summary.message_counts[TRUE_POSE] == summary.samples == 51
+    assert summary.topic_types[TRUE_POSE] == 'geometry_msgs/msg/PoseStamped'
+    times, truth = read_topic(tmp_path / 'bag', TRUE_POSE)
+    _, odom = read_topic(tmp_path / 'bag', '/odom')
+    assert np.allclose(np.diff(times), 0.02)
+    assert {m.header.frame_id for m in truth} == {'world'}
+    for a, b in zip(truth, odom, strict=True):
+        assert (pose_of(a).inverse() * pose_of(b)).isIdentity(1e-12)
+    # With pose noise, /odom moves off the truth and the truth stays put.
+    noisy = dataclasses.replace(options, noise_pose=0.01)
+    simulate_bag(paper_robot(), tmp_path / 'noisy', noisy)
+    _, truth_noisy = read_topic(tmp_path / 'noisy', TRUE_POSE)
+    _, odom_noisy = read_topic(tmp_path / 'noisy', '/odom')
+    assert all((pose_of(a).inverse() * pose_of(b)).isIdentity(1e-12)
+               for a, b in zip(truth, truth_noisy))
+    offsets = [np.linalg.norm(pose_of(a).translation - pose_of(b).translation)
+               for a, b in zip(truth_noisy, odom_noisy)]
+    assert 0.005 < float(np.median(offsets)) < 0.05
+
+
+def test_leaving_the_joint_limits_stops_with_a_message(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """The issue's seed 3 leaves j4's range: a clear message, no bag replay would reject."""
+    argv = ['simulate', '-o', str(tmp_path / 'bag'), '--rate', '100', '--seed', '3',
+            '--torque', 'constant', '--torque-scale', '0.05', '--duration', '12']
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert 'a joint left its URDF limits at t = 7.82 s (joint_position_limit: j4 at ' in err
+    assert 'outside [-2, 2]' in err
+    assert not (tmp_path / 'bag').exists()
+    # The same run, stopped before it leaves them, passes replay's gate at every sample.
+    assert main(argv[:-1] + ['7', '--overwrite']) == 0
+    bounds = JointBounds(paper_robot(), EstimatorConfig())
+    _, joints = read_topic(tmp_path / 'bag', '/joint_states')
+    assert len(joints) == 701
+    assert all(bounds.check(list(m.position), list(m.velocity), list(m.effort)) is None
+               for m in joints)
+    # Explicitly ignored, the run goes on and replay's gate rejects what left the range.
+    assert main(argv + ['--joint-limits', 'ignore', '--overwrite']) == 0
+    _, joints = read_topic(tmp_path / 'bag', '/joint_states')
+    assert len(joints) == 1201
+    assert any(bounds.check(list(m.position), list(m.velocity), list(m.effort)) is not None
+               for m in joints)

@@ -167,7 +167,8 @@ PARAMETERS: dict[str, ParameterSpec] = {
         'planned', None, None, ('planned', 'coast', 'held_velocity', 'held_torque'),
         'what the arm does over a prediction: planned (follows the latest planned '
         'trajectory; held_velocity while there is none), coast (zero joint torques), '
-        'held_velocity (joint velocities kept), held_torque (last measured torques kept)'),
+        'held_velocity (joint velocities kept), held_torque (the estimated joint torques '
+        'kept: held_torque_follow_time)'),
     'prediction_max_evaluations': ParameterSpec(
         20000.0, 10.0, 1e8, (),
         'budget of right-hand-side evaluations of one prediction (a 2 s horizon at '
@@ -181,6 +182,26 @@ PARAMETERS: dict[str, ParameterSpec] = {
         'the evaluation budget; replay always runs so, its outputs must not depend on the '
         'machine\'s load); a ~/predict_base_motion request gets 4 times it per '
         'prediction_horizon of its plan'),
+    'prediction_covariance': ParameterSpec(
+        True, None, None, (),
+        'propagate the start\'s uncertainty (filter covariance of pose, momentum and wrench; '
+        'joint noise; held torque) through each prediction: ~/prediction/base_at_horizon, '
+        '~/prediction/covariance_ellipsoids, ~/prediction/shape_covariance '
+        '(docs/prediction_uncertainty.md)'),
+    'joint_position_noise': ParameterSpec(
+        1e-3, 0.0, 1e3, (),
+        'standard deviation [rad or m] of a measured joint position (a prediction\'s '
+        'start uncertainty)'),
+    'joint_effort_noise': ParameterSpec(
+        1e-2, 1e-9, 1e6, (),
+        'standard deviation [N m or N] of a measured joint effort (the held-torque '
+        'estimate of prediction_mode held_torque)'),
+    'held_torque_follow_time': ParameterSpec(
+        4.0, 1e-3, 1e4, (),
+        'time constant [s] with which the held-torque estimate follows a slow change of the '
+        'measured efforts (a local-level Kalman filter: its variance is about '
+        'joint_effort_noise^2 dt / T); a change far beyond the noise is taken at once '
+        '(CUSUM test)'),
     'diagnostics_rate': ParameterSpec(1.0, 0.0, 100.0, (),
                                       'diagnostics messages per second of stamp time (0: off)'),
     # Input gates (estimator/stamps.py, estimator/plausibility.py); README "Bad input".
@@ -259,6 +280,10 @@ class EstimatorConfig:
     prediction_mode: str = PARAMETERS['prediction_mode'].default
     prediction_max_evaluations: float = PARAMETERS['prediction_max_evaluations'].default
     prediction_max_wall_time: float = PARAMETERS['prediction_max_wall_time'].default
+    prediction_covariance: bool = PARAMETERS['prediction_covariance'].default
+    joint_position_noise: float = PARAMETERS['joint_position_noise'].default
+    joint_effort_noise: float = PARAMETERS['joint_effort_noise'].default
+    held_torque_follow_time: float = PARAMETERS['held_torque_follow_time'].default
     diagnostics_rate: float = PARAMETERS['diagnostics_rate'].default
     stamp_outlier_tolerance: float = PARAMETERS['stamp_outlier_tolerance'].default
     joint_limit_margin: float = PARAMETERS['joint_limit_margin'].default

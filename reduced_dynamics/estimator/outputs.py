@@ -60,6 +60,12 @@ class EstimatorOutput:
     #: be computed off the input path (``job.run()`` returns its messages, see
     #: :class:`~reduced_dynamics.estimator.prediction.PredictionJob`)
     prediction_job: Optional[PredictionJob] = None
+    #: ``prediction_covariance``: the base at the horizon with its covariance, the 95 %
+    #: ellipsoids along the path and the shape covariance at the horizon
+    #: (:mod:`reduced_dynamics.messages.uncertainty`)
+    prediction_horizon: Optional[Any] = None
+    prediction_ellipsoids: Optional[Any] = None
+    prediction_shape_covariance: Optional[Any] = None
     #: covariance (n x n, algebra coordinates) of mu and of the wrench w
     momentum_covariance: Optional[np.ndarray] = None
     wrench_covariance: Optional[np.ndarray] = None
@@ -153,6 +159,9 @@ class OutputChunk:
                 output.prediction, output.prediction_path, output.diagnostics = extra[:3]
                 if len(extra) > 3:
                     output.prediction_phase_path, output.prediction_job = extra[3]
+                if len(extra) > 4:
+                    (output.prediction_horizon, output.prediction_ellipsoids,
+                     output.prediction_shape_covariance) = extra[4]
             if cyclic is not None:
                 output.cyclic_state = cyclic.sample(k, stamp)
             if self.mu_cov is not None:

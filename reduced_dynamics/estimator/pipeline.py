@@ -70,6 +70,7 @@ from reduced_dynamics.estimator.kernel import UpdateKernel
 # EstimatorOutput and the chunks are imported from here by the node, replay and tools.
 from reduced_dynamics.estimator.outputs import EstimatorBatch, EstimatorOutput, OutputChunk
 from reduced_dynamics.estimator.plausibility import BaseBounds, JointBounds
+from reduced_dynamics.estimator.held_torque import HeldTorqueEstimator
 from reduced_dynamics.estimator.prediction import Predictor
 from reduced_dynamics.estimator.processing import ChunkProcessing, NS, RowChunk
 from reduced_dynamics.estimator.reporting import Reporting
@@ -275,6 +276,15 @@ class Estimator(InputIntake, Timing, ChunkProcessing, Reporting, Smoothing,
                                    self.shape_names)
         if old_predictor is not None:
             self.predictor.adopt(old_predictor)
+        # held_torque predicts with an estimate of the applied torques (.held_torque).
+        held = getattr(self, 'held_torque', None)
+        if config.prediction_mode != 'held_torque':
+            held = None
+        elif held is None or (held.r, held.follow_time) != (
+                config.joint_effort_noise ** 2, config.held_torque_follow_time):
+            held = HeldTorqueEstimator(self.robot.m, config.joint_effort_noise,
+                                       config.held_torque_follow_time)
+        self.held_torque: Optional[HeldTorqueEstimator] = held
 
     @property
     def received(self) -> Counter:

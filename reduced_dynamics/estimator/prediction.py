@@ -24,7 +24,8 @@ Four modes (parameter ``prediction_mode``):
   the prediction's start, ``held_velocity`` stands in (reported as such).
 * ``held_velocity``: the shape keeps its current joint velocities (prescribed).
 * ``coast``: zero joint torques, the reduced dynamics at the current momentum.
-* ``held_torque``: the last measured joint torques held (reduced dynamics).
+* ``held_torque``: the estimated joint torques held (reduced dynamics;
+  :mod:`.held_torque`).
 
 A :class:`PredictionJob` holds everything a prediction needs (start state,
 momentum level, plan snapshot, settings) and its own robot copy (own
@@ -45,7 +46,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field, replace
 import threading
-from typing import NamedTuple, Optional
+from typing import Any, NamedTuple, Optional
 
 import numpy as np
 import pinocchio as pin
@@ -95,6 +96,12 @@ class PredictionMessages(NamedTuple):
     shape: Optional[ShapePrediction]
     path: PosePath
     phase_path: Optional[PosePath]
+    #: with the start's uncertainty (:mod:`.prediction_covariance`): the base at the
+    #: horizon with its covariance, the 95 % ellipsoids along the path, the shape's
+    #: covariance at the horizon
+    horizon: Optional[Any] = None
+    ellipsoids: Optional[Any] = None
+    shape_covariance: Optional[Any] = None
 
 
 @dataclass
@@ -119,6 +126,9 @@ class PredictionResult:
     wall_time: float = 0.0
     failure: Optional[str] = None
     failure_kind: Optional[str] = None
+    #: :class:`~.prediction_covariance.PredictionCovariance` (None: not asked, or failed)
+    covariance: Optional[Any] = None
+    covariance_failure: Optional[str] = None
 
     @property
     def ok(self) -> bool:
@@ -151,8 +161,9 @@ class PredictionJob:
     def __init__(self, robot: RobotModel, settings: PredictionSettings, start_ns: int,
                  g: pin.SE3, qbar: np.ndarray, qbar_dot: np.ndarray, mu: np.ndarray,
                  tau: np.ndarray, theta: Optional[np.ndarray], mode: str,
-                 requested_mode: str, plan: Optional[PlannedPath] = None) -> None:
-        """Capture the start state (copies) and the plan snapshot."""
+                 requested_mode: str, plan: Optional[PlannedPath] = None,
+                 uncertainty: Optional[Any] = None) -> None:
+        """Capture the start state (copies), the plan snapshot and its uncertainty."""
         self.robot = robot
         self.settings = settings
         self.start_ns = int(start_ns)
@@ -165,6 +176,8 @@ class PredictionJob:
         self.mode = mode
         self.requested_mode = requested_mode
         self.plan = plan
+        #: :class:`~.prediction_covariance.StartUncertainty` (None: no covariance)
+        self.uncertainty = uncertainty
         self.times = settings.times()
         self.end_ns = self.start_ns + int(round(self.times[-1] * NS))
         self._lock = threading.Lock()
@@ -184,6 +197,10 @@ class PredictionJob:
                 self._result = self._compute()
                 if self._result.ok:
                     self._messages = self._to_messages(self._result)
+                    if self.uncertainty is not None:
+                        from reduced_dynamics.estimator.prediction_covariance import \
+                            with_uncertainty
+                        self._messages = with_uncertainty(self, self._result, self._messages)
                 self._done = True
             return self._messages
 
@@ -408,12 +425,13 @@ class Predictor:
     # --- starting predictions -----------------------------------------------------------
     def predict(self, stamp_ns: int, g: pin.SE3, qbar: np.ndarray, qbar_dot: np.ndarray,
                 mu: np.ndarray, tau: np.ndarray, theta: Optional[np.ndarray] = None,
-                deferred: bool = False) -> PredictionJob:
+                deferred: bool = False, uncertainty: Optional[Any] = None) -> PredictionJob:
         """
         Start a prediction from a measured state at momentum level ``mu``.
 
         Returns the job, already run unless ``deferred``; it is tracked for the
         residual either way. ``theta``: the cyclic momenta (second stage).
+        ``uncertainty``: the start's (:mod:`.prediction_covariance`), for a covariance.
         """
         mode, plan = self.mode, None
         if mode == 'planned':
@@ -427,7 +445,7 @@ class Predictor:
                 self._inline_robot = self.robot.worker_copy()
             robot = self._inline_robot
         job = PredictionJob(robot, self.settings, stamp_ns, g, qbar, qbar_dot, mu, tau, theta,
-                            mode, self.mode, plan)
+                            mode, self.mode, plan, uncertainty)
         if not deferred:
             job.run()
         self.active.append(job)
@@ -539,7 +557,7 @@ class Predictor:
 def _summary_only(result: PredictionResult) -> PredictionResult:
     """Return ``result`` without its sampled paths (mode, cost and failure stay)."""
     return replace(result, times=result.times[:0].copy(), poses=None, qbar=None,
-                   qbar_dot=None, phase_poses=None, drift=None, phase=None)
+                   qbar_dot=None, phase_poses=None, drift=None, phase=None, covariance=None)
 
 
 def _interpolate(result: PredictionResult, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -39,6 +39,7 @@ from reduced_dynamics.estimator.cyclic import CyclicColumns
 from reduced_dynamics.estimator.filter import Command, Linearisation, Measurement
 from reduced_dynamics.estimator.outputs import OutputChunk
 from reduced_dynamics.estimator.prediction import PredictionMessages
+from reduced_dynamics.estimator.prediction_covariance import StartUncertainty
 from reduced_dynamics.messages.samples import JointTrajectorySample
 
 NS = 1_000_000_000
@@ -104,6 +105,8 @@ class ChunkProcessing:
         mu_cov = np.empty((count, n, n))
         w_cov = np.empty((count, n, n))
         poses: list[pin.SE3] = []
+        #: the filter's state (x, P) at each row (arrays are replaced, never modified)
+        states: list[tuple] = []
         quiet: list[bool] = []
         rotation, translation = result.rotation, result.translation
         commands = chunk.commands if self.commanded_wrench else None
@@ -149,6 +152,9 @@ class ChunkProcessing:
                             # mu moves by the commanded impulses too: no window test.
                             mu_cov[k] if disturbance is None else None)
             poses.append(g)
+            # Commanded wrench: the total wrench (delivered command + disturbance) at this
+            # row is what mu does over a prediction from it.
+            states.append((x, p) if disturbance is None else (x, p, rate[k], w_cov[k]))
             quiet.append(not detector.in_event)
         # Drift twist I^-1 pi, stacked (the same kernel per row, whatever the chunk).
         drift = np.matmul(inverse, pi[:, :, None])[:, :, 0]
@@ -165,7 +171,7 @@ class ChunkProcessing:
             self._last_theta = cyclic.theta[-1]
         if self.predictor.active or self._prediction_enabled():
             self._per_sample(stamp_list, qbar, qbar_dot, taus, result, extras, rejected_at,
-                             cyclic, poses, mu, quiet)
+                             cyclic, poses, mu, quiet, states)
         self.latest_state = (stamp_list[-1], result.rotation[-1], result.translation[-1],
                              qbar[-1], qbar_dot[-1])
         if self.first_stamp_ns is None:
@@ -226,19 +232,44 @@ class ChunkProcessing:
     def _per_sample(self, stamp_list: tuple, qbar: np.ndarray, qbar_dot: np.ndarray,
                     taus: tuple, result, extras: dict, rejected_at: int,
                     cyclic: Optional[CyclicColumns], poses: list, mu: np.ndarray,
-                    quiet: list) -> None:
+                    quiet: list, states: list) -> None:
         """Record the measured history for the residuals and start predictions when due."""
         predictor = self.predictor
         rotation, translation = result.rotation, result.translation
+        held = self.held_torque
         for k, stamp in enumerate(stamp_list):
             # Measured history for the residuals (closes predictions whose horizon passed).
             predictor.observe(stamp, qbar[k], translation[k], rotation[k])
+            if held is not None:
+                held.update(stamp, taus[k])
             if quiet[k] and self._prediction_due(stamp):
-                extra = self._predict(stamp, poses[k], qbar[k], qbar_dot[k], taus[k],
+                tau = taus[k] if held is None or held.estimate is None else held.estimate
+                extra = self._predict(stamp, poses[k], qbar[k], qbar_dot[k], tau,
                                       k >= rejected_at, mu[k],
-                                      None if cyclic is None else cyclic.theta[k])
+                                      None if cyclic is None else cyclic.theta[k],
+                                      self._start_uncertainty(states[k]))
                 if extra is not None:
                     extras[k] = extra
+
+    def _start_uncertainty(self, state: tuple) -> Optional[StartUncertainty]:
+        """Return a prediction's start uncertainty (None: prediction_covariance off)."""
+        config = self.config
+        if not config.prediction_covariance:
+            return None
+        x, p = state[:2]
+        n, m = self.robot.n, self.robot.m
+        if len(state) > 2:
+            wrench, wrench_cov = state[2], state[3]
+            cov = np.zeros((3 * n, 3 * n))
+            cov[:2 * n, :2 * n] = p[:2 * n, :2 * n]
+            cov[2 * n:, 2 * n:] = wrench_cov
+        else:
+            wrench, cov = x[n:2 * n], p[:3 * n, :3 * n]
+        held = self.held_torque
+        return StartUncertainty(cov, np.array(wrench),
+                                np.full(m, config.joint_position_noise ** 2),
+                                np.full(m, config.joint_velocity_noise ** 2),
+                                None if held is None else held.covariance)
 
     def _prediction_enabled(self) -> bool:
         config = self.config
@@ -253,7 +284,8 @@ class ChunkProcessing:
 
     def _predict(self, stamp: int, g: pin.SE3, qbar: np.ndarray, qbar_dot: np.ndarray,
                  tau: np.ndarray, report: bool, mu: np.ndarray,
-                 theta: Optional[np.ndarray] = None) -> Optional[tuple]:
+                 theta: Optional[np.ndarray] = None,
+                 uncertainty: Optional[StartUncertainty] = None) -> Optional[tuple]:
         """
         Start a prediction from the filter's pose and momentum (re-reduced at that mu).
 
@@ -264,7 +296,7 @@ class ChunkProcessing:
         deferred = self.defer_predictions
         try:
             job = self.predictor.predict(stamp, g, qbar, qbar_dot, mu, tau, theta,
-                                         deferred=deferred)
+                                         deferred=deferred, uncertainty=uncertainty)
         except (RuntimeError, ValueError, ArithmeticError, np.linalg.LinAlgError) as error:
             # A prediction that cannot start must not stop the estimates. (Failures while
             # computing are the job's: counted when its horizon has passed.)
@@ -281,7 +313,8 @@ class ChunkProcessing:
         """Output extras of computed messages (None: the prediction failed)."""
         if messages is None:
             return None
-        return (messages.shape, messages.path, None, (messages.phase_path, None))
+        return (messages.shape, messages.path, None, (messages.phase_path, None),
+                messages[3:])
 
     def predict_base_motion(self, trajectory: JointTrajectorySample) -> BaseMotionAnswer:
         """

@@ -313,6 +313,10 @@ class Reporting:
                         'window_s': e.window} for e in self.events],
             'predictions': self.predictor.made,
             'prediction_failures': dict(failures),
+            # predictions published without their covariance (prediction_covariance on: the
+            # sample points diverged, e.g. right after the filter started)
+            'prediction_covariance_failures': sum(
+                1 for p in finished if p.result.covariance_failure is not None),
             'filter': self.filter_statistics(),
             **({'commanded_wrench': self.command_estimate()} if self.commanded_wrench else {}),
             'prediction_shape_residual_max': max(residuals) if residuals else None,
