@@ -135,14 +135,20 @@ def test_an_hour_with_faults_stays_finite_bounded_and_integer_stamped():
     assert processed > 0.6 * MINUTES * 60 * JOINT_HZ
     assert summary['clock_resets'] >= 1
     rejected = summary['rejected']
-    assert rejected.get('non_finite', 0) + rejected.get('nonfinite', 0) > 0 or any(
-        'finite' in reason for reason in rejected), rejected
+    assert rejected['non_finite'] > 0 and rejected['invalid_quaternion'] > 0
+    assert rejected['stale_base_state'] > 0
     assert len(rejected) <= 20  # reasons are a fixed vocabulary, not one per message
-    # Covariances: bounded by the steady state plus the longest gap's process noise, and
-    # back at their steady level after the faults.
-    steady = np.median(worst_cov[:9])
-    assert max(worst_cov) < 1e6 * steady
-    assert worst_cov[-1] < 10 * steady
+    # Covariances: capped. Each coast beyond the filter's MAX_COAST_S restarts it from the
+    # next base state instead of propagating over the gap: the 60 s joint-state loss (the
+    # base samples of the gap are no longer buffered when the joints return), the 60 s
+    # base loss, the 120 s forward clock jump and the ten-minute coast. Measured: the
+    # momentum's largest variance per minute is 4-100 between faults (it follows the base
+    # position's lever arm), 500-4600 in a minute with a (re)start, and 5.6e11 before the
+    # cap (propagated over the coast, then a negative variance).
+    assert summary['filter']['filter_restart_causes'] == {'coast': 4}
+    assert max(worst_cov) <= 100.0 * worst_cov[0], str([round(v) for v in worst_cov])
+    steady = np.median(worst_cov[1:9])
+    assert worst_cov[-1] < 100 * steady, str([round(v) for v in worst_cov])
     # Stores and log volume stay bounded over the hour.
     for path, store in sizes[-1].items():
         assert store.size <= (8 << 20 if store.kind == 'array' else 4096), (path, store)
