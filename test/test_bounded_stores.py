@@ -15,6 +15,8 @@
 
 """The estimator's stores stay below fixed sizes however long it runs (issue 27)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -146,3 +148,41 @@ def test_observation_buffer_copies_and_trims():
         buffer.append(1000 + k, chunk[0], chunk[0], rotation[0])
         buffer.trim(1000 + k - 100)
     assert len(buffer) == 100 and buffer.capacity <= 512
+
+
+def test_prediction_worker_queue_is_bounded_when_starved():
+    pytest.importorskip('rclpy')
+    import threading
+    from reduced_dynamics.node import _PredictionWorker
+
+    class Job:
+        def __init__(self, gate):
+            self.gate = gate
+
+        def run(self):
+            self.gate.wait()  # a worker that gets no CPU: nothing is taken off the queue
+            return None
+    gate = threading.Event()
+    worker = _PredictionWorker(lambda messages: None, lambda text: None, keep=8)
+    for _ in range(100):
+        worker.submit(Job(gate))
+    assert worker.pending <= 8 and worker.skipped >= 100 - 8 - 1
+    gate.set()
+    worker.wait_idle()
+    worker.stop()
+    assert worker.done + worker.skipped == 100
+
+
+def test_fixed_lag_window_stays_bounded_after_a_backwards_clock_restart():
+    # Before: the passes waited for the new clock to pass the last one (10 s here), the
+    # window meanwhile holding every step (1.2 k a second at 1 kHz + 200 Hz).
+    messages = _messages(20.0)
+    estimator = Estimator(load_robot(), EstimatorConfig(prediction_rate=0.0),
+                          use_odometry=True)
+    _feed(estimator, messages[:len(messages) // 2])
+    back = 10 * 1_000_000_000
+    for _, kind, sample in messages[len(messages) // 2:]:
+        shifted = dataclasses.replace(sample, stamp_ns=sample.stamp_ns - back)
+        (estimator.add_base_state if kind else estimator.add_joint_state)(shifted)
+    assert estimator.clock_resets == 1
+    assert estimator.fixed_lag.peak_steps < 2000
