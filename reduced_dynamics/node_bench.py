@@ -301,8 +301,8 @@ def soak_publish(args: argparse.Namespace) -> int:
     odom_msg.twist.twist.linear.x = 0.01
     odom_msg.twist.twist.angular.z = 0.05
     clock = time.time_ns
-    joint_period, base_every = 1.0 / args.joint_rate, max(1, round(args.joint_rate
-                                                                    / args.base_rate))
+    joint_period = 1.0 / args.joint_rate
+    base_every = max(1, round(args.joint_rate / args.base_rate))
     count = int(args.seconds * args.joint_rate)
     sent = {'joint_states': 0, 'odometry': 0, 'late_max_s': 0.0}
     start = time.monotonic()

@@ -14,7 +14,7 @@
 
 
 """
-``reduced-dynamics bench --sections soak``: does a long run stay flat (issue 27)?
+``reduced-dynamics bench --sections soak``: whether a long run stays flat (issue 27).
 
 Three measurements, each reported as figures of the bench report:
 
@@ -76,8 +76,8 @@ def tenth_figures(records: np.ndarray, cpu: np.ndarray, start_ns: int,
     for name, (low, high) in (('first', edges[:2]), ('last', edges[-2:])):
         chosen = (records[:, 0] >= low) & (records[:, 0] < high)
         latency = (records[chosen, 1] - records[chosen, 0]) * 1e-6
-        spent = float(np.interp(high, cpu[:, 0], cpu[:, 1]) - np.interp(low, cpu[:, 0],
-                                                                          cpu[:, 1]))
+        at = np.interp([low, high], cpu[:, 0], cpu[:, 1])
+        spent = float(at[1] - at[0])
         count = int(chosen.sum())
         out[name] = {'outputs': count,
                      'cpu_us_per_sample': spent / count * 1e6 if count else float('nan'),
@@ -186,14 +186,14 @@ def node_soak_figures(raw: dict, warmup_s: float) -> dict:
 
 
 _RETAINED_SCRIPT = """
-import gc, json, sys, tracemalloc
+import json, sys
 from reduced_dynamics.soak import retained_per_sample
 print(json.dumps(retained_per_sample(int(sys.argv[1]), int(sys.argv[2]))))
 """
 
 
 def soak_messages(robot: Any, count: int) -> list:
-    """The bench's 1 kHz joint states with odometry at 200 Hz, 0.3 ms after (arrival order)."""
+    """Return the bench's 1 kHz joint states, odometry at 200 Hz 0.3 ms after (arrival order)."""
     from reduced_dynamics.bench import ODOMETRY_EVERY, ODOMETRY_OFFSET_NS, update_samples
     from reduced_dynamics.messages.samples import BaseStateSample
     joints, bases = update_samples(robot, count)

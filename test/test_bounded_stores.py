@@ -60,7 +60,7 @@ def _feed(estimator: Estimator, messages: list) -> int:
 
 
 def _growing(before: dict, after: dict) -> dict:
-    """Stores without a maxlen that grew beyond the slack between two checkpoints."""
+    """Return the stores without a maxlen that grew beyond the slack between checkpoints."""
     out = {}
     for path, store in after.items():
         if store.maxlen is not None or path.endswith('._kept'):

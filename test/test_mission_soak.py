@@ -47,7 +47,7 @@ BAD_BASE = (3200, 3600)                    # every 3rd odometry with a zero quat
 
 
 def _stamp(t: float) -> int:
-    """The stamp [ns] of mission time ``t`` [s], with the clock jumps."""
+    """Return the stamp [ns] of mission time ``t`` [s], with the clock jumps."""
     shift = -BACK_JUMP_S if t >= BACK_JUMP_AT else 0
     if t >= FORWARD_JUMP_AT:
         shift += FORWARD_JUMP_S
@@ -55,7 +55,7 @@ def _stamp(t: float) -> int:
 
 
 def _minute(robot, minute: int) -> list:
-    """The messages of one mission minute, in arrival order."""
+    """Return the messages of one mission minute, in arrival order."""
     rng = np.random.default_rng(minute)
     m = robot.m
     amplitude, frequency = np.linspace(0.1, 0.3, m), np.linspace(0.3, 0.9, m)

@@ -49,7 +49,7 @@ class ModeStatistics:
         self.residuals = {key: RunningQuantile() for key in RESIDUALS}
 
     def entry(self, judged_by: str) -> dict:
-        """Return the summary entry (the keys the summary's ``prediction_residuals`` had)."""
+        """Return this mode's summary: the keys of ``prediction_residuals`` entries."""
         out: dict = {'predictions': self.predictions, 'compared': self.compared,
                      'failed': self.failed, 'judged_by': judged_by,
                      'evaluations_median': self.evaluations.median()}

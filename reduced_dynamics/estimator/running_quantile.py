@@ -84,13 +84,13 @@ class RunningQuantile:
         return self.total / self.count if self.count else None
 
     def quantile(self, q: float) -> Optional[float]:
-        """Return the ``q`` quantile (exact while :attr:`exact`); None before the first value."""
+        """Return the q-quantile, exact while :attr:`exact`; None before the first value."""
         if not self._kept:
             return None
         return float(np.quantile(self._kept, q))
 
     def median(self) -> Optional[float]:
-        """Return the median (``np.median`` of the values while :attr:`exact`)."""
+        """Return the middle value (numpy's median of the values while :attr:`exact`)."""
         if not self._kept:
             return None
         return float(np.median(self._kept))
