@@ -210,7 +210,7 @@ def retained_per_sample(warmup: int, samples: int) -> dict:
 
     The estimator has the node's defaults (odometry input, deferred predictions,
     each job run as the node's worker would); the messages are built before
-    tracing starts. The measured samples are traced in two halves: the second
+    tracing starts. The measured samples are counted in two halves: the second
     half shows whether growth goes on once the bounded stores are full.
     """
     import gc
@@ -230,9 +230,11 @@ def retained_per_sample(warmup: int, samples: int) -> dict:
     origin = messages[0][0]
     cuts = [next((i for i, m in enumerate(messages) if m[0] >= origin + n * 1_000_000),
                  len(messages)) for n in (warmup, warmup + samples // 2)]
+    # Traced from the start: a ring reallocated after the warm-up frees memory allocated
+    # before it, which a trace started later would not see (and count the new as retained).
+    tracemalloc.start()
     feed(messages[:cuts[0]])
     gc.collect()
-    tracemalloc.start()
     traced = [tracemalloc.get_traced_memory()[0]]
     counts = [estimator.processed]
     for part in (messages[cuts[0]:cuts[1]], messages[cuts[1]:]):
