@@ -182,7 +182,10 @@ def node_soak_figures(raw: dict, warmup_s: float) -> dict:
             'log_lines': len(raw['log_lines']),
             'log_lines_per_hour': len(raw['log_lines']) / hours if hours else float('nan'),
             'publisher_late_max_s': sent['late_max_s'], 'exit_code': raw['exit_code'],
-            'first_tenth': tenths['first'], 'last_tenth': tenths['last']}
+            'first_tenth': tenths['first'], 'last_tenth': tenths['last'],
+            # the RSS curve itself, every 10th sample (~10 s), to tell a step from a slope
+            'rss_series_s_mib': [[round(float(a), 1), round(float(b), 2)]
+                                 for a, b in zip(t[during][::10], rss[::10])]}
 
 
 _RETAINED_SCRIPT = """
