@@ -53,6 +53,9 @@ same run (machines are noisy: ratios, not absolutes):
 7. ``payload``: one payload identification (``identify``: read, fit, step test)
    against a causal replay of the same simulated window
    (:mod:`reduced_dynamics.payload_bench`, docs/payload.md).
+8. ``soak`` (only when asked for, ``--sections soak``; ``--soak-duration``): the node
+   over real DDS for a long window, retained bytes per sample and replay peak RSS
+   against bag length (:mod:`reduced_dynamics.soak`, docs/soak.md).
 """
 
 from __future__ import annotations
@@ -118,6 +121,12 @@ class Settings:
     #: bags of section fleet and the length of each (1 kHz, simulated)
     fleet_bags: int = 8
     fleet_bag_seconds: float = 2.0
+    #: section soak: the node's window [s], tracemalloc samples, replay bag lengths [s]
+    soak_seconds: float = 60.0
+    soak_retained_warmup: int = 10_000
+    soak_retained_samples: int = 20_000
+    soak_short_bag_seconds: float = 60.0
+    soak_bag_seconds: float = 300.0
     quick: bool = False
 
     @classmethod
@@ -129,8 +138,9 @@ class Settings:
                    memory_long_seconds=20.0, scaling_samples=200, scaling_evaluations=60,
                    planned_bag_seconds=20.0, node_seconds=2.0, step_test_samples=2200,
                    node_warmup=1.0, node_sweep_seconds=1.0, payload_seconds=6.0,
-                   fleet_bag_seconds=1.0,
-                   quick=True)
+                   fleet_bag_seconds=1.0, soak_seconds=30.0, soak_retained_warmup=5000,
+                   soak_retained_samples=10_000, soak_short_bag_seconds=20.0,
+                   soak_bag_seconds=60.0, quick=True)
 
 
 @dataclass
@@ -1417,6 +1427,8 @@ def write_csv(report: Report, path: str) -> None:
 
 SECTIONS = ('update', 'prediction', 'replay', 'scaling', 'planned', 'node', 'payload',
             'fleet')
+#: Sections run only when named (long by design).
+ON_REQUEST = ('soak',)
 
 
 def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
@@ -1475,6 +1487,14 @@ def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
             bench_fleet(report, robot, settings, workdir)
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
+    if 'soak' in sections:
+        say(f'soak (node {settings.soak_seconds:g} s over real DDS, then replays)...')
+        from reduced_dynamics.soak import bench_soak
+        workdir = tempfile.mkdtemp(prefix='reduced_dynamics_bench_')
+        try:
+            bench_soak(report, robot, settings, workdir)
+        finally:
+            shutil.rmtree(workdir, ignore_errors=True)
     return report
 
 
@@ -1484,6 +1504,14 @@ def _run(args: argparse.Namespace) -> int:
         settings.repeats = args.repeats
     if settings.repeats < 1:
         raise ValueError('--repeats must be at least 1')
+    if args.soak_duration is not None:
+        if not args.soak_duration > 0.0:
+            raise ValueError('--soak-duration must be > 0 s')
+        settings.soak_seconds = args.soak_duration
+    if args.soak_bag_seconds is not None:
+        if not args.soak_bag_seconds > 0.0:
+            raise ValueError('--soak-bag-seconds must be > 0 s')
+        settings.soak_bag_seconds = args.soak_bag_seconds
     sections = args.sections or SECTIONS
     report = run_bench(settings, sections,
                        lambda text: print(f'bench: {text}', file=sys.stderr, flush=True))
@@ -1510,6 +1538,11 @@ def register_command(commands: Any) -> None:
     parser.add_argument('--json', metavar='FILE', help='write the report as JSON')
     parser.add_argument('--csv', metavar='FILE', help='write the figures as CSV')
     parser.add_argument('--sections', nargs='+',
-                        choices=SECTIONS,
-                        help='run only these sections (default: all)')
+                        choices=SECTIONS + ON_REQUEST,
+                        help='run only these sections (default: all but soak)')
+    parser.add_argument('--soak-duration', type=float, default=None, metavar='SECONDS',
+                        help='section soak: how long the node is fed (default 60 s, '
+                             '30 s with --quick)')
+    parser.add_argument('--soak-bag-seconds', type=float, default=None, metavar='SECONDS',
+                        help='section soak: the long replay bag (default 300 s)')
     parser.set_defaults(func=_run)

@@ -127,6 +127,10 @@ OUTPUT_QOS_DEPTH = 10
 INPUT_QOS_DEPTH = 100
 #: Sensor messages an input callback takes on its own at most (see ``_drain_inputs``).
 DRAIN_LIMIT = 64
+#: Prediction jobs waiting for the worker at most (a minute at the default 1 Hz): a worker
+#: starved of CPU skips the oldest (the estimator has computed it for its residual at the
+#: horizon; only its messages go unpublished, counted) instead of queueing without bound.
+WORKER_QUEUE_KEEP = 64
 #: ~/predict_base_motion as a request/response topic pair (standard types; README).
 PREDICT_REQUEST_TOPIC = '~/predict_base_motion/request'
 PREDICT_PATH_TOPIC = '~/predict_base_motion/path'
@@ -389,16 +393,30 @@ class InputStats:
 class _PredictionWorker:
     """Run deferred prediction jobs off the input path and publish their messages."""
 
-    def __init__(self, publish: Callable[[Any], None], on_error: Callable[[str], None]
-                 ) -> None:
+    def __init__(self, publish: Callable[[Any], None], on_error: Callable[[str], None],
+                 keep: int = WORKER_QUEUE_KEEP) -> None:
         self._jobs: queue.Queue = queue.Queue()
         self._publish = publish
         self._on_error = on_error
+        self._keep = keep
         self.done = 0
+        #: jobs skipped because the queue was full (their messages not published)
+        self.skipped = 0
         self._thread = threading.Thread(target=self._run, name='predictions', daemon=True)
         self._thread.start()
 
     def submit(self, job: Any) -> None:
+        """Queue ``job``; when ``keep`` wait already, skip the oldest (memory bound)."""
+        while self._jobs.qsize() >= self._keep:
+            try:
+                old = self._jobs.get_nowait()
+            except queue.Empty:
+                break
+            self._jobs.task_done()
+            if old is None:  # a stop request stays last
+                self._jobs.put(None)
+                return
+            self.skipped += 1
         self._jobs.put(job)
 
     @property
@@ -1136,6 +1154,7 @@ class _Shell:
                   'processed': str(processed),
                   'rejected_total': str(sum(rejected.values())),
                   'predictions_pending': str(self.predictions_pending),
+                  'predictions_skipped': str(self._worker.skipped if self._worker else 0),
                   'time_resets': str(self.time_resets),
                   'stamp_resets': str(self.stamp_resets)}
         lost = 0

@@ -24,7 +24,10 @@ The ROS 2 processes of ``reduced-dynamics bench --sections node`` (real DDS).
   header stamp of each message is its send time (system clock), so an output
   stamped with its input's stamp carries the send time with it;
 * ``probe``: subscribes to the relay's and the node's outputs and records, per
-  message, the stamp and the receive time.
+  message, the stamp and the receive time;
+* ``soak-publish`` and ``soak-probe``: the same for ``--sections soak``, one
+  long window to the node alone; the probe keeps its records in a growing
+  int64 array (16 B an output) and writes them as ``.npy``.
 
 The orchestration (processes, statistics) is ROS-free, in
 :func:`reduced_dynamics.bench.bench_node`. Besides the node shell this is the
@@ -226,6 +229,121 @@ def publish(args: argparse.Namespace) -> int:
     return 0
 
 
+def soak_probe(args: argparse.Namespace) -> int:
+    """Record (stamp, receive time) of every ``~/momentum`` until SIGINT/SIGTERM; write .npy."""
+    rclpy = _rclpy()
+    from geometry_msgs.msg import WrenchStamped
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    rclpy.init(signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    node = rclpy.create_node('soak_probe')
+    qos = QoSProfile(depth=PROBE_DEPTH, history=HistoryPolicy.KEEP_LAST,
+                     reliability=ReliabilityPolicy.RELIABLE)
+    rows = [np.zeros((1 << 16, 2), np.int64), 0]
+    clock = time.time_ns
+
+    def record(msg: Any) -> None:
+        table, count = rows
+        if count == len(table):
+            rows[0] = table = np.concatenate([table, np.zeros_like(table)])
+        stamp = msg.header.stamp
+        table[count] = (stamp.sec * 1_000_000_000 + stamp.nanosec, clock())
+        rows[1] = count + 1
+    node.create_subscription(WrenchStamped, NODE_OUTPUT, record, qos)
+    stop = []
+    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    ready = False
+    while not stop:
+        rclpy.spin_once(node, timeout_sec=0.05)
+        if not ready and node.count_publishers(NODE_OUTPUT):
+            ready = True
+            with open(args.ready, 'w', encoding='utf-8') as stream:
+                stream.write('ready\n')
+    np.save(args.out, rows[0][:rows[1]])
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+def soak_publish(args: argparse.Namespace) -> int:
+    """
+    Publish joint states and odometry to the node for ``--seconds``; write what was sent.
+
+    The stamps are send times (system clock). Odometry goes out 0.3 ms after the
+    joint state it coincides with (two clocks, as in the node section). Writes
+    JSON: start and end send time, joint states and odometry sent, and the
+    largest lateness behind the schedule.
+    """
+    rclpy = _rclpy()
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import JointState
+    from reduced_dynamics.robot.model import load_robot
+    robot = load_robot()
+    names = list(robot.shape_joint_names)
+    rclpy.init()
+    node = rclpy.create_node('soak_publisher')
+    joints_pub = node.create_publisher(JointState, NODE_INPUTS[0], qos_profile_sensor_data)
+    odom_pub = node.create_publisher(Odometry, NODE_INPUTS[1], qos_profile_sensor_data)
+    deadline = time.monotonic() + args.discovery_timeout
+    while not (joints_pub.get_subscription_count() and odom_pub.get_subscription_count()):
+        if time.monotonic() > deadline:
+            print('soak publisher: no subscriber on the inputs', file=sys.stderr)
+            return 1
+        rclpy.spin_once(node, timeout_sec=0.05)
+    motion = _Motion(len(names))
+    joint_msg = JointState()
+    joint_msg.name = names
+    joint_msg.effort = [0.0] * len(names)
+    odom_msg = Odometry()
+    odom_msg.header.frame_id = 'world'
+    odom_msg.child_frame_id = robot.base_link
+    odom_msg.twist.twist.linear.x = 0.01
+    odom_msg.twist.twist.angular.z = 0.05
+    clock = time.time_ns
+    joint_period = 1.0 / args.joint_rate
+    base_every = max(1, round(args.joint_rate / args.base_rate))
+    count = int(args.seconds * args.joint_rate)
+    sent = {'joint_states': 0, 'odometry': 0, 'late_max_s': 0.0}
+    start = time.monotonic()
+    sent['start_ns'] = clock()
+    for k in range(count + 1):
+        offset = k * joint_period
+        for kind in ((0, 1) if k % base_every == 0 else (0,)):
+            # The last round: one odometry message after the last joint state (the
+            # estimator processes a joint state once a base sample at or after it came).
+            if kind == 0 and k == count:
+                continue
+            at = offset + (0.0003 if kind else 0.0)
+            delay = start + at - time.monotonic()
+            if delay > 0.0:
+                time.sleep(delay)
+            else:
+                sent['late_max_s'] = max(sent['late_max_s'], -delay)
+            stamp = clock()
+            t = offset
+            if kind == 0:
+                joint_msg.header.stamp.sec, joint_msg.header.stamp.nanosec = divmod(
+                    stamp, 1_000_000_000)
+                joint_msg.position, joint_msg.velocity = motion(t)
+                joints_pub.publish(joint_msg)
+                sent['joint_states'] += 1
+            else:
+                odom_msg.header.stamp.sec, odom_msg.header.stamp.nanosec = divmod(
+                    stamp, 1_000_000_000)
+                odom_msg.pose.pose.position.x = 0.01 * t
+                odom_msg.pose.pose.orientation.z = float(np.sin(0.025 * t))
+                odom_msg.pose.pose.orientation.w = float(np.cos(0.025 * t))
+                odom_pub.publish(odom_msg)
+                sent['odometry'] += 1
+    sent['end_ns'] = clock()
+    with open(args.out, 'w', encoding='utf-8') as stream:
+        json.dump(sent, stream)
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run one role (see the module docstring)."""
     parser = argparse.ArgumentParser(prog='python -m reduced_dynamics.node_bench')
@@ -247,6 +365,17 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument('--repeats', type=int, default=3)
     p.add_argument('--discovery-timeout', type=float, default=60.0)
     p.set_defaults(func=publish)
+    p = roles.add_parser('soak-probe')
+    p.add_argument('--out', required=True)
+    p.add_argument('--ready', required=True)
+    p.set_defaults(func=soak_probe)
+    p = roles.add_parser('soak-publish')
+    p.add_argument('--out', required=True)
+    p.add_argument('--seconds', type=float, default=60.0)
+    p.add_argument('--joint-rate', type=float, default=1000.0)
+    p.add_argument('--base-rate', type=float, default=200.0)
+    p.add_argument('--discovery-timeout', type=float, default=60.0)
+    p.set_defaults(func=soak_publish)
     args = parser.parse_args(argv)
     return args.func(args)
 

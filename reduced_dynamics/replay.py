@@ -372,8 +372,15 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                 expected = JOINT_STATE_TYPE if topic == joint_topic else base_type
                 inputs[topic, msgtype] = _wrong_type(topic, msgtype, expected)
         read: Counter = Counter()
-        series = {'mu': _Series(), 'rate': _Series(), 'shape': _Series(), 'residual': [],
-                  'disturbance': _Series()}
+        series = {'mu': _Series(), 'rate': _Series(), 'shape': _Series(),
+                  'residual': _Series(), 'disturbance': _Series()}
+        if options.plots_dir:
+            def residual_point(done: Any) -> None:
+                # The residuals as predictions finish (the predictor keeps its last few).
+                if done.compared:
+                    series['residual'].add((done.start_ns, done.shape_residual,
+                                            done.position_residual))
+            estimator.predictor.on_finished = residual_point
         last_report = started
         with BagWriter(out_path, out_topics, overwrite=options.overwrite) as writer:
             write = writer.write_raw
@@ -494,10 +501,6 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                     'undecodable_skipped': skipped, 'damage': damage, 'seconds': elapsed,
                     'samples_per_second': estimator.processed / elapsed if elapsed else None})
     if options.plots_dir:
-        for prediction in estimator.predictor.finished:
-            if prediction.compared:
-                series['residual'].append((prediction.start_ns, prediction.shape_residual,
-                                           prediction.position_residual))
         try:
             marks = read_marks(str(bag_path), joint_topic, start_ns, end_ns)
         except (BagError, OSError, ValueError, AttributeError) as error:  # marks are optional

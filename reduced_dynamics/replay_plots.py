@@ -332,7 +332,7 @@ def make_figures(series: dict, robot: RobotModel, marks: Optional[dict] = None,
         ax.legend(**LEGEND)
         ax.grid(True, alpha=0.3)
         figures['shape.png'] = fig
-    residual = Table.of(series['residual'])
+    residual = Table.of(series['residual'].rows)
     start = t0 if len(mu.stamps) else (int(residual.stamps[0]) if len(residual.stamps) else 0)
     figures['prediction_residual.png'] = _residual_figure(plt, residual, start, marks, start)
     return figures

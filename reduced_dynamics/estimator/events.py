@@ -44,6 +44,7 @@ from typing import Optional
 
 import numpy as np
 from reduced_dynamics.chi_square import chi2
+from reduced_dynamics.estimator.event_log import EventLog
 from reduced_dynamics.estimator.multiscale import MultiScaleTest
 
 # The step test's names stay importable from here (filter.py and older callers).
@@ -102,7 +103,8 @@ class EventDetector:
     hold: float
     #: false alarms per hour of the multi-scale test (0: off)
     false_alarm_rate: float = 0.0
-    events: list[MomentumEvent] = field(default_factory=list)
+    #: the last EVENTS_KEEP events (estimator/event_log.py: memory bound)
+    events: EventLog = field(default_factory=EventLog)
     _quiet_mu: Optional[np.ndarray] = None
     _quiet_since: Optional[int] = None
     _changed: bool = False

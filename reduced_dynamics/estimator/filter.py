@@ -136,6 +136,13 @@ GATE_RESET = 3
 OFFSET_PROBABILITY = 1e-3
 #: Time constant [s] of the twist average that scales the pose stamp noise.
 STAMP_TWIST_TIME = 0.5
+#: The covariance cap of a coast [s]: a row whose filter went longer than this without a
+#: base measurement restarts from the row's base state (restart cause ``coast``) instead
+#: of propagating over the gap. Over a gap T the momentum's variance grows by the wrench
+#: random walk integrated twice (~T^3): after a minute of lost odometry it reached ~1e8
+#: times its steady value and, over ten minutes, lost positive definiteness
+#: (test/test_mission_soak.py); a fresh start from the measurement says more.
+MAX_COAST_S = 10.0
 #: Re-linearisations of an update with a twist (iterated EKF).
 ITERATIONS = kernels.ITERATIONS
 LOG_2PI = math.log(2.0 * math.pi)
@@ -550,6 +557,13 @@ class MomentumFilter:
                     self._command = commands[-1].now
                 self.initialise(stamp_ns, prior.pose, lin, prior.twist, True, prior.noise)
             return []
+        if prior is not None and self._coasted(stamp_ns, measurements):
+            self.restart_causes['coast'] += 1
+            LOG.warning('momentum filter restarted at %d ns: %.3g s without a base '
+                        'measurement (more than %g s)', stamp_ns,
+                        (stamp_ns - self.stamp_ns) * 1e-9, MAX_COAST_S)
+            self.initialise(stamp_ns, prior.pose, lin, prior.twist, True, prior.noise)
+            return []
         before = self._lin if self._lin is not None else lin
         self._lin = lin
         start = self.stamp_ns
@@ -633,6 +647,15 @@ class MomentumFilter:
         self._fused_significance = (fused[11], fused[10], fused[17])
         self.step_test.propagate(stamp_ns, fused[3])
         return fused
+
+    def _coasted(self, stamp_ns: int, measurements: Sequence[Measurement]) -> bool:
+        """Whether the filter would go more than MAX_COAST_S without a base measurement."""
+        cap = MAX_COAST_S * 1e9
+        if stamp_ns - self.stamp_ns <= cap:
+            return False  # the hot path: one comparison
+        times = [self.stamp_ns] + [m.stamp_ns for m in measurements
+                                   if m is not None and m.stamp_ns > self.stamp_ns] + [stamp_ns]
+        return max(b - a for a, b in zip(times, times[1:])) > cap
 
     def _measure(self, stamp_ns: int, transition: np.ndarray,
                  measurement: Optional[Measurement], lin: Linearisation, output: bool,

@@ -163,8 +163,11 @@ class FixedLagSmoother:
             self._start = self._end
             return
         now = step.stamp_ns
+        # A clock restarted backwards (last pass in the future) must not stop the passes:
+        # the window would grow until the new clock caught up (issue 27).
         if a['stamp'][self._first_waiting] <= now - self.lag_ns and (
-                self._last_pass_ns is None or now - self._last_pass_ns >= self.pass_ns):
+                self._last_pass_ns is None or now - self._last_pass_ns >= self.pass_ns
+                or now < self._last_pass_ns):
             self._run_pass(now - self.lag_ns)
 
     def _run_pass(self, until_ns: Optional[int]) -> None:

@@ -45,6 +45,8 @@ class _Identity:
 
 
 _IDENTITY = _Identity()
+#: Joint-name lists whose mapping to the model is cached (memory bound of that cache).
+NAME_MAPS_KEEP = 64
 
 
 def _all_finite(*arrays: np.ndarray) -> bool:
@@ -80,6 +82,9 @@ class InputIntake:
         names = sample.names
         mapping = self._name_maps.get(names)
         if mapping is None:
+            if len(self._name_maps) >= NAME_MAPS_KEEP:
+                # A stream of ever new name lists (bad input) must not grow the cache.
+                self._name_maps.clear()
             mapping = self._name_maps[names] = self._map_names(names)
         if mapping.__class__ is str:
             reason, _, detail = mapping.partition(':')

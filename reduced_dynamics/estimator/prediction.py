@@ -36,7 +36,10 @@ that runs out stops with the reason, and no messages.
 
 Residuals are computed when a prediction's horizon has passed in stamp time,
 against a history of the measured states kept for the horizon, so they do
-not depend on when a deferred job finished. Prescribed modes compare the
+not depend on when a deferred job finished. A judged prediction leaves its
+residuals to running statistics (:mod:`.prediction_statistics`); only the last
+:data:`FINISHED_KEEP` finished ones are kept, and only the last compared one
+keeps its sampled paths (memory bounds: issue 27, docs/soak.md). Prescribed modes compare the
 base path (position [m], attitude [rad]) and report how far the shape left
 the prescribed path; torque modes compare the shape.
 """
@@ -44,13 +47,15 @@ the prescribed path; torque modes compare the shape.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 import threading
-from typing import Any, NamedTuple, Optional
+from typing import Any, Callable, NamedTuple, Optional
 
 import numpy as np
 import pinocchio as pin
 
+from reduced_dynamics.estimator.observations import ObservationBuffer
+from reduced_dynamics.estimator.prediction_statistics import PredictionStatistics
 from reduced_dynamics.integrators import Budget, BudgetExceeded
 from reduced_dynamics.messages.samples import PosePath, ShapePrediction
 from reduced_dynamics.reduction.prescribed import (attitude_angles, PrescribedReconstruction,
@@ -68,6 +73,8 @@ _NEVER = 2 ** 63
 PREDICTION_MODES = ('planned', 'coast', 'held_velocity', 'held_torque')
 #: Modes that prescribe the shape path (the base from reconstruction alone).
 PRESCRIBED_MODES = frozenset({'planned', 'held_velocity'})
+#: Finished predictions kept (diagnostics, tests); the statistics keep the rest.
+FINISHED_KEEP = 64
 
 
 @dataclass(frozen=True)
@@ -334,36 +341,6 @@ class FinishedPrediction:
         return self.result.failure
 
 
-@dataclass
-class _History:
-    """Measured states kept for the horizon: stamp, shape, shape rate, base pose."""
-
-    stamps: deque = field(default_factory=deque)
-    rows: deque = field(default_factory=deque)
-
-    def append(self, stamp: int, qbar: np.ndarray, translation: np.ndarray,
-               rotation: np.ndarray) -> None:
-        self.stamps.append(stamp)
-        self.rows.append((qbar, translation, rotation))
-
-    def trim(self, before_ns: int) -> None:
-        stamps, rows = self.stamps, self.rows
-        while stamps and stamps[0] <= before_ns:
-            stamps.popleft()
-            rows.popleft()
-
-    def window(self, start_ns: int, end_ns: int) -> tuple:
-        stamps = np.fromiter(self.stamps, np.int64, len(self.stamps))
-        chosen = np.flatnonzero((stamps > start_ns) & (stamps <= end_ns))
-        rows = [self.rows[i] for i in chosen]
-        if not rows:
-            return stamps[chosen], None, None, None
-        qbar = np.array([r[0] for r in rows])
-        translation = np.array([r[1] for r in rows])
-        rotation = np.array([r[2] for r in rows])
-        return stamps[chosen], qbar, translation, rotation
-
-
 class Predictor:
     """
     Starts prediction jobs and tracks their residuals against measured history.
@@ -400,11 +377,16 @@ class Predictor:
         # now, not inside the first prediction's wall-time budget.
         if mode not in PRESCRIBED_MODES and not self.cyclic_joints:
             warm_up_reduced_field()
+        #: open predictions: at most horizon x prediction_rate (+1)
         self.active: list[PredictionJob] = []
-        self.finished: list[FinishedPrediction] = []
+        #: the last FINISHED_KEEP finished predictions (the statistics keep the rest)
+        self.finished: deque[FinishedPrediction] = deque(maxlen=FINISHED_KEEP)
+        self.statistics = PredictionStatistics(PRESCRIBED_MODES)
+        #: called with each finished prediction (e.g. replay's residual plot)
+        self.on_finished: Optional[Callable[[FinishedPrediction], None]] = None
         self.made = 0
         self.plan: Optional['Plan'] = None
-        self._history = _History()
+        self._history = ObservationBuffer()
         self._inline_robot: Optional[RobotModel] = None
         # The first stamp at which an active prediction's horizon has passed, and the
         # next stamp at which the history is trimmed (per-sample work stays O(1)).
@@ -413,12 +395,12 @@ class Predictor:
         # Finished predictions keep their sampled paths only while they are the last
         # compared one (diagnostics read it): a node or replay of hours holds one.
         self._kept: Optional[FinishedPrediction] = None
-        self._thinned = 0
 
     def adopt(self, old: 'Predictor') -> None:
         """Take over another predictor's open jobs, results, history and plan."""
         self.active, self.finished, self.made = old.active, old.finished, old.made
-        self._kept, self._thinned = old._kept, old._thinned
+        self.statistics, self.on_finished = old.statistics, old.on_finished
+        self._kept = old._kept
         self.plan, self._history = old.plan, old._history
         self._next_end, self._trim_at = old._next_end, old._trim_at
 
@@ -472,8 +454,7 @@ class Predictor:
             self.active = still
             self._next_end = min((job.end_ns for job in still), default=_NEVER)
         history = self._history
-        history.stamps.append(stamp_ns)
-        history.rows.append((qbar, translation, rotation))
+        history.append(stamp_ns, qbar, translation, rotation)
         if stamp_ns > self._trim_at:
             oldest = min((job.start_ns for job in self.active), default=None)
             keep_from = stamp_ns - int(self.horizon * NS) if oldest is None else oldest
@@ -489,7 +470,7 @@ class Predictor:
 
     def forget_history(self) -> None:
         """Drop the measured history (the clock restarted)."""
-        self._history = _History()
+        self._history = ObservationBuffer()
         self._trim_at = -1
 
     def _close(self, job: PredictionJob) -> None:
@@ -497,16 +478,20 @@ class Predictor:
             self._compare(job)
         finally:
             self._thin()
+        done = self.finished[-1]
+        self.statistics.add(done)
+        if self.on_finished is not None:
+            self.on_finished(done)
 
     def _thin(self) -> None:
         """Drop the sampled paths of finished predictions but the last compared one."""
-        last = self.last_finished
-        for done in self.finished[self._thinned:]:
-            if done is not last:
-                done.result = _summary_only(done.result)
-        if self._kept is not None and self._kept is not last:
+        done = self.finished[-1]
+        if not done.compared:
+            done.result = _summary_only(done.result)
+            return
+        if self._kept is not None and self._kept is not done:
             self._kept.result = _summary_only(self._kept.result)
-        self._kept, self._thinned = last, len(self.finished)
+        self._kept = done
 
     def _compare(self, job: PredictionJob) -> None:
         """Record ``job`` as finished, with its residuals against the measured history."""
@@ -542,10 +527,7 @@ class Predictor:
     @property
     def last_finished(self) -> Optional[FinishedPrediction]:
         """Return the most recently closed prediction that was compared."""
-        for done in reversed(self.finished):
-            if done.compared:
-                return done
-        return None
+        return self._kept
 
     @property
     def last_residual(self) -> Optional[float]:

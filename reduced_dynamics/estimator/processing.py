@@ -36,7 +36,7 @@ import pinocchio as pin
 from reduced_dynamics.estimator.base_motion import BaseMotionAnswer, predict_base_motion
 from reduced_dynamics.estimator.covariance import NoisyRow
 from reduced_dynamics.estimator.cyclic import CyclicColumns
-from reduced_dynamics.estimator.filter import Command, Linearisation, Measurement
+from reduced_dynamics.estimator.filter import Command, Linearisation, MAX_COAST_S, Measurement
 from reduced_dynamics.estimator.outputs import OutputChunk
 from reduced_dynamics.estimator.prediction import PredictionMessages
 from reduced_dynamics.estimator.prediction_covariance import StartUncertainty
@@ -112,13 +112,15 @@ class ChunkProcessing:
         commands = chunk.commands if self.commanded_wrench else None
         disturbance = None if commands is None else np.empty((count, n))
         lagged, fixed_lag = self.fixed_lag, {}
+        coast_ns = int(MAX_COAST_S * NS)
         for k in range(count):
             stamp = stamp_list[k]
             prior = None
             measurements = self._filter_measurements(measured[k], stamp)
             at_row = bool(measurements) and measurements[-1] is None
-            if at_row or flt.g is None:
-                # The base state at the row's stamp (a measurement there, or the start).
+            if at_row or flt.g is None or stamp - flt.stamp_ns > coast_ns:
+                # The base state at the row's stamp (a measurement there, the start, or
+                # a restart after a coast beyond the filter's cap).
                 prior = Measurement(stamp, pin.SE3(rotation[k], translation[k]),
                                     None if twists is None else twists[k],
                                     self._row_stamp_sigma if at_row else None,

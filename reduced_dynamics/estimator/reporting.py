@@ -23,13 +23,11 @@ prediction) and the summary a replay prints.
 
 from __future__ import annotations
 
-from collections import Counter
 from typing import Optional
 
 import numpy as np
 
 from reduced_dynamics.estimator.events import MomentumEvent
-from reduced_dynamics.estimator.prediction import FinishedPrediction, PRESCRIBED_MODES
 from reduced_dynamics.geometry.isotropy import isotropy_algebra
 from reduced_dynamics.messages.samples import (DIAG_OK, DIAG_WARN, Diagnostics,
                                                DiagnosticStatusSample)
@@ -179,7 +177,8 @@ class Reporting:
                  f'{float(self.detector.multiscale.statistics.max()):.4g}',
                  'innovation_gated': str(flt.gated),
                  'pose_offsets': str(flt.pose_offsets),
-                 'events': str(len(self.detector.events)),
+                 'events': str(getattr(self.detector.events, 'detected',
+                                       len(self.detector.events))),
                  **_last_event(self.detector.events),
 
                  'kinetic_plus_potential_energy': f'{self._last_energy:.9g}',
@@ -258,12 +257,12 @@ class Reporting:
             phase = result.phase_attitude_change()
             if phase is not None:
                 values['last_phase_attitude_change_rad'] = f'{phase[-1]:.6g}'
-        failures = [f for f in predictor.finished if f.failure is not None]
-        if failures:
-            values['failed'] = str(len(failures))
-            values['last_failure'] = failures[-1].failure
-            if failures[-1] is predictor.finished[-1]:
-                level, message = DIAG_WARN, f'prediction stopped: {failures[-1].failure}'
+        statistics = predictor.statistics
+        if statistics.failed:
+            values['failed'] = str(statistics.failed)
+            values['last_failure'] = statistics.last_failure
+            if statistics.last_failed:
+                level, message = DIAG_WARN, f'prediction stopped: {statistics.last_failure}'
         return DiagnosticStatusSample(level, 'reduced_dynamics: prediction', message,
                                       self.robot.model.name, values)
 
@@ -285,11 +284,8 @@ class Reporting:
         """Return counts, momentum statistics, events and prediction residuals."""
         mean = self._mu_mean
         spread = np.sqrt(self._mu_m2 / max(self.processed, 1))
-        finished = self.predictor.finished
-        residuals = [p.shape_residual for p in finished if p.compared]
-        positions = [p.position_residual for p in finished if p.compared]
-        failures = self.prediction_failures + Counter(p.result.failure_kind for p in finished
-                                                      if p.failure is not None)
+        statistics = self.predictor.statistics
+        failures = self.prediction_failures + statistics.failure_kinds
         origin = self.first_stamp_ns or 0
         return {
             'first_stamp_ns': self.first_stamp_ns,
@@ -311,20 +307,20 @@ class Reporting:
                         'impulse_cov': None if e.impulse_cov is None
                         else e.impulse_cov.tolist(),
                         'window_s': e.window} for e in self.events],
+            # every event detected (the list above: the last EVENTS_KEEP of them)
+            'events_detected': getattr(self.events, 'detected', len(self.events)),
             'predictions': self.predictor.made,
             'prediction_failures': dict(failures),
             # predictions published without their covariance (prediction_covariance on: the
             # sample points diverged, e.g. right after the filter started)
-            'prediction_covariance_failures': sum(
-                1 for p in finished if p.result.covariance_failure is not None),
+            'prediction_covariance_failures': statistics.covariance_failures,
             'filter': self.filter_statistics(),
             **({'commanded_wrench': self.command_estimate()} if self.commanded_wrench else {}),
-            'prediction_shape_residual_max': max(residuals) if residuals else None,
-            'prediction_shape_residual_median': float(np.median(residuals))
-            if residuals else None,
-            'prediction_position_residual_max': max(positions) if positions else None,
+            'prediction_shape_residual_max': statistics.shape.maximum,
+            'prediction_shape_residual_median': statistics.shape.median(),
+            'prediction_position_residual_max': statistics.position.maximum,
             'prediction_mode': self.config.prediction_mode,
-            'prediction_residuals': _residuals_by_mode(finished),
+            'prediction_residuals': statistics.residuals_by_mode(),
             'trajectories_received': self.trajectories_received,
         }
 
@@ -354,32 +350,6 @@ def _axis_names(group) -> list[str]:
         nonzero = np.flatnonzero(np.abs(column) > 1e-12)
         out.append(names[nonzero[0]] if len(nonzero) == 1
                    else '+'.join(names[i] for i in nonzero))
-    return out
-
-
-def _residuals_by_mode(finished: list[FinishedPrediction]) -> dict:
-    """
-    Residual statistics per effective mode (max and median over predictions).
-
-    Prescribed modes (planned, held_velocity) are judged by the base path
-    (position, attitude); their shape residual says how far the arm left the
-    prescribed path. Torque modes are judged by the shape.
-    """
-    out: dict = {}
-    for mode in sorted({p.mode for p in finished}):
-        runs = [p for p in finished if p.mode == mode]
-        compared = [p for p in runs if p.compared]
-        entry: dict = {'predictions': len(runs),
-                       'compared': len(compared),
-                       'failed': sum(p.failure is not None for p in runs),
-                       'judged_by': 'base path' if mode in PRESCRIBED_MODES else 'shape',
-                       'evaluations_median': float(np.median([p.result.evaluations
-                                                              for p in runs]))}
-        for key in ('shape_residual', 'position_residual', 'attitude_residual'):
-            values = [getattr(p, key) for p in compared]
-            entry[key + '_max'] = max(values) if values else None
-            entry[key + '_median'] = float(np.median(values)) if values else None
-        out[mode] = entry
     return out
 
 

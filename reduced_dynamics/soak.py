@@ -1,0 +1,374 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+
+"""
+``reduced-dynamics bench --sections soak``: whether a long run stays flat (issue 27).
+
+Three measurements, each reported as figures of the bench report:
+
+* **the node** on real rclpy (``python -m reduced_dynamics.node``, default
+  parameters, predictions on) fed 1 kHz joint states and 200 Hz odometry for
+  ``--soak-duration`` seconds by :mod:`reduced_dynamics.node_bench`'s
+  ``soak-publish``, its ``~/momentum`` recorded by ``soak-probe`` in a process of
+  its own. The node's RSS and CPU time are read from ``/proc`` every second. It
+  reports the RSS slope after the warm-up (least squares, MiB/h), CPU per
+  sample and latency p99 in the first and the last tenth of the measured
+  window, outputs per input and log lines per hour;
+* **retained bytes per sample**: tracemalloc around an in-process
+  :class:`~reduced_dynamics.estimator.pipeline.Estimator` with the node's
+  defaults fed the bench's 1 kHz samples (200 Hz odometry), after a warm-up;
+* **replay**: ``replay --no-smooth`` (default parameters, predictions on) of a
+  short and a long simulated 1 kHz bag in fresh interpreters: peak RSS ratio.
+
+The figure computations are ROS-free functions (tested in test/test_soak.py).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from typing import Any, Optional, Sequence
+
+import numpy as np
+
+NS = 1_000_000_000
+MIB = 1024.0 * 1024.0
+#: Targets of issue 27.
+SLOPE_TARGET_MIB_H, RETAINED_TARGET_B, REPLAY_RATIO_TARGET, TENTH_TARGET = 1.0, 2.0, 1.1, 1.1
+
+
+def rss_slope(times_s: Sequence[float], rss_bytes: Sequence[float], warmup_s: float) -> float:
+    """Return the least-squares slope [MiB/h] of RSS over time from ``warmup_s`` on."""
+    t, rss = np.asarray(times_s, float), np.asarray(rss_bytes, float)
+    chosen = t >= warmup_s
+    if chosen.sum() < 2:
+        raise ValueError('fewer than two RSS samples after the warm-up')
+    slope = np.polyfit(t[chosen], rss[chosen], 1)[0]
+    return float(slope * 3600.0 / MIB)
+
+
+def tenth_figures(records: np.ndarray, cpu: np.ndarray, start_ns: int,
+                  end_ns: int) -> dict[str, dict]:
+    """
+    CPU per sample [us] and latency p50/p99 [ms] in the first and last tenth of a window.
+
+    ``records`` (K, 2): the probe's (stamp, receive time) per output, stamps
+    being send times; ``cpu`` (J, 2): (wall time ns, process CPU seconds)
+    samples. The window [start_ns, end_ns] is split in ten by stamp.
+    """
+    edges = np.linspace(start_ns, end_ns, 11)
+    out = {}
+    for name, (low, high) in (('first', edges[:2]), ('last', edges[-2:])):
+        chosen = (records[:, 0] >= low) & (records[:, 0] < high)
+        latency = (records[chosen, 1] - records[chosen, 0]) * 1e-6
+        at = np.interp([low, high], cpu[:, 0], cpu[:, 1])
+        spent = float(at[1] - at[0])
+        count = int(chosen.sum())
+        out[name] = {'outputs': count,
+                     'cpu_us_per_sample': spent / count * 1e6 if count else float('nan'),
+                     'p50_ms': float(np.percentile(latency, 50)) if count else float('nan'),
+                     'p99_ms': float(np.percentile(latency, 99)) if count else float('nan')}
+    return out
+
+
+def proc_sample(pid: int) -> tuple[int, float]:
+    """Return a process's resident set [bytes] and CPU time [s] (user + system), from /proc."""
+    with open(f'/proc/{pid}/statm', encoding='ascii') as stream:
+        resident = int(stream.read().split()[1]) * os.sysconf('SC_PAGE_SIZE')
+    with open(f'/proc/{pid}/stat', encoding='ascii') as stream:
+        fields = stream.read().rpartition(')')[2].split()
+    # Fields 14 and 15 of stat (utime, stime), counted after the command's closing ')'.
+    ticks = int(fields[11]) + int(fields[12])
+    return resident, ticks / os.sysconf('SC_CLK_TCK')
+
+
+def _stop(process: subprocess.Popen, timeout: float = 20.0) -> Optional[int]:
+    """SIGINT, then SIGKILL after ``timeout``; return the exit code (None: killed)."""
+    from reduced_dynamics.bench import _stop as stop
+    return stop(process, timeout)
+
+
+def run_node_soak(workdir: str, seconds: float, env: dict, period: float = 1.0) -> dict:
+    """
+    Run the node, the probe and the publisher for ``seconds``; return the raw measurements.
+
+    Returns the publisher's JSON, the probe's records (K, 2), the /proc samples
+    (J, 3: wall ns, RSS bytes, CPU s) of the node, its log lines and its exit code.
+    """
+    python = sys.executable
+    node_log = os.path.join(workdir, 'node.log')
+    log = open(os.path.join(workdir, 'processes.log'), 'a', encoding='utf-8')
+    probe_out = os.path.join(workdir, 'probe.npy')
+    ready = os.path.join(workdir, 'probe.ready')
+    publish_out = os.path.join(workdir, 'publish.json')
+    with open(node_log, 'w', encoding='utf-8') as stream:
+        node = subprocess.Popen([python, '-m', 'reduced_dynamics.node'], env=env,
+                                stdout=stream, stderr=subprocess.STDOUT)
+    probe = subprocess.Popen([python, '-m', 'reduced_dynamics.node_bench', 'soak-probe',
+                              '--out', probe_out, '--ready', ready],
+                             env=env, stdout=log, stderr=log)
+    samples: list[tuple[int, int, float]] = []
+    code: Optional[int] = None
+    try:
+        deadline = time.monotonic() + 120.0
+        while not os.path.exists(ready):
+            if time.monotonic() > deadline or node.poll() is not None \
+                    or probe.poll() is not None:
+                raise RuntimeError(f'soak: processes did not come up (see {log.name}, '
+                                   f'{node_log})')
+            time.sleep(0.1)
+        publisher = subprocess.Popen([python, '-m', 'reduced_dynamics.node_bench',
+                                      'soak-publish', '--out', publish_out,
+                                      '--seconds', str(seconds)],
+                                     env=env, stdout=log, stderr=log)
+        next_at = time.monotonic()
+        while publisher.poll() is None:
+            if node.poll() is not None:
+                raise RuntimeError(f'soak: the node exited early (see {node_log})')
+            resident, cpu = proc_sample(node.pid)
+            samples.append((time.time_ns(), resident, cpu))
+            next_at += period
+            time.sleep(max(0.0, next_at - time.monotonic()))
+        if publisher.returncode:
+            raise RuntimeError(f'soak: the publisher failed (see {log.name})')
+        time.sleep(1.0)  # outputs still in flight
+        resident, cpu = proc_sample(node.pid)
+        samples.append((time.time_ns(), resident, cpu))
+    finally:
+        _stop(probe)
+        code = _stop(node)
+        log.close()
+    with open(publish_out, encoding='utf-8') as stream:
+        sent = json.load(stream)
+    with open(node_log, encoding='utf-8', errors='replace') as stream:
+        lines = stream.read().splitlines()
+    return {'sent': sent, 'records': np.load(probe_out), 'proc': np.array(samples, float),
+            'log_lines': lines, 'exit_code': code}
+
+
+def node_soak_figures(raw: dict, warmup_s: float) -> dict:
+    """Return the soak's figures from :func:`run_node_soak`'s measurements."""
+    sent, records, proc = raw['sent'], raw['records'], raw['proc']
+    start_ns, end_ns = int(sent['start_ns']), int(sent['end_ns'])
+    t = (proc[:, 0] - start_ns) * 1e-9
+    window_start = start_ns + int(warmup_s * NS)
+    tenths = tenth_figures(records, proc[:, [0, 2]], window_start, end_ns)
+    hours = (end_ns - start_ns) * 1e-9 / 3600.0
+    during = (proc[:, 0] >= start_ns) & (proc[:, 0] <= end_ns + NS)
+    rss = proc[during, 1] / MIB
+    return {'seconds': (end_ns - start_ns) * 1e-9, 'warmup_s': warmup_s,
+            'rss_slope_mib_per_h': rss_slope(t[during], proc[during, 1], warmup_s),
+            'rss_start_mib': float(rss[0]), 'rss_end_mib': float(rss[-1]),
+            'rss_at_warmup_mib': float(np.interp(warmup_s, t[during], rss)),
+            'joint_states_sent': sent['joint_states'], 'odometry_sent': sent['odometry'],
+            'outputs': int(len(records)),
+            'outputs_per_input': len(records) / sent['joint_states']
+            if sent['joint_states'] else float('nan'),
+            'log_lines': len(raw['log_lines']),
+            'log_lines_per_hour': len(raw['log_lines']) / hours if hours else float('nan'),
+            'publisher_late_max_s': sent['late_max_s'], 'exit_code': raw['exit_code'],
+            'first_tenth': tenths['first'], 'last_tenth': tenths['last'],
+            # the RSS curve itself, every 10th sample (~10 s), to tell a step from a slope
+            'rss_series_s_mib': [[round(float(a), 1), round(float(b), 2)]
+                                 for a, b in zip(t[during][::10], rss[::10])]}
+
+
+_RETAINED_SCRIPT = """
+import json, sys
+from reduced_dynamics.soak import retained_per_sample
+print(json.dumps(retained_per_sample(int(sys.argv[1]), int(sys.argv[2]))))
+"""
+
+
+def soak_messages(robot: Any, count: int) -> list:
+    """Return the bench's 1 kHz joint states, odometry at 200 Hz 0.3 ms after (arrival order)."""
+    from reduced_dynamics.bench import ODOMETRY_EVERY, ODOMETRY_OFFSET_NS, update_samples
+    from reduced_dynamics.messages.samples import BaseStateSample
+    joints, bases = update_samples(robot, count)
+    odometry = [BaseStateSample(b.stamp_ns + ODOMETRY_OFFSET_NS, b.frame_id, b.child_frame_id,
+                                b.position, b.orientation_xyzw, b.twist_linear,
+                                b.twist_angular) for b in bases[::ODOMETRY_EVERY]]
+    return sorted([(j.stamp_ns, 0, j) for j in joints] + [(b.stamp_ns, 1, b) for b in odometry],
+                  key=lambda entry: entry[:2])
+
+
+def retained_per_sample(warmup: int, samples: int) -> dict:
+    """
+    Bytes tracemalloc finds retained per processed sample after ``warmup`` samples.
+
+    The estimator has the node's defaults (odometry input, deferred predictions,
+    each job run as the node's worker would); the messages are built before
+    tracing starts. The measured samples are counted in two halves: the second
+    half shows whether growth goes on once the bounded stores are full.
+    """
+    import gc
+    import tracemalloc
+    from reduced_dynamics.estimator import Estimator, EstimatorConfig
+    from reduced_dynamics.robot.model import load_robot
+    robot = load_robot()
+    messages = soak_messages(robot, warmup + samples)
+    estimator = Estimator(robot, EstimatorConfig(), use_odometry=True, defer_predictions=True)
+
+    def feed(part: list) -> None:
+        for _, kind, sample in part:
+            for output in (estimator.add_base_state if kind
+                           else estimator.add_joint_state)(sample):
+                if output.prediction_job is not None:
+                    output.prediction_job.run()
+    origin = messages[0][0]
+    cuts = [next((i for i, m in enumerate(messages) if m[0] >= origin + n * 1_000_000),
+                 len(messages)) for n in (warmup, warmup + samples // 2)]
+    # Traced from the start: a ring reallocated after the warm-up frees memory allocated
+    # before it, which a trace started later would not see (and count the new as retained).
+    tracemalloc.start()
+    feed(messages[:cuts[0]])
+    gc.collect()
+    traced = [tracemalloc.get_traced_memory()[0]]
+    counts = [estimator.processed]
+    for part in (messages[cuts[0]:cuts[1]], messages[cuts[1]:]):
+        feed(part)
+        gc.collect()
+        traced.append(tracemalloc.get_traced_memory()[0])
+        counts.append(estimator.processed)
+    tracemalloc.stop()
+    processed = counts[-1] - counts[0]
+    return {'warmup': warmup, 'samples': processed,
+            'retained_bytes': traced[-1] - traced[0],
+            'bytes_per_sample': (traced[-1] - traced[0]) / processed,
+            'second_half_bytes_per_sample': (traced[2] - traced[1]) / (counts[2] - counts[1])}
+
+
+_REPLAY_SCRIPT = """
+import resource, sys, time
+from reduced_dynamics.robot.model import load_robot
+from reduced_dynamics.params import defaults
+from reduced_dynamics.replay import replay, ReplayOptions
+robot = load_robot()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+start = time.perf_counter()
+summary = replay(sys.argv[1], sys.argv[2], robot,
+                 ReplayOptions(params=defaults(), overwrite=True, smooth=False))
+elapsed = time.perf_counter() - start
+after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(before, after, summary['processed'], summary['predictions'], elapsed)
+"""
+
+
+def replay_peak(bag: str, out: str) -> dict:
+    """``replay --no-smooth`` with the default parameters in a fresh interpreter: peak RSS."""
+    env = _package_env()
+    result = subprocess.run([sys.executable, '-c', _REPLAY_SCRIPT, bag, out], env=env,
+                            capture_output=True, text=True, check=True)
+    before, after, processed, predictions, elapsed = result.stdout.split()[-5:]
+    return {'rss_before_mib': int(before) / 1024.0, 'peak_rss_mib': int(after) / 1024.0,
+            'processed': int(processed), 'predictions': int(predictions),
+            'seconds': float(elapsed)}
+
+
+def retained_in_subprocess(warmup: int, samples: int) -> dict:
+    """:func:`retained_per_sample` in a fresh interpreter (no other section's garbage)."""
+    result = subprocess.run([sys.executable, '-c', _RETAINED_SCRIPT, str(warmup), str(samples)],
+                            env=_package_env(), capture_output=True, text=True, check=True)
+    return json.loads(result.stdout.splitlines()[-1])
+
+
+def _package_env() -> dict:
+    env = dict(os.environ)
+    package_root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env['PYTHONPATH'] = package_root + os.pathsep + env.get('PYTHONPATH', '')
+    return env
+
+
+def bench_soak(report: Any, robot: Any, settings: Any, workdir: str) -> None:
+    """
+    Section soak: the node over real DDS for ``soak_seconds``, retained bytes, replay RSS.
+
+    ``settings``: :class:`reduced_dynamics.bench.Settings` (``soak_seconds``,
+    ``soak_retained_samples``, ``soak_bag_seconds``, ``soak_short_bag_seconds``).
+    The node part is skipped when rclpy is not importable.
+    """
+    import importlib.util
+    import shutil
+    from reduced_dynamics.bench import make_figure, node_domain_id, simulate_input_bag, \
+        tile_bag
+    from reduced_dynamics.simulator import TOPIC_JOINT_STATES, TOPIC_ODOM
+    details: dict = {}
+    report.details['soak'] = details
+    if importlib.util.find_spec('rclpy') is None:
+        details['node'] = 'skipped: rclpy is not importable (pip install .[ros])'
+    else:
+        env = dict(os.environ, ROS_DOMAIN_ID=str(node_domain_id()),
+                   ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
+        seconds = settings.soak_seconds
+        # The issue's measurement: linear from 60 s on; a short run warms up a quarter.
+        warmup = min(60.0, seconds / 4.0)
+        node = node_soak_figures(run_node_soak(workdir, seconds, env), warmup)
+        details['node'] = node
+        window = f'{node["seconds"]:.0f} s at 1 kHz + 200 Hz, defaults; after {warmup:g} s'
+        report.add(make_figure(
+            'soak', 'node RSS slope after warm-up', 'MiB/h', [node['rss_slope_mib_per_h']],
+            target=f'<= {SLOPE_TARGET_MIB_H:g} MiB/h',
+            check=lambda v: v <= SLOPE_TARGET_MIB_H,
+            note=f'{window}; RSS {node["rss_at_warmup_mib"]:.1f} -> {node["rss_end_mib"]:.1f}'
+                 ' MiB (least squares over 1 s samples of /proc)'))
+        first, last = node['first_tenth'], node['last_tenth']
+        for key, name, unit in (('cpu_us_per_sample', 'node CPU per sample', 'us'),
+                                ('p99_ms', 'node latency p99', 'ms')):
+            report.add(make_figure(
+                'soak', f'{name}, last tenth', unit, [last[key]], 'same, first tenth',
+                [first[key]], [last[key] / first[key]], f'ratio <= {TENTH_TARGET:g}',
+                lambda r: r <= TENTH_TARGET, f'tenths of the window after {warmup:g} s'))
+        report.add(make_figure(
+            'soak', 'node outputs per input', '1', [node['outputs_per_input']],
+            target='1', check=lambda v: v >= 0.999,
+            note=f'{node["outputs"]} ~/momentum for {node["joint_states_sent"]} joint states'))
+        report.add(make_figure(
+            'soak', 'node log lines per hour', 'lines/h', [node['log_lines_per_hour']],
+            note=f'{node["log_lines"]} lines in {node["seconds"]:.0f} s; exit code '
+                 f'{node["exit_code"]}'))
+    retained = retained_in_subprocess(settings.soak_retained_warmup,
+                                      settings.soak_retained_samples)
+    details['retained'] = retained
+    report.add(make_figure(
+        'soak', 'retained bytes per sample (tracemalloc)', 'B', [retained['bytes_per_sample']],
+        target=f'<= {RETAINED_TARGET_B:g} B', check=lambda v: v <= RETAINED_TARGET_B,
+        note=f'Estimator with the node defaults, {retained["samples"]} samples after '
+             f'{retained["warmup"]}; second half {retained["second_half_bytes_per_sample"]:.2f}'
+             ' B/sample'))
+    topics = (TOPIC_JOINT_STATES, TOPIC_ODOM)
+    source, out = os.path.join(workdir, 'source'), os.path.join(workdir, 'out')
+    # 5 s tiled: the simulated arm reaches its joint limits later (rejected samples).
+    simulate_input_bag(robot, source, min(5.0, settings.soak_short_bag_seconds))
+    peaks = {}
+    for name, length in (('short', settings.soak_short_bag_seconds),
+                         ('long', settings.soak_bag_seconds)):
+        bag = os.path.join(workdir, name)
+        tile_bag(source, bag, length, topics)
+        peaks[name] = replay_peak(bag, out)
+        shutil.rmtree(bag, ignore_errors=True)
+        shutil.rmtree(out, ignore_errors=True)
+    shutil.rmtree(source, ignore_errors=True)
+    details['replay'] = peaks
+    short, long = peaks['short']['peak_rss_mib'], peaks['long']['peak_rss_mib']
+    report.add(make_figure(
+        'soak', 'replay --no-smooth peak RSS, long bag', 'MiB', [long], 'same, short bag',
+        [short], [long / short], f'ratio <= {REPLAY_RATIO_TARGET:g}',
+        lambda r: r <= REPLAY_RATIO_TARGET,
+        f'{settings.soak_bag_seconds:g} s vs {settings.soak_short_bag_seconds:g} s at 1 kHz '
+        f'(tiled simulated bag), default parameters (predictions on); '
+        f'{peaks["long"]["processed"]} samples, {peaks["long"]["predictions"]} predictions'))

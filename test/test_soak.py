@@ -1,0 +1,86 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+
+"""The soak section's figures: RSS slope, first and last tenth (ROS-free parts)."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from reduced_dynamics.bench import register_command, Settings
+from reduced_dynamics.soak import MIB, node_soak_figures, proc_sample, rss_slope, tenth_figures
+
+NS = 1_000_000_000
+
+
+def test_rss_slope_fits_after_the_warm_up_only():
+    t = np.arange(0.0, 600.0, 1.0)
+    # 20 MiB of start-up growth in the first minute, then 0.5 MiB per hour and noise.
+    rss = 150 * MIB + np.minimum(t, 60.0) / 60.0 * 20 * MIB + t / 3600.0 * 0.5 * MIB
+    rss += np.random.default_rng(0).normal(0.0, 0.01 * MIB, t.size)
+    assert rss_slope(t, rss, 60.0) == pytest.approx(0.5, abs=0.1)
+    assert rss_slope(t, rss, 0.0) > 10.0
+    with pytest.raises(ValueError, match='fewer than two'):
+        rss_slope(t, rss, 1e6)
+
+
+def test_tenths_compare_cpu_and_latency_at_both_ends():
+    start, end = 10 * NS, 110 * NS
+    stamps = np.arange(start, end, 1_000_000, dtype=np.int64)
+    # Latency 1 ms, 3 ms in the last tenth; CPU 100 us a sample, 150 us in the last tenth.
+    latency = np.where(stamps >= start + 90 * NS, 3_000_000, 1_000_000)
+    records = np.column_stack([stamps, stamps + latency])
+    wall = np.arange(0, 121 * NS, NS, dtype=float)
+    rate = np.where(wall >= start + 90 * NS, 0.15, 0.1)  # CPU seconds per second
+    cpu = np.column_stack([wall, np.concatenate([[0.0], np.cumsum(rate[:-1])])])
+    figures = tenth_figures(records, cpu, start, end)
+    assert figures['first']['outputs'] == figures['last']['outputs'] == 10_000
+    assert figures['first']['cpu_us_per_sample'] == pytest.approx(100.0)
+    assert figures['last']['cpu_us_per_sample'] == pytest.approx(150.0)
+    assert figures['first']['p99_ms'] == pytest.approx(1.0)
+    assert figures['last']['p99_ms'] == pytest.approx(3.0)
+
+
+def test_node_soak_figures_from_raw_measurements():
+    start, end = 0, 100 * NS
+    stamps = np.arange(start, end, 1_000_000, dtype=np.int64)
+    records = np.column_stack([stamps[:-10], stamps[:-10] + 500_000])
+    wall = np.arange(0, 102 * NS, NS, dtype=float)
+    proc = np.column_stack([wall, 100 * MIB + wall * 1e-9 * 1e3, wall * 1e-9 * 0.2])
+    raw = {'sent': {'start_ns': start, 'end_ns': end, 'joint_states': len(stamps),
+                    'odometry': len(stamps) // 5, 'late_max_s': 0.001},
+           'records': records, 'proc': proc, 'log_lines': ['a'] * 5, 'exit_code': 0}
+    figures = node_soak_figures(raw, 20.0)
+    assert figures['outputs_per_input'] == pytest.approx(1.0 - 10 / len(stamps))
+    assert figures['log_lines_per_hour'] == pytest.approx(5 * 36.0)
+    assert figures['rss_slope_mib_per_h'] == pytest.approx(1e3 * 3600 / MIB)
+    assert figures['first_tenth']['cpu_us_per_sample'] == pytest.approx(200.0)
+    assert json.dumps(figures)
+
+
+def test_proc_sample_reads_this_process():
+    resident, cpu = proc_sample(os.getpid())
+    assert 10 * MIB < resident < 1 << 40 and cpu > 0.0
+
+
+def test_soak_section_only_on_request_and_its_options():
+    import argparse
+    parser = argparse.ArgumentParser()
+    register_command(parser.add_subparsers())
+    args = parser.parse_args(['bench', '--sections', 'soak', '--soak-duration', '600'])
+    assert args.sections == ['soak'] and args.soak_duration == 600.0
+    assert Settings().soak_seconds == 60.0 and Settings.quick_settings().soak_seconds < 60.0
