@@ -77,8 +77,8 @@ from reduced_dynamics.messages import (
 from reduced_dynamics.messages.samples import with_receive_time
 from reduced_dynamics.params import ALL_PARAMETERS, check_any_parameter, RUNTIME_PARAMETERS
 from reduced_dynamics.robot.model import load_robot, ModelError
-from reduced_dynamics.topics import (DIAGNOSTICS_TOPIC, FIXED_LAG_TOPICS, NODE_NAME,
-                                     OUTPUT_TOPICS)
+from reduced_dynamics.topics import (DIAGNOSTICS_TOPIC, EVENTS_TOPIC, FIXED_LAG_TOPICS,
+                                     NODE_NAME, OUTPUT_TOPICS)
 
 try:
     # rclpy first: if it is missing, ROS 2 is not sourced (rcl_interfaces comes with it).
@@ -729,7 +729,7 @@ class _Shell:
     def _activate(self) -> None:
         """Advertise the outputs, subscribe to the inputs, start the worker and the status."""
         overridable = QoSOverridingOptions.with_default_policies()
-        for topic in OUTPUT_TOPICS + FIXED_LAG_TOPICS:
+        for topic in OUTPUT_TOPICS + FIXED_LAG_TOPICS + (EVENTS_TOPIC,):
             self._publishers_by_topic[topic.name] = self.create_publisher(
                 self._types.get(topic.msgtype),
                 topic.name if topic.name.startswith('/') else '~/' + topic.name,
@@ -1034,6 +1034,8 @@ class _Shell:
                 for topic in FIXED_LAG_TOPICS:
                     publishers[topic.name].publish(
                         encoders[topic.name](getattr(row, topic.field)))
+        for event in output.events or ():
+            publishers[EVENTS_TOPIC.name].publish(encoders[EVENTS_TOPIC.name](event))
         job = output.prediction_job
         if job is not None and self._worker is not None:
             self._worker.submit(job)
@@ -1322,7 +1324,7 @@ def usage_text() -> str:
              'diagnostic_msgs/msg/DiagnosticArray)')):
         lines += entry(head, text)
     lines += ['', 'outputs:']
-    for topic in OUTPUT_TOPICS + FIXED_LAG_TOPICS:
+    for topic in OUTPUT_TOPICS + FIXED_LAG_TOPICS + (EVENTS_TOPIC,):
         name = topic.name if topic.name.startswith('/') else '~/' + topic.name
         lines += entry(f'{name}: {topic.msgtype}', topic.meaning)
     return '\n'.join(lines)

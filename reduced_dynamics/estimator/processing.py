@@ -108,7 +108,7 @@ class ChunkProcessing:
         rotation, translation = result.rotation, result.translation
         commands = chunk.commands if self.commanded_wrench else None
         disturbance = None if commands is None else np.empty((count, n))
-        lagged, fixed_lag = self.fixed_lag, {}
+        lagged, fixed_lag, events = self.fixed_lag, {}, {}
         for k in range(count):
             stamp = stamp_list[k]
             prior = None
@@ -148,6 +148,8 @@ class ChunkProcessing:
                             flt.wrench_significance(), flt.step_detected is not None,
                             # mu moves by the commanded impulses too: no window test.
                             mu_cov[k] if disturbance is None else None)
+            if detector.notices:
+                events[k] = detector.take_notices()
             poses.append(g)
             quiet.append(not detector.in_event)
         # Drift twist I^-1 pi, stacked (the same kernel per row, whatever the chunk).
@@ -181,6 +183,7 @@ class ChunkProcessing:
         out.mu_cov, out.w_cov = mu_cov, w_cov
         out.disturbance = disturbance
         out.fixed_lag = fixed_lag
+        out.events = events
         self._done.append(out)
 
     def _step_significance(self) -> float:
