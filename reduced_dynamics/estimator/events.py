@@ -173,8 +173,12 @@ class EventDetector:
 
     def finish(self) -> None:
         """End of the data: the last event's notice becomes final as it stands."""
-        if self._settling is not None:
-            self.notices.append(notice(self._settling, True))
+        last = self._settling
+        if last is not None:
+            if last.end_ns is not None:
+                self._finalise(last.end_ns + int(SETTLE * 1e9), True)
+            else:
+                self.notices.append(notice(last, True))
             self._settling = None
 
     def _finalise(self, stamp_ns: int, starting: bool) -> None:
@@ -182,6 +186,12 @@ class EventDetector:
         last = self._settling
         if last is not None and last.end_ns is not None and \
                 (starting or (stamp_ns - last.end_ns) * 1e-9 > SETTLE):
+            # With measured twists, mu after is their mean over the settling time:
+            # every sample's information, not the filter's last estimate.
+            after = self.multiscale.measured_mean(
+                last.end_ns, min(stamp_ns, last.end_ns + int(SETTLE * 1e9)))
+            if after is not None:
+                last.mu_after, last.cov_after = after
             self.notices.append(notice(last, True))
             self._settling = None
 
@@ -195,15 +205,20 @@ class EventDetector:
 
     def update(self, stamp_ns: int, mu: np.ndarray, wrench_norm: float,
                significance: float, step: bool = False,
-               mu_cov: Optional[np.ndarray] = None) -> None:
+               mu_cov: Optional[np.ndarray] = None,
+               measured: Optional[list[tuple]] = None) -> None:
         """
         Feed one filtered sample: mu, |w|, s = w^T P_ww^-1 w, and a GLR step (True: found).
 
         A step starts an event as s above its threshold does (the step test reacts
         to a thruster switching on before the random-walk w has grown). ``mu_cov``:
         P_mu, for the multi-scale test and the impulse's covariance (None: neither).
+        ``measured``: (stamp, mu, covariance) of the twists measured since the last
+        sample (multiscale.twist_momenta; None: none), for the block test and the
+        impulse's ends.
         """
-        pulse = None if mu_cov is None else self.multiscale.update(stamp_ns, mu, mu_cov)
+        pulse = None if mu_cov is None else \
+            self.multiscale.update(stamp_ns, mu, mu_cov, measured)
         event = self.events[-1] if self.in_event else None
         if event is None and not step:
             # A step within SETTLE re-opens the last event: final only after that.
@@ -222,10 +237,25 @@ class EventDetector:
             event = self.events[-1]
             event.end_ns = None
             self._changed = False
+        if event is None and pulse is not None and self._settling is not None and \
+                self._settling.end_ns is not None and \
+                pulse.start_ns - self._settling.end_ns <= SETTLE * 1e9:
+            # The momentum moves on right after the last event's end (a long push
+            # that the end criteria let go): that event goes on, its mu_before stays.
+            event = self._settling
+            event.end_ns = None
+            self._changed = False
+            pulse = None
         if event is None:
             if significance > self.start_threshold or step:
                 before = self._quiet_mu if self._quiet_mu is not None else mu
                 cov = self._quiet_cov if self._quiet_mu is not None else mu_cov
+                floor = self.multiscale.floor_ns
+                measured_before = self.multiscale.measured_mean(
+                    max(stamp_ns - int(SETTLE * 1e9), -1 if floor is None else floor),
+                    stamp_ns - 1)
+                if measured_before is not None:
+                    before, cov = measured_before
                 self._open(MomentumEvent(stamp_ns, mu_before=before.copy(),
                                          detected_ns=stamp_ns, peak_wrench=wrench_norm,
                                          peak_significance=significance,
