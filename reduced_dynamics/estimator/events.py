@@ -203,6 +203,19 @@ class EventDetector:
         self._settling = event
         self.notices.append(notice(event, False, mu, mu_cov))
 
+    def _measured_before(self, start_ns: int, mu: np.ndarray, cov: Optional[np.ndarray]
+                         ) -> tuple[np.ndarray, Optional[np.ndarray]]:
+        """
+        Return mu before an event starting at ``start_ns`` and its covariance.
+
+        With measured twists, their mean over SETTLE s before it (not before the
+        last event's end); else the filter's ``mu``, ``cov``.
+        """
+        floor = self.multiscale.floor_ns
+        measured = self.multiscale.measured_mean(
+            max(start_ns - int(SETTLE * 1e9), -1 if floor is None else floor), start_ns - 1)
+        return (mu, cov) if measured is None else measured
+
     def update(self, stamp_ns: int, mu: np.ndarray, wrench_norm: float,
                significance: float, step: bool = False,
                mu_cov: Optional[np.ndarray] = None,
@@ -250,12 +263,7 @@ class EventDetector:
             if significance > self.start_threshold or step:
                 before = self._quiet_mu if self._quiet_mu is not None else mu
                 cov = self._quiet_cov if self._quiet_mu is not None else mu_cov
-                floor = self.multiscale.floor_ns
-                measured_before = self.multiscale.measured_mean(
-                    max(stamp_ns - int(SETTLE * 1e9), -1 if floor is None else floor),
-                    stamp_ns - 1)
-                if measured_before is not None:
-                    before, cov = measured_before
+                before, cov = self._measured_before(stamp_ns, before, cov)
                 self._open(MomentumEvent(stamp_ns, mu_before=before.copy(),
                                          detected_ns=stamp_ns, peak_wrench=wrench_norm,
                                          peak_significance=significance,
@@ -264,10 +272,13 @@ class EventDetector:
                 self._quiet_since = None
             elif pulse is not None:
                 # A pulse over the window: the event starts where the window does.
+                before, cov = pulse.mu_before, pulse.cov_before
+                if not pulse.measured:
+                    before, cov = self._measured_before(pulse.start_ns, before, cov)
                 self._open(MomentumEvent(
-                    pulse.start_ns, mu_before=pulse.mu_before, peak_wrench=wrench_norm,
+                    pulse.start_ns, mu_before=before, peak_wrench=wrench_norm,
                     peak_significance=significance, window=pulse.window,
-                    cov_before=pulse.cov_before, detected_ns=stamp_ns), mu, mu_cov)
+                    cov_before=cov, detected_ns=stamp_ns), mu, mu_cov)
                 self._quiet_since = None
             elif significance < self.rest_threshold:
                 self._quiet_mu = mu

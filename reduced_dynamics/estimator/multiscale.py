@@ -82,6 +82,8 @@ class ImpulseDetection(NamedTuple):
     #: and its covariance
     mu_before: np.ndarray
     cov_before: np.ndarray
+    #: whether the block test on measured momenta found it (mu before is then theirs)
+    measured: bool = False
 
 
 class MultiScaleTest:
@@ -170,7 +172,7 @@ class MultiScaleTest:
             return found
         block = self.blocks.locate(stamp_ns, best, self.floor_ns)
         return ImpulseDetection(block.start_ns, block.window, block.statistic,
-                                block.mu_before, block.cov_before)
+                                block.mu_before, block.cov_before, True)
 
     def measured_mean(self, lo_ns: int, hi_ns: int
                       ) -> Optional[tuple[np.ndarray, np.ndarray]]:
