@@ -26,7 +26,8 @@ every push. Then simulates coasting with the arm moving and prints events per ho
 Usage::
 
     python scripts/multiscale_detection_table.py WORKDIR [--robots freeflyer_arm paper]
-        [--seeds 3] [--pushes 4] [--coast-minutes 30]
+        [--seeds 3] [--pushes 4] [--coast-minutes 30] [--durations 0.05 0.3 1 3]
+        [--multiples 1 3 10 30] [--skip-pushes]
 """
 
 import argparse
@@ -136,13 +137,14 @@ def _linear(robot, vector) -> np.ndarray:
     return vector[:2] if robot.n == 3 else vector[:3]
 
 
-def detection_rows(name: str, work: Path, seeds: int, pushes: int) -> list[str]:
+def detection_rows(name: str, work: Path, seeds: int, pushes: int,
+                   durations: tuple = DURATIONS, multiples: tuple = MULTIPLES) -> list[str]:
     """Return the table's rows for robot ``name``."""
     robot = _robot(name)
     rows = []
-    for duration in DURATIONS:
+    for duration in durations:
         bound = _bound(name, robot, duration)
-        for multiple in MULTIPLES:
+        for multiple in multiples:
             force = multiple * bound
             found, latencies, starts, errors, others = 0, [], [], [], 0
             for seed in range(seeds):
@@ -211,6 +213,8 @@ def main() -> int:
     parser.add_argument('--coast-minutes', type=float, default=30.0)
     parser.add_argument('--coast-seeds', type=int, nargs='+', default=[31])
     parser.add_argument('--skip-pushes', action='store_true')
+    parser.add_argument('--durations', type=float, nargs='+', default=list(DURATIONS))
+    parser.add_argument('--multiples', type=float, nargs='+', default=list(MULTIPLES))
     args = parser.parse_args()
     work = Path(args.workdir)
     work.mkdir(parents=True, exist_ok=True)
@@ -222,7 +226,8 @@ def main() -> int:
               'start error [s] | impulse error | other events |')
         print('|---|---|---|---|---|---|---|---|---|')
         for name in args.robots:
-            detection_rows(name, work, args.seeds, args.pushes)
+            detection_rows(name, work, args.seeds, args.pushes, tuple(args.durations),
+                           tuple(args.multiples))
     if args.coast_minutes > 0:
         print('| robot | coasting, arm moving | events | per hour |')
         print('|---|---|---|---|')
