@@ -467,31 +467,60 @@ class MomentumBlocks:
         return int(np.argmax(self.statistics))
 
     def locate(self, stamp_ns: int, window: int, floor_ns: Optional[int],
-               points: int = 48) -> BlockDetection:
+               points: int = 40) -> BlockDetection:
         """
-        Return the gap (the push) that best explains the change the window found.
+        Return the constant-force pulse that best explains the change the window found.
 
-        Over the window's span (t-3L, t], the gap's start s and end e (on a grid of
-        ``points``) maximise T for before (t-3L, s] against after (e, t]: the
-        pulse's start and the momentum before it. Done at a detection only.
+        Over the window's span (t-3L, t], the measured momenta are fitted by
+        y_k = mu0 + J r_k, r_k = clip((t_k - s) / (e - s), 0, 1): constant before s,
+        a ramp (a constant force) to e, constant after (e = t: still pushing). The
+        start s and end e (on a grid of ``points``) maximise the GLR of J with mu0 a
+        nuisance; mu0 and its covariance are the momentum before. The detecting
+        window may hold the push in its after block (a strong push is flagged while it
+        goes on), so its gap does not date it. Done at a detection only.
         """
         stamps = self._stamps[:self._end]
         lag = int(self._lags_ns[window])
         lo_ns = stamp_ns - 3 * lag
         if floor_ns is not None:
             lo_ns = max(lo_ns, floor_ns)
-        lo = int(np.searchsorted(stamps, lo_ns, 'right')) - 1
+        lo = max(int(np.searchsorted(stamps, lo_ns, 'right')) - 1, -1)
         hi = self._end - 1
-        grid = np.unique(np.linspace(lo + 1, hi - 1, points).round().astype(int))
-        s, e = np.meshgrid(grid, grid, indexing='ij')
-        keep = e >= s
-        s, e = s[keep], e[keep]
-        values, before, cov = self._statistics(np.full(len(s), lo), s, e, np.full(len(s), hi))
+        index = np.arange(lo + 1, hi + 1)
+        previous = np.concatenate(([lo], index[:-1]))
+        info_k = self._info[index] - np.where(
+            (previous < 0)[:, None, None], 0.0, self._info[np.maximum(previous, 0)])
+        score_k = self._score[index] - np.where(
+            (previous < 0)[:, None], 0.0, self._score[np.maximum(previous, 0)])
+        n = self.n
+        times = (stamps[index] - stamps[hi]) * 1e-9
+        grid = np.unique(np.linspace(0, len(index) - 1, points).round().astype(int))
+        starts, ends = np.meshgrid(times[grid], times[grid], indexing='ij')
+        keep = ends > starts
+        starts, ends = starts[keep], ends[keep]
+        ramp = np.clip((times[None, :] - starts[:, None]) / (ends - starts)[:, None], 0.0, 1.0)
+        flat_info = info_k.reshape(len(index), n * n)
+        total = flat_info.sum(axis=0).reshape(n, n)
+        cross = (ramp @ flat_info).reshape(-1, n, n)           # sum r Lambda
+        square = ((ramp ** 2) @ flat_info).reshape(-1, n, n)   # sum r^2 Lambda
+        score_j = ramp @ score_k                                 # sum r Lambda y
+        score_mu = score_k.sum(axis=0)
+        inverse = np.linalg.inv(total)
+        schur = square - cross @ inverse @ cross.transpose(0, 2, 1)
+        residual = score_j - (cross @ (inverse @ score_mu))
+        try:
+            impulse = np.linalg.solve(schur, residual[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            impulse = np.zeros_like(residual)
+        values = np.einsum('ij,ij->i', residual, impulse)
         best = int(np.argmax(values))
-        start = int(s[best])
-        return BlockDetection(int(stamps[min(start + 1, hi)]), int(stamps[int(e[best])]),
-                              float(self.windows[window]), float(values[best]),
-                              before[best].copy(), cov[best].copy())
+        joint = np.block([[total, cross[best].T], [cross[best], square[best]]])
+        cov = np.linalg.inv(joint)[:n, :n]
+        before = inverse @ (score_mu - cross[best].T @ impulse[best])
+        start = int(stamps[hi] + round(starts[best] * 1e9))
+        end = int(stamps[hi] + round(ends[best] * 1e9))
+        return BlockDetection(start, end, float(self.windows[window]), float(values[best]),
+                              before, cov + self._common[max(lo, 0)])
 
     def mean(self, lo_ns: int, hi_ns: int) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """Return the mean measured momentum over (lo_ns, hi_ns] and its covariance."""
