@@ -244,3 +244,23 @@ def test_a_short_pulse_on_a_humanoid_on_a_bus(tmp_path):
     assert abs((event['start_stamp_ns'] - origin) * 1e-9 - 5.0) <= 0.5
     assert 0.0 <= (event['detected_stamp_ns'] - origin) * 1e-9 - 5.0 <= 0.5
     assert _linear_error(event['impulse'], truth['pulses'][0]['world_impulse']) <= 0.10
+
+
+def test_the_measured_momentum_bound_is_where_the_block_statistic_reaches_its_threshold():
+    # Noise-free measured momenta with a step of the bound's impulse inside the gap of
+    # one window: that window's statistic is the chi2_n quantile the bound was set at.
+    from reduced_dynamics.estimator.detectability import measured_momentum_bound
+    blocks = MomentumBlocks(3, window_bank())
+    window = 7
+    length = blocks.windows[window]
+    significance = 1e-9
+    impulse = measured_momentum_bound(NOISE, [1.0, 0.0, 0.0], length, 100.0, significance)
+    step_at = 5.0
+    end = step_at + 1.5 * length  # the step in the middle of the gap (t - 2L, t - L]
+    for k in range(int(end * 100) + 1):
+        mu = np.array([impulse if k / 100 >= step_at else 0.0, 0.0, 0.0])
+        blocks.add(k * NS // 100, mu, NOISE)
+    assert blocks.ready and not blocks.excess.any()
+    blocks.update(int(end * 100) * NS // 100, None)
+    # The blocks hold floor(L f) samples, not L f: within 2 %.
+    assert blocks.statistics[window] == pytest.approx(chi2.isf(significance, 3), rel=0.02)
