@@ -181,7 +181,7 @@ class MultiScaleTest:
 
     def _filtered(self, stamp_ns: int, mu: np.ndarray,
                   cov: np.ndarray) -> Optional[ImpulseDetection]:
-        """The test on the filtered momentum (module doc)."""
+        """Run the test on the filtered momentum (module doc)."""
         if self._end > self._start:
             dt = (stamp_ns - int(self._stamps[self._end - 1])) * 1e-9
             if dt > 0.0:
