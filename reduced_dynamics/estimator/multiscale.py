@@ -38,6 +38,12 @@ rates in the docs show.
 
 Cost per update: one ``searchsorted`` over the ring of past estimates and a
 stacked n x n solve per window.
+
+The filtered momentum's covariance is set mostly by the filter's random-walk
+wrench, so this test cannot see a slow push below ~sqrt(threshold 2 P_mu)
+whatever its length. Where a twist is measured, :class:`MomentumBlocks` runs
+the same bank on the momenta each twist gives (:func:`twist_momentum`): block
+means of every sample, chi2_n exactly under no wrench (docs/multiscale_events.md).
 """
 
 from __future__ import annotations
