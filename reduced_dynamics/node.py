@@ -78,7 +78,7 @@ from reduced_dynamics.messages.samples import with_receive_time
 from reduced_dynamics.params import ALL_PARAMETERS, check_any_parameter, RUNTIME_PARAMETERS
 from reduced_dynamics.robot.model import load_robot, ModelError
 from reduced_dynamics.topics import (active_topics, cdr_encoder, DIAGNOSTICS_TOPIC,
-                                     FIXED_LAG_TOPICS,
+                                     EVENTS_TOPIC, FIXED_LAG_TOPICS,
                                      NODE_NAME, OUTPUT_TOPICS)
 
 try:
@@ -771,7 +771,7 @@ class _Shell:
         # carry a message is not advertised (a stack would wait on it).
         self._output_topics = active_topics(bool(self._value('cyclic_joints')),
                                             bool(self._value('commanded_wrench_topic')))
-        for topic in self._output_topics + FIXED_LAG_TOPICS:
+        for topic in self._output_topics + FIXED_LAG_TOPICS + (EVENTS_TOPIC,):
             self._publishers_by_topic[topic.name] = self.create_publisher(
                 self._types.get(topic.msgtype),
                 topic.name if topic.name.startswith('/') else '~/' + topic.name,
@@ -1079,6 +1079,8 @@ class _Shell:
                 for topic in FIXED_LAG_TOPICS:
                     publishers[topic.name].publish(
                         encoders[topic.name](getattr(row, topic.field)))
+        for event in output.events or ():
+            publishers[EVENTS_TOPIC.name].publish(encoders[EVENTS_TOPIC.name](event))
         job = output.prediction_job
         if job is not None and self._worker is not None:
             self._worker.submit(job)
@@ -1380,7 +1382,7 @@ def usage_text() -> str:
              'diagnostic_msgs/msg/DiagnosticArray)')):
         lines += entry(head, text)
     lines += ['', 'outputs:']
-    for topic in OUTPUT_TOPICS + FIXED_LAG_TOPICS:
+    for topic in OUTPUT_TOPICS + FIXED_LAG_TOPICS + (EVENTS_TOPIC,):
         name = topic.name if topic.name.startswith('/') else '~/' + topic.name
         lines += entry(f'{name}: {topic.msgtype}', topic.meaning)
     return '\n'.join(lines)

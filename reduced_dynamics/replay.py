@@ -56,7 +56,8 @@ from reduced_dynamics.params import defaults, load_params_file
 from reduced_dynamics.plot_marks import read_marks
 from reduced_dynamics.replay_plots import PlotInputs, write_plots
 from reduced_dynamics.robot.model import load_robot, RobotModel
-from reduced_dynamics.topics import active_topics, cdr_encoder, FIXED_LAG_TOPICS, resolved_name
+from reduced_dynamics.topics import (active_topics, cdr_encoder, EVENTS_TOPIC, FIXED_LAG_TOPICS,
+                                     resolved_name)
 
 JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
 #: Input messages handed to the estimator at once (its batched path).
@@ -354,6 +355,10 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                   for t in (FIXED_LAG_TOPICS if options.fixed_lag > 0.0 else ())]
         out_topics.update({topic: t.msgtype for t, (_, topic, _) in zip(FIXED_LAG_TOPICS,
                                                                         lagged)})
+        # Events go out when the detector issues them (causal, as the node publishes them).
+        events_topic, encode_event = resolved_name(EVENTS_TOPIC), cdr_encoder(EVENTS_TOPIC,
+                                                                              types)
+        out_topics[events_topic] = EVENTS_TOPIC.msgtype
         base_type = topics[base_topic]
         inputs = {}
         for topic, msgtype in reader.connection_types(wanted):
@@ -402,6 +407,13 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                         write(topic, record_ns, encode(getattr(row, name)))
 
             def emit(outputs: list[EstimatorOutput], final: bool = False) -> None:
+                for output in outputs:
+                    for event in output.events or ():
+                        write(events_topic, output.stamp_ns, encode_event(event))
+                    last_event_ns[0] = output.stamp_ns
+                if final:
+                    for event in estimator.finish_events():
+                        write(events_topic, last_event_ns[0], encode_event(event))
                 if lagged:
                     for output in outputs:
                         if output.fixed_lag:
@@ -439,6 +451,7 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
 
             batch: list = []
             last_ns = [0]  # stamp of the last output
+            last_event_ns = [0]
             for count, message in enumerate(reader.raw_messages(wanted, start_ns, end_ns)):
                 decode = inputs[message.topic, message.msgtype]
                 sample = None

@@ -26,8 +26,8 @@ from typing import Any, Callable, Iterator, NamedTuple
 from reduced_dynamics.estimator.pipeline import EstimatorOutput
 from reduced_dynamics.messages import cdr
 from reduced_dynamics.messages.convert import (
-    diagnostics_to_ros, joint_state_to_ros, pose_path_to_ros, shape_prediction_to_ros,
-    twist_to_ros, wrench_to_ros)
+    diagnostics_to_ros, event_to_ros, joint_state_to_ros, pose_path_to_ros,
+    shape_prediction_to_ros, twist_to_ros, wrench_to_ros)
 from reduced_dynamics.messages.types import MessageTypes, RosbagsTypes
 from reduced_dynamics.messages.uncertainty import (
     ellipsoids_to_ros, predicted_odometry_to_ros, shape_covariance_to_ros)
@@ -108,6 +108,15 @@ FIXED_LAG_TOPICS: tuple[OutputTopic, ...] = (
                 'momentum_rate', wrench_to_ros, 'drift/momentum_rate RTS-smoothed over at '
                 'least smoothing_lag of later data, stamped with the time it describes'),
 )
+
+#: External-wrench events (estimator/events.py): one record at an event's detection and
+#: one when its impulse has settled; ``field`` is that of EstimatorOutput (a list).
+#: std_msgs/Float64MultiArray with the fields named in its layout (docs/multiscale_events.md).
+EVENTS_TOPIC = OutputTopic(
+    'events', 'std_msgs/msg/Float64MultiArray', 'events', event_to_ros,
+    'external-wrench events: start, end, detected (sec, nanosec), window [s], peak |w|, '
+    'impulse (fx fy fz tx ty tz [N s, N m s], world) and its 6x6 covariance, final; '
+    'the layout names the fields (messages/samples.py EVENT_FIELDS)')
 
 #: The output that exists only with the second-stage reduction on.
 CYCLIC_TOPIC = 'cyclic_momenta'

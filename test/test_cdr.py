@@ -28,11 +28,11 @@ from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 
 from reduced_dynamics.messages import cdr
 from reduced_dynamics.messages.convert import (
-    base_state_to_odometry, base_state_to_pose_stamped, diagnostics_to_ros,
+    base_state_to_odometry, base_state_to_pose_stamped, diagnostics_to_ros, event_to_ros,
     joint_state_from_ros, joint_state_to_ros, odometry_from_ros, pose_path_to_ros,
     pose_stamped_from_ros, shape_prediction_to_ros, twist_to_ros, wrench_to_ros)
 from reduced_dynamics.messages.samples import (
-    BaseStateSample, Diagnostics, DiagnosticStatusSample, JointStateSample, PosePath,
+    BaseStateSample, Diagnostics, DiagnosticStatusSample, EventSample, JointStateSample, PosePath,
     ShapePrediction, TwistSample, WrenchSample)
 from reduced_dynamics.messages.types import RosbagsTypes
 
@@ -91,6 +91,11 @@ def _samples(rng: np.random.Generator):
         for _ in range(int(rng.integers(0, 4))))
     yield (Diagnostics(_stamp(rng), statuses, _text(rng)), diagnostics_to_ros,
            'diagnostic_msgs/msg/DiagnosticArray')
+    cov = _vector(rng, 36).reshape(6, 6)
+    yield (EventSample(_stamp(rng), _stamp(rng) if rng.random() < 0.5 else None, _stamp(rng),
+                       float(rng.random()) if rng.random() < 0.5 else None, float(rng.random()),
+                       _vector(rng, 6), cov, bool(rng.random() < 0.5)),
+           event_to_ros, 'std_msgs/msg/Float64MultiArray')
 
 
 def test_encoders_match_rosbags_byte_for_byte():

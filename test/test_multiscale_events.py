@@ -23,7 +23,8 @@ import yaml
 
 from reduced_dynamics.cli import main as cli_main
 from reduced_dynamics.chi_square import chi2
-from reduced_dynamics.estimator.multiscale import MultiScaleTest, window_bank
+from reduced_dynamics.estimator.multiscale import (EXCESS_MINIMUM, MomentumBlocks,
+                                                   MultiScaleTest, window_bank)
 
 URDF = str(Path(__file__).parent / 'data' / 'freeflyer_arm.urdf')
 
@@ -62,6 +63,90 @@ def test_a_momentum_change_is_found_and_dated_by_its_window():
     assert abs(detection.start_ns * 1e-9 - 2.0) <= 0.3
 
 
+NS = 1_000_000_000
+#: A measured momentum's white noise (n = 3), 100 Hz.
+NOISE = np.diag([0.05, 0.05, 0.02]) ** 2
+
+
+def _blocks(seconds: float, rng, scale: float = 1.0, push=None) -> list:
+    """Measured momenta at 100 Hz: N(0, scale^2 NOISE), plus a ramp (start, duration, J)."""
+    out = []
+    for k in range(int(seconds * 100)):
+        t = k / 100
+        mu = rng.multivariate_normal(np.zeros(3), scale ** 2 * NOISE)
+        if push is not None:
+            start, duration, impulse = push
+            mu += np.asarray(impulse) * min(max((t - start) / duration, 0.0), 1.0)
+        out.append((k * NS // 100, mu))
+    return out
+
+
+def test_block_statistics_are_chi_square_without_a_wrench():
+    # T_L of measured momenta with their own white noise is chi2_n: at the 1 % quantile
+    # each window exceeds 1 % of the time (the excess noise learnt is ~0, at most
+    # slightly positive, which makes the test a little conservative).
+    blocks = MomentumBlocks(3, window_bank())
+    rng = np.random.default_rng(5)
+    quantile = chi2.isf(0.01, 3)
+    above, counted = np.zeros(len(blocks.windows)), np.zeros(len(blocks.windows))
+    for stamp, mu in _blocks(300.0, rng):
+        blocks.add(stamp, mu, NOISE)
+        if blocks.update(stamp, None) >= 0:
+            covered = blocks.statistics > 0
+            counted += covered
+            above += covered & (blocks.statistics > quantile)
+    short = blocks.windows <= 0.5  # many independent blocks in 300 s
+    fraction = above[short] / counted[short]
+    assert np.all((fraction > 0.004) & (fraction < 0.016)), fraction
+    assert np.all(np.abs(np.diag(blocks.excess)) < 0.05 * np.diag(NOISE))
+
+
+def test_the_excess_noise_is_learnt_from_successive_differences():
+    # Noise twice as large as reported: the excess (3 NOISE) is learnt within 15 %, and
+    # the statistics are chi2 again.
+    blocks = MomentumBlocks(3, window_bank())
+    rng = np.random.default_rng(6)
+    quantile = chi2.isf(0.01, 3)
+    above = counted = 0
+    for stamp, mu in _blocks(200.0, rng, scale=2.0):
+        blocks.add(stamp, mu, NOISE)
+        if blocks.update(stamp, None) >= 0:
+            counted += 1
+            above += blocks.statistics[2] > quantile
+    assert np.allclose(np.diag(blocks.excess), 3 * np.diag(NOISE), rtol=0.15)
+    assert 0.004 < above / counted < 0.02
+    assert not MomentumBlocks(3, window_bank()).ready and EXCESS_MINIMUM >= 100
+
+
+def test_a_long_weak_push_is_found_by_the_measured_momenta():
+    # A 3 s push of 0.12 (2.4 sigma of one sample, 30 of the difference of two 3 s
+    # blocks) the filtered momentum cannot show (its covariance, like a random-walk
+    # filter's, is 0.05^2):
+    # without measured momenta nothing is found; with them the first detection is
+    # dated near the push, mu before within 3 sigma of 0.
+    rng = np.random.default_rng(7)
+    push = (20.0, 3.0, [0.12, 0.0, 0.0])
+    samples = _blocks(30.0, rng, push=push)
+    filtered = np.eye(3) * 0.05 ** 2
+    plain, measured = MultiScaleTest(3, 1.0), MultiScaleTest(3, 1.0)
+    found = []
+    for stamp, mu in samples:
+        mu_hat = rng.multivariate_normal(np.zeros(3), filtered) + \
+            np.array(push[2]) * min(max((stamp / NS - 20.0) / 3.0, 0.0), 1.0)
+        assert plain.update(stamp, mu_hat, filtered) is None
+        detection = measured.update(stamp, mu_hat, filtered, [(stamp, mu, NOISE)])
+        if detection is not None:
+            found.append((stamp, detection))
+            measured.reset(stamp)
+    (stamp, detection) = found[0]  # the rest of the push after the reset follows it
+    assert detection.measured
+    # Measured: dated 19.42 s, flagged at 21.49 s with 1.5 s of a weak ramp seen: the
+    # fitted ramp's start is loose then (the table's 3 s pushes: -0.24 s median).
+    assert abs(detection.start_ns / NS - 20.0) <= 0.75
+    assert 20.0 < stamp / NS <= 26.0  # measured 21.49 s: while it pushes
+    assert np.all(np.abs(detection.mu_before) <= 3 * np.sqrt(np.diag(detection.cov_before)))
+
+
 def test_a_light_push_on_a_small_free_flyer_with_a_moving_arm(tmp_path):
     """
     The issue's case: a 0.37 N, 1 s push on a free-flyer (16 kg) whose arm moves.
@@ -69,7 +154,8 @@ def test_a_light_push_on_a_small_free_flyer_with_a_moving_arm(tmp_path):
     Base pose 1 mm / 1 mrad and twist 3 mm/s at 62.5 Hz. Before the multi-scale test
     no event was flagged (the per-sample chi-square and the step test weigh a step
     against the random walk). Now one event, starting within 0.5 s of the push, its
-    impulse within 3 sigma of its reported covariance; none while only the arm moves.
+    impulse within 10 % and within 3 sigma of its reported covariance; none while only
+    the arm moves.
     """
     bag, truth = tmp_path / 'bag', tmp_path / 'truth.json'
     assert cli_main(['simulate', '-o', str(bag), '--summary', str(truth), '--urdf', URDF,
@@ -96,9 +182,11 @@ def test_a_light_push_on_a_small_free_flyer_with_a_moving_arm(tmp_path):
     impulse = np.array(event['impulse'])
     true = np.array(pulse['world_impulse'])[[0, 1, 5]]
     sigma = np.sqrt(np.diag(event['impulse_cov']))
-    # Measured error 0.046 / 0.042 / 0.037 against sigma 0.037 / 0.037 / 0.029 (the
-    # causal momentum's own noise: 14-17 % of this impulse, not the 10 % asked).
+    # Measured error 0.004 / 0.011 / 0.003 against sigma 0.011 / 0.010 / 0.008: 3.2 % of
+    # the linear impulse (both ends from the measured twists' momenta; before, from the
+    # filtered momentum: 14-17 %).
     assert np.all(np.abs(impulse - true) <= 3.0 * sigma)
+    assert np.linalg.norm(impulse[:2] - true[:2]) <= 0.10 * np.linalg.norm(true[:2])
     assert event['window_s'] is not None
 
 
@@ -117,18 +205,25 @@ def test_the_last_event_is_in_the_diagnostics():
     assert fields['last_event_impulse_sigma'].split()[0] == f'{np.sqrt(2e-4):.3g}'
 
 
-def test_a_short_pulse_on_a_29_joint_tree_whose_joints_move(tmp_path):
-    """
-    The issue's second case, scaled: a 20 N, 0.3 s pulse on a 29-joint random tree.
+def _linear_error(estimate, truth) -> float:
+    estimate, truth = np.asarray(estimate, float)[:3], np.asarray(truth, float)[:3]
+    return float(np.linalg.norm(estimate - truth) / np.linalg.norm(truth))
 
-    500 Hz, pose 1 mm / 1 mrad, velocities 0.01, joints under PD tracking. Measured:
-    one event, dated 5.036 s for a pulse at 5 s, detected at 5.206 s (window 2.9 s);
-    none before. Its impulse is 0.75 / -5.48 / -4.76 N s against 0.57 / -5.21 / -2.92
-    (the vertical component 1.8 N s off: not within the issue's 10 %).
+
+def test_a_short_pulse_on_a_humanoid_on_a_bus(tmp_path):
     """
-    from reduced_dynamics.robot.random_tree import random_tree_urdf
-    urdf = tmp_path / 'tree.urdf'
-    urdf.write_text(random_tree_urdf(29, seed=3, prismatic=False))
+    The issue's second case: a 20 N, 0.3 s pulse at 5 s on a 500 kg bus with a humanoid.
+
+    The humanoid: 29 joints, 70 kg (robot/humanoid_bus.py), under PD tracking. 500 Hz,
+    pose 1 mm / 1 mrad, velocities 0.01. Measured: one event, dated 5.048 s, detected
+    at 5.302 s (the filtered momentum's 3 s window); its linear impulse 7.8 % off
+    (0.89 / -4.96 / -2.97 N s against 0.59 / -5.27 / -2.80; both ends of the impulse
+    from the measured twists' momenta). Before the measured momenta (a 29-joint random
+    tree stood in): 1.8 N s off in z, 21 %.
+    """
+    from reduced_dynamics.robot.humanoid_bus import humanoid_on_bus_urdf
+    urdf = tmp_path / 'humanoid_on_bus.urdf'
+    urdf.write_text(humanoid_on_bus_urdf())
     bag, truth = tmp_path / 'bag', tmp_path / 'truth.json'
     assert cli_main(['simulate', '-o', str(bag), '--summary', str(truth), '--urdf', str(urdf),
                      '--duration', '10', '--rate', '500', '--seed', '4', '--torque', 'pd',
@@ -145,7 +240,29 @@ def test_a_short_pulse_on_a_29_joint_tree_whose_joints_move(tmp_path):
                      '--no-smooth', '--params', str(params), '--summary-json',
                      str(summary_file), '--urdf', str(urdf)]) == 0
     summary = json.loads(summary_file.read_text())
-    origin = json.loads(truth.read_text())['start_time_ns']
+    truth = json.loads(truth.read_text())
+    origin = truth['start_time_ns']
     (event,) = summary['events']
     assert abs((event['start_stamp_ns'] - origin) * 1e-9 - 5.0) <= 0.5
     assert 0.0 <= (event['detected_stamp_ns'] - origin) * 1e-9 - 5.0 <= 0.5
+    assert _linear_error(event['impulse'], truth['pulses'][0]['world_impulse']) <= 0.10
+
+
+def test_the_measured_momentum_bound_is_where_the_block_statistic_reaches_its_threshold():
+    # Noise-free measured momenta with a step of the bound's impulse inside the gap of
+    # one window: that window's statistic is the chi2_n quantile the bound was set at.
+    from reduced_dynamics.estimator.detectability import measured_momentum_bound
+    blocks = MomentumBlocks(3, window_bank())
+    window = 7
+    length = blocks.windows[window]
+    significance = 1e-9
+    impulse = measured_momentum_bound(NOISE, [1.0, 0.0, 0.0], length, 100.0, significance)
+    step_at = 5.0
+    end = step_at + 1.5 * length  # the step in the middle of the gap (t - 2L, t - L]
+    for k in range(int(end * 100) + 1):
+        mu = np.array([impulse if k / 100 >= step_at else 0.0, 0.0, 0.0])
+        blocks.add(k * NS // 100, mu, NOISE)
+    assert blocks.ready and not blocks.excess.any()
+    blocks.update(int(end * 100) * NS // 100, None)
+    # The blocks hold floor(L f) samples, not L f: within 2 %.
+    assert blocks.statistics[window] == pytest.approx(chi2.isf(significance, 3), rel=0.02)

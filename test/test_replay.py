@@ -30,7 +30,7 @@ from reduced_dynamics.replay import replay, ReplayOptions
 from reduced_dynamics.resources import config_path
 from reduced_dynamics.robot.model import load_robot
 from reduced_dynamics.simulator import simulate_bag, SimulationOptions, ThrusterPulse
-from reduced_dynamics.topics import active_topics, resolved_name
+from reduced_dynamics.topics import active_topics, EVENTS_TOPIC, resolved_name
 
 DATA = os.path.join(os.path.dirname(__file__), 'data')
 
@@ -65,12 +65,13 @@ def test_output_bag_read_independently_with_counts_of_summary(thruster_replay):
             counts[channel.topic] = counts.get(channel.topic, 0) + 1
     assert counts == summary['messages_out']
     # Default prediction mode (planned, held_velocity without a plan): no shape prediction.
-    assert set(counts) == {resolved_name(t) for t in active_topics(False)
+    assert set(counts) == {resolved_name(t) for t in active_topics(False) + (EVENTS_TOPIC,)
                            if t.name != 'prediction/shape'}
     with open_bag(out) as reader:
         assert {t: reader.message_count(t) for t in reader.topics()
                 if reader.message_count(t)} == counts
-        assert reader.topics() == {resolved_name(t): t.msgtype for t in active_topics(False)}
+        assert reader.topics() == {resolved_name(t): t.msgtype
+                                   for t in active_topics(False) + (EVENTS_TOPIC,)}
 
 
 def test_replayed_momentum_matches_ground_truth_and_stamps(thruster_replay):
@@ -245,7 +246,7 @@ def test_fixed_layout_codecs_change_no_output_byte(tmp_path, monkeypatch):
         assert fast['messages_out'] == slow['messages_out']
         written |= set(fast['messages_out'])
         assert _raw_outputs(tmp_path / f'fast_{mode}') == _raw_outputs(tmp_path / f'slow_{mode}')
-    assert written == {resolved_name(t) for t in active_topics(False)}
+    assert written == {resolved_name(t) for t in active_topics(False)}  # no event here
 
 
 def test_bad_input_messages_are_counted_and_change_no_output(tmp_path):

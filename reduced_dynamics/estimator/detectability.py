@@ -91,3 +91,23 @@ def impulse_bound(acceleration: Sequence[float], duration: float, rate: float,
     if unit <= 0.0:
         return math.inf
     return math.sqrt(float(chi2.isf(significance, len(acceleration))) / unit)
+
+
+def measured_momentum_bound(momentum_cov: np.ndarray, direction: Sequence[float], window: float,
+                            rate: float, significance: float = 1e-6) -> float:
+    """
+    Return the impulse along ``direction`` the block test needs to reach its threshold.
+
+    The test of :class:`~reduced_dynamics.estimator.multiscale.MomentumBlocks` at
+    window L compares the means of two blocks of L s of measured momenta, each sample
+    with covariance ``momentum_cov`` (n x n) at ``rate`` Hz: V = 2 C / (L f). A pulse
+    J u inside the gap gives the non-centrality J^2 u^T V^-1 u, which reaches the
+    chi2_n quantile at J = sqrt(quantile / u^T V^-1 u). What the measured twists tell
+    about a push of up to L s; the position samples, which :func:`impulse_bound`
+    counts, are not used by this test.
+    """
+    cov = np.asarray(momentum_cov, dtype=float)
+    unit = np.asarray(direction, dtype=float)
+    unit = unit / np.linalg.norm(unit)
+    information = float(unit @ np.linalg.solve(2.0 * cov / (window * rate), unit))
+    return math.sqrt(float(chi2.isf(significance, len(unit))) / information)

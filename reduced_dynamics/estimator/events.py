@@ -40,7 +40,7 @@ starts an event at the window's start (docs/multiscale_events.md).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 from reduced_dynamics.chi_square import chi2
@@ -50,7 +50,8 @@ from reduced_dynamics.estimator.multiscale import MultiScaleTest
 # The step test's names stay importable from here (filter.py and older callers).
 from reduced_dynamics.estimator.step_test import StepDetection, WrenchStepTest
 
-__all__ = ['EventDetector', 'MomentumEvent', 'SETTLE', 'StepDetection', 'WrenchStepTest']
+__all__ = ['EventDetector', 'EventNotice', 'MomentumEvent', 'SETTLE', 'StepDetection',
+           'WrenchStepTest']
 
 #: Seconds after an event's end during which its mu_after follows the filter.
 SETTLE = 1.0
@@ -94,6 +95,41 @@ class MomentumEvent:
         return self.mu_after - self.mu_before
 
 
+class EventNotice(NamedTuple):
+    """
+    A snapshot of an event for the ``~/events`` topic (algebra coordinates, world frame).
+
+    Issued twice per event: at its detection (``final`` False, ``end_ns`` None, the
+    impulse so far: mu now - mu before) and once its impulse is settled (``final``
+    True: SETTLE s after its end, or when the next event starts, or at the end of
+    the data).
+    """
+
+    start_ns: int
+    end_ns: Optional[int]
+    detected_ns: int
+    window: Optional[float]
+    peak_wrench: float
+    impulse: Optional[np.ndarray]
+    impulse_cov: Optional[np.ndarray]
+    final: bool
+
+
+def notice(event: 'MomentumEvent', final: bool, mu: Optional[np.ndarray] = None,
+           cov: Optional[np.ndarray] = None) -> EventNotice:
+    """Return the event's notice; before its end ``mu``, ``cov`` give the impulse so far."""
+    impulse, impulse_cov = event.impulse, event.impulse_cov
+    if impulse is None and mu is not None and event.mu_before is not None:
+        impulse = mu - event.mu_before
+        impulse_cov = None if cov is None or event.cov_before is None \
+            else event.cov_before + cov
+    return EventNotice(event.start_ns, event.end_ns,
+                       event.start_ns if event.detected_ns is None else event.detected_ns,
+                       event.window, float(event.peak_wrench),
+                       None if impulse is None else impulse.copy(),
+                       None if impulse_cov is None else impulse_cov.copy(), final)
+
+
 @dataclass
 class EventDetector:
     """Chi-square test of the wrench estimate with hysteresis and a hold time."""
@@ -109,6 +145,9 @@ class EventDetector:
     _quiet_since: Optional[int] = None
     _changed: bool = False
     _quiet_cov: Optional[np.ndarray] = None
+    #: notices not yet taken (:meth:`take_notices`) and the last event not yet final
+    notices: list[EventNotice] = field(default_factory=list)
+    _settling: Optional[MomentumEvent] = None
 
     def __post_init__(self) -> None:
         """Set the start and end thresholds from the chi-square quantiles."""
@@ -129,18 +168,76 @@ class EventDetector:
         changed, self._changed = self._changed, False
         return changed
 
+    def take_notices(self) -> list[EventNotice]:
+        """Return the notices issued since the last call (the ``~/events`` messages)."""
+        taken, self.notices = self.notices, []
+        return taken
+
+    def finish(self) -> None:
+        """End of the data: the last event's notice becomes final as it stands."""
+        last = self._settling
+        if last is not None:
+            if last.end_ns is not None:
+                self._finalise(last.end_ns + int(SETTLE * 1e9), True)
+            else:
+                self.notices.append(notice(last, True))
+            self._settling = None
+
+    def _finalise(self, stamp_ns: int, starting: bool) -> None:
+        """Issue the final notice of the ended event once its impulse has settled."""
+        last = self._settling
+        if last is not None and last.end_ns is not None and \
+                (starting or (stamp_ns - last.end_ns) * 1e-9 > SETTLE):
+            # With measured twists, mu after is their mean over the settling time:
+            # every sample's information, not the filter's last estimate.
+            after = self.multiscale.measured_mean(
+                last.end_ns, min(stamp_ns, last.end_ns + int(SETTLE * 1e9)))
+            if after is not None:
+                last.mu_after, last.cov_after = after
+            self.notices.append(notice(last, True))
+            self._settling = None
+
+    def _open(self, event: MomentumEvent, mu: np.ndarray,
+              mu_cov: Optional[np.ndarray]) -> None:
+        """Start an event: the previous one is final, this one is announced."""
+        self._finalise(event.start_ns, True)
+        self.events.append(event)
+        self._settling = event
+        self.notices.append(notice(event, False, mu, mu_cov))
+
+    def _measured_before(self, start_ns: int, mu: np.ndarray, cov: Optional[np.ndarray]
+                         ) -> tuple[np.ndarray, Optional[np.ndarray]]:
+        """
+        Return mu before an event starting at ``start_ns`` and its covariance.
+
+        With measured twists, their mean over SETTLE s before it (not before the
+        last event's end); else the filter's ``mu``, ``cov``.
+        """
+        floor = self.multiscale.floor_ns
+        measured = self.multiscale.measured_mean(
+            max(start_ns - int(SETTLE * 1e9), -1 if floor is None else floor), start_ns - 1)
+        return (mu, cov) if measured is None else measured
+
     def update(self, stamp_ns: int, mu: np.ndarray, wrench_norm: float,
                significance: float, step: bool = False,
-               mu_cov: Optional[np.ndarray] = None) -> None:
+               mu_cov: Optional[np.ndarray] = None,
+               measured: Optional[list[tuple]] = None) -> None:
         """
         Feed one filtered sample: mu, |w|, s = w^T P_ww^-1 w, and a GLR step (True: found).
 
         A step starts an event as s above its threshold does (the step test reacts
         to a thruster switching on before the random-walk w has grown). ``mu_cov``:
         P_mu, for the multi-scale test and the impulse's covariance (None: neither).
+        ``measured``: (stamp, mu, covariance) of the twists measured since the last
+        sample (multiscale.twist_momenta; None: none), for the block test and the
+        impulse's ends.
         """
-        pulse = None if mu_cov is None else self.multiscale.update(stamp_ns, mu, mu_cov)
+        pulse = None if mu_cov is None else \
+            self.multiscale.update(stamp_ns, mu, mu_cov, measured)
         event = self.events[-1] if self.in_event else None
+        if event is None and not step:
+            # A step within SETTLE re-opens the last event: final only after that.
+            self._finalise(stamp_ns, False)
         if event is None and self.events and significance < self.end_threshold:
             last = self.events[-1]
             if (stamp_ns - last.end_ns) * 1e-9 <= SETTLE:
@@ -155,23 +252,35 @@ class EventDetector:
             event = self.events[-1]
             event.end_ns = None
             self._changed = False
+        if event is None and pulse is not None and self._settling is not None and \
+                self._settling.end_ns is not None and \
+                pulse.start_ns - self._settling.end_ns <= SETTLE * 1e9:
+            # The momentum moves on right after the last event's end (a long push
+            # that the end criteria let go): that event goes on, its mu_before stays.
+            event = self._settling
+            event.end_ns = None
+            self._changed = False
+            pulse = None
         if event is None:
             if significance > self.start_threshold or step:
                 before = self._quiet_mu if self._quiet_mu is not None else mu
                 cov = self._quiet_cov if self._quiet_mu is not None else mu_cov
-                self.events.append(MomentumEvent(stamp_ns, mu_before=before.copy(),
-                                                 detected_ns=stamp_ns,
-                                                 peak_wrench=wrench_norm,
-                                                 peak_significance=significance,
-                                                 cov_before=None if cov is None
-                                                 else cov.copy()))
+                before, cov = self._measured_before(stamp_ns, before, cov)
+                self._open(MomentumEvent(stamp_ns, mu_before=before.copy(),
+                                         detected_ns=stamp_ns, peak_wrench=wrench_norm,
+                                         peak_significance=significance,
+                                         cov_before=None if cov is None else cov.copy()),
+                           mu, mu_cov)
                 self._quiet_since = None
             elif pulse is not None:
                 # A pulse over the window: the event starts where the window does.
-                self.events.append(MomentumEvent(
-                    pulse.start_ns, mu_before=pulse.mu_before, peak_wrench=wrench_norm,
+                before, cov = pulse.mu_before, pulse.cov_before
+                if not pulse.measured:
+                    before, cov = self._measured_before(pulse.start_ns, before, cov)
+                self._open(MomentumEvent(
+                    pulse.start_ns, mu_before=before, peak_wrench=wrench_norm,
                     peak_significance=significance, window=pulse.window,
-                    cov_before=pulse.cov_before, detected_ns=stamp_ns))
+                    cov_before=cov, detected_ns=stamp_ns), mu, mu_cov)
                 self._quiet_since = None
             elif significance < self.rest_threshold:
                 self._quiet_mu = mu

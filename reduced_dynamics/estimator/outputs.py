@@ -30,11 +30,12 @@ from typing import Any, Iterable, Iterator, Optional
 import numpy as np
 
 from reduced_dynamics.estimator.cyclic import CyclicColumns
+from reduced_dynamics.estimator.events import EventNotice
 from reduced_dynamics.estimator.kernel import UpdateKernel
 from reduced_dynamics.estimator.prediction import PredictionJob
-from reduced_dynamics.messages.samples import (Diagnostics, JointStateSample, PosePath,
-                                               ShapePrediction, trusted_sample, TwistSample,
-                                               WrenchSample)
+from reduced_dynamics.messages.samples import (Diagnostics, EventSample, JointStateSample,
+                                               PosePath, ShapePrediction, trusted_sample,
+                                               TwistSample, WrenchSample)
 
 
 @dataclass
@@ -75,6 +76,27 @@ class EstimatorOutput:
     #: ``smoothing_lag`` > 0: the rows whose lag passed at this sample, oldest first
     #: (:class:`~.fixed_lag.FixedLagRow`: each stamped with the time it describes)
     fixed_lag: Optional[list] = None
+    #: the ``~/events`` records issued at this sample (:class:`EventSample`)
+    events: Optional[list] = None
+
+
+def event_samples(notices: list[EventNotice], wrenches: Any, n: int) -> list[EventSample]:
+    """
+    Return the ``~/events`` records of the detector's notices.
+
+    ``wrenches``: the kernel's lift of algebra covectors (K, n) to wrenches (K, 6),
+    linear, so the covariance goes through its matrix E as E^T C E.
+    """
+    lift = wrenches(np.eye(n))
+    out = []
+    for item in notices:
+        impulse = np.full(6, np.nan) if item.impulse is None \
+            else wrenches(item.impulse[None, :])[0]
+        cov = np.full((6, 6), np.nan) if item.impulse_cov is None \
+            else lift.T @ item.impulse_cov @ lift
+        out.append(EventSample(item.start_ns, item.end_ns, item.detected_ns, item.window,
+                               item.peak_wrench, impulse, cov, item.final))
+    return out
 
 
 class OutputChunk:
@@ -88,7 +110,7 @@ class OutputChunk:
 
     __slots__ = ('stamps_ns', 'mu', 'pi', 'momentum_rate', 'drift', 'qbar', 'qbar_dot',
                  'pbar', 'energy', 'extras', 'cyclic', '_kernel', '_world', '_base',
-                 '_names', 'mu_cov', 'w_cov', 'disturbance', 'fixed_lag')
+                 '_names', 'mu_cov', 'w_cov', 'disturbance', 'fixed_lag', 'events')
 
     def __init__(self, estimator: Any, stamps_ns: np.ndarray, mu: np.ndarray,
                  pi: np.ndarray, rate: np.ndarray, drift: np.ndarray, qbar: np.ndarray,
@@ -115,6 +137,8 @@ class OutputChunk:
         self.disturbance: Optional[np.ndarray] = None
         #: fixed-lag smoothing on: row -> the fixed-lag rows emitted there
         self.fixed_lag: Optional[dict] = None
+        #: row -> the event detector's notices issued there
+        self.events: Optional[dict] = None
 
     def __len__(self) -> int:
         """Return the number of samples."""
@@ -172,6 +196,9 @@ class OutputChunk:
                                                     disturbance[k, 3:])
             if fixed_lag:
                 output.fixed_lag = fixed_lag.get(k)
+            if self.events and k in self.events:
+                output.events = event_samples(self.events[k], kernel.wrenches,
+                                              self.mu.shape[1])
             out.append(output)
         return out
 

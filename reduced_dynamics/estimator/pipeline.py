@@ -267,6 +267,8 @@ class Estimator(InputIntake, Timing, ChunkProcessing, Reporting, Smoothing,
                                       config.event_hold, config.event_false_alarm_rate)
         if old_detector is not None:
             self.detector.events = old_detector.events
+            self.detector.notices = old_detector.notices
+            self.detector._settling = old_detector._settling
         old_predictor = getattr(self, 'predictor', None)
         self.predictor = Predictor(self.robot, config.prediction_horizon,
                                    config.prediction_step, config.prediction_integrator,

@@ -37,6 +37,7 @@ from reduced_dynamics.estimator.base_motion import BaseMotionAnswer, predict_bas
 from reduced_dynamics.estimator.covariance import NoisyRow
 from reduced_dynamics.estimator.cyclic import CyclicColumns
 from reduced_dynamics.estimator.filter import Command, Linearisation, MAX_COAST_S, Measurement
+from reduced_dynamics.estimator.multiscale import twist_momenta
 from reduced_dynamics.estimator.outputs import OutputChunk
 from reduced_dynamics.estimator.prediction import PredictionMessages
 from reduced_dynamics.estimator.prediction_covariance import StartUncertainty
@@ -111,7 +112,7 @@ class ChunkProcessing:
         rotation, translation = result.rotation, result.translation
         commands = chunk.commands if self.commanded_wrench else None
         disturbance = None if commands is None else np.empty((count, n))
-        lagged, fixed_lag = self.fixed_lag, {}
+        lagged, fixed_lag, events = self.fixed_lag, {}, {}
         coast_ns = int(MAX_COAST_S * NS)
         for k in range(count):
             stamp = stamp_list[k]
@@ -127,12 +128,18 @@ class ChunkProcessing:
                                     self._row_noise if at_row else None)
                 if at_row:
                     measurements[-1] = prior
+            gated_at, before, start_ns = [], flt._lin, flt.stamp_ns
             for gated, nis in flt.row(stamp, lins[k], prior, measurements,
                                       None if commands is None else commands[k]):
+                gated_at.append(gated)
                 self.rejected['innovation_gate'] += 1
                 self._period_rejected += 1
                 self.last_rejection = (f'innovation_gate: base measurement at {gated} '
                                        f'improbable under the filter (chi-square {nis:.3g})')
+            # Each accepted twist's own momentum, for the event tests (multiscale.py).
+            measured_mu = twist_momenta(flt, before, lins[k], start_ns, stamp, measurements,
+                                        gated_at) \
+                if twists is not None and commands is None else None
             if lagged is not None and lagged._ready:
                 # Rows whose lag passed during this row's steps go out with it.
                 fixed_lag[k] = lagged.take()
@@ -152,7 +159,9 @@ class ChunkProcessing:
             detector.update(stamp, mu[k], math.sqrt(float(peak @ peak)),
                             flt.wrench_significance(), flt.step_detected is not None,
                             # mu moves by the commanded impulses too: no window test.
-                            mu_cov[k] if disturbance is None else None)
+                            mu_cov[k] if disturbance is None else None, measured_mu)
+            if detector.notices:
+                events[k] = detector.take_notices()
             poses.append(g)
             # Commanded wrench: the total wrench (delivered command + disturbance) at this
             # row is what mu does over a prediction from it.
@@ -189,6 +198,7 @@ class ChunkProcessing:
         out.mu_cov, out.w_cov = mu_cov, w_cov
         out.disturbance = disturbance
         out.fixed_lag = fixed_lag
+        out.events = events
         self._done.append(out)
 
     def _step_significance(self) -> float:

@@ -28,6 +28,7 @@ from typing import Optional
 import numpy as np
 
 from reduced_dynamics.estimator.events import MomentumEvent
+from reduced_dynamics.estimator.outputs import event_samples
 from reduced_dynamics.geometry.isotropy import isotropy_algebra
 from reduced_dynamics.messages.samples import (DIAG_OK, DIAG_WARN, Diagnostics,
                                                DiagnosticStatusSample)
@@ -279,6 +280,17 @@ class Reporting:
     def events(self) -> list[MomentumEvent]:
         """Return the external-wrench events detected so far."""
         return self.detector.events
+
+    def finish_events(self) -> list:
+        """
+        Return the ``~/events`` records still due at the end of the data.
+
+        The last event's final record, its impulse as it stands (its settling time
+        may not have passed), and any notice not yet attached to an output.
+        """
+        self.detector.finish()
+        return event_samples(self.detector.take_notices(), self.kernel.wrenches,
+                             self.robot.n)
 
     def summary(self) -> dict:
         """Return counts, momentum statistics, events and prediction residuals."""

@@ -47,6 +47,8 @@ from reduced_dynamics.messages.samples import (
     BaseStateSample,
     CommandSample,
     Diagnostics,
+    EVENT_FIELDS,
+    EventSample,
     JointStateSample,
     message_covariance,
     PosePath,
@@ -341,6 +343,30 @@ def encode_diagnostic_array(sample: Diagnostics) -> bytes:
     return out.getvalue()
 
 
+def _event_layout() -> bytes:
+    """Encode the ``~/events`` MultiArrayLayout (always the same) and data's count."""
+    out = CdrBuilder()
+    out.uint32(len(EVENT_FIELDS))
+    for name, size in EVENT_FIELDS:
+        out.string(name)
+        out.uint32(size)
+        out.uint32(size)
+    out.uint32(0)  # data_offset
+    out.uint32(sum(size for _, size in EVENT_FIELDS))
+    out.align(8)
+    return out.getvalue()
+
+
+_EVENT_LAYOUT: list = []
+
+
+def encode_event(sample: EventSample) -> bytes:
+    """Encode the ``~/events`` record, std_msgs/msg/Float64MultiArray."""
+    if not _EVENT_LAYOUT:
+        _EVENT_LAYOUT.append(_event_layout())
+    return _EVENT_LAYOUT[0] + _f64(sample.values())
+
+
 #: Message type -> encoder of the sample type its ``*_to_ros`` converter takes.
 ENCODERS: dict[str, Callable[[Any], bytes]] = {
     'geometry_msgs/msg/WrenchStamped': encode_wrench_stamped,
@@ -349,6 +375,7 @@ ENCODERS: dict[str, Callable[[Any], bytes]] = {
     'trajectory_msgs/msg/JointTrajectory': encode_joint_trajectory,
     'nav_msgs/msg/Path': encode_path,
     'diagnostic_msgs/msg/DiagnosticArray': encode_diagnostic_array,
+    'std_msgs/msg/Float64MultiArray': encode_event,
 }
 
 

@@ -33,6 +33,8 @@ from reduced_dynamics.messages.samples import (
     CommandSample,
     Diagnostics,
     DiagnosticStatusSample,
+    EVENT_FIELDS,
+    EventSample,
     JointStateSample,
     JointTrajectorySample,
     message_covariance,
@@ -463,6 +465,33 @@ def diagnostics_from_ros(msg: Any) -> Diagnostics:
         for status in msg.status
     )
     return Diagnostics(stamp_ns=stamp_ns, statuses=statuses, frame_id=frame_id)
+
+
+# ---------------------------------------------------------------- events
+
+
+def event_to_ros(sample: EventSample, types: MessageTypes) -> Any:
+    """Build the ``~/events`` record: std_msgs/msg/Float64MultiArray, fields named."""
+    dims = [types.create('std_msgs/msg/MultiArrayDimension', label=name, size=size,
+                         stride=size) for name, size in EVENT_FIELDS]
+    return types.create(
+        'std_msgs/msg/Float64MultiArray',
+        layout=types.create('std_msgs/msg/MultiArrayLayout', dim=dims, data_offset=0),
+        data=types.float_seq(sample.values()))
+
+
+def event_from_ros(msg: Any) -> EventSample:
+    """Read an ``~/events`` record (the fields by their labels, in any order)."""
+    offsets, start = {}, int(msg.layout.data_offset)
+    for dim in msg.layout.dim:
+        offsets[str(dim.label)] = (start, int(dim.size))
+        start += int(dim.size)
+    data = np.asarray(msg.data, dtype=float)
+    missing = [name for name, size in EVENT_FIELDS if offsets.get(name, (0, -1))[1] != size]
+    if missing or start > len(data):
+        raise ValueError(f'not an event record: fields {missing} missing or mis-sized')
+    return EventSample.from_values(np.concatenate(
+        [data[offsets[name][0]:offsets[name][0] + size] for name, size in EVENT_FIELDS]))
 
 
 # ---------------------------------------------------------------- misc

@@ -23,6 +23,7 @@ because element-wise numpy comparison has no single truth value.
 
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+import math
 from typing import Optional, Union
 
 import numpy as np
@@ -380,3 +381,76 @@ class Diagnostics:
             if not isinstance(status, DiagnosticStatusSample):
                 raise TypeError(f'statuses must be DiagnosticStatusSample, got {status!r}')
         object.__setattr__(self, 'statuses', statuses)
+
+
+#: The ``~/events`` record (std_msgs/Float64MultiArray): its fields in order, with
+#: their number of values. The message's layout names them (one dimension per field,
+#: label = name, size = stride = number of values), so a reader can find them by name.
+EVENT_FIELDS: tuple[tuple[str, int], ...] = (
+    ('start', 2),               # the push's estimated start: sec, nanosec
+    ('end', 2),                 # its end: sec, nanosec (NaN while under way)
+    ('detected', 2),            # when it was flagged: sec, nanosec
+    ('window', 1),              # the multi-scale window [s] that found it (NaN: per sample)
+    ('peak_wrench', 1),         # largest |w| during the event [N, N m mixed as |w|]
+    ('impulse', 6),             # mu after - mu before: fx fy fz tx ty tz [N s, N m s], world
+    ('impulse_covariance', 36),  # its covariance (an upper bound), row-major
+    ('final', 1),               # 1: the impulse has settled; 0: announced at detection
+)
+
+
+@dataclass(frozen=True, eq=False)
+class EventSample:
+    """
+    An external-wrench event as the ``~/events`` topic carries it (world frame).
+
+    ``end_ns`` None while under way, ``window`` None when the per-sample chi-square
+    or the step test found it; ``impulse`` (6,) and ``impulse_covariance`` (6, 6) in
+    the wrench order of ``~/momentum``, NaN where unknown.
+    """
+
+    start_ns: int
+    end_ns: Optional[int]
+    detected_ns: int
+    window: Optional[float]
+    peak_wrench: float
+    impulse: np.ndarray
+    impulse_covariance: np.ndarray
+    final: bool
+
+    def __post_init__(self) -> None:
+        """Validate and normalize fields."""
+        object.__setattr__(self, 'start_ns', _stamp(self.start_ns, 'start_ns'))
+        object.__setattr__(self, 'detected_ns', _stamp(self.detected_ns, 'detected_ns'))
+        if self.end_ns is not None:
+            object.__setattr__(self, 'end_ns', _stamp(self.end_ns, 'end_ns'))
+        object.__setattr__(self, 'window', None if self.window is None else float(self.window))
+        object.__setattr__(self, 'peak_wrench', float(self.peak_wrench))
+        object.__setattr__(self, 'impulse', _array(self.impulse, (6,), 'impulse'))
+        object.__setattr__(self, 'impulse_covariance',
+                           _array(self.impulse_covariance, (6, 6), 'impulse_covariance'))
+        object.__setattr__(self, 'final', bool(self.final))
+
+    def values(self) -> np.ndarray:
+        """Return the record's values in the order of :data:`EVENT_FIELDS`."""
+        def stamp(ns: Optional[int]) -> tuple[float, float]:
+            return (math.nan, math.nan) if ns is None else \
+                tuple(float(v) for v in divmod(ns, 1_000_000_000))
+        return np.concatenate([
+            stamp(self.start_ns), stamp(self.end_ns), stamp(self.detected_ns),
+            [math.nan if self.window is None else self.window, self.peak_wrench],
+            self.impulse, self.impulse_covariance.reshape(-1), [float(self.final)]])
+
+    @classmethod
+    def from_values(cls, values: np.ndarray) -> 'EventSample':
+        """Return the event a record's values describe (the inverse of :meth:`values`)."""
+        values = np.asarray(values, dtype=float)
+        if values.shape != (sum(size for _, size in EVENT_FIELDS),):
+            raise ValueError(f'an event record has {sum(s for _, s in EVENT_FIELDS)} '
+                             f'values, got {values.shape}')
+
+        def stamp(pair: np.ndarray) -> Optional[int]:
+            return None if np.isnan(pair).any() else \
+                int(pair[0]) * 1_000_000_000 + int(pair[1])
+        return cls(stamp(values[0:2]), stamp(values[2:4]), stamp(values[4:6]),
+                   None if np.isnan(values[6]) else float(values[6]), values[7],
+                   values[8:14], values[14:50].reshape(6, 6), values[50] > 0.5)
