@@ -779,8 +779,8 @@ class _Shell:
                 event_callbacks=quiet_publisher_events())
             # Types without a fixed-layout encoder (prediction covariance): the typestore's
             # serializer, as replay writes them (same bytes).
-            self._encoders[topic.name] = cdr.ENCODERS.get(topic.msgtype) \
-                or cdr_encoder(topic, RosbagsTypes())
+            encoder = cdr.ENCODERS.get(topic.msgtype) if topic.fast_encoding else None
+            self._encoders[topic.name] = encoder or cdr_encoder(topic, RosbagsTypes())
         self._subscribe_inputs(overridable)
         latched = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL,

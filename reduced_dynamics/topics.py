@@ -44,6 +44,9 @@ class OutputTopic(NamedTuple):
     field: str
     to_ros: Callable[[Any, MessageTypes], Any]
     meaning: str
+    #: False: the sample is not what ``cdr.ENCODERS[msgtype]`` encodes (two samples share
+    #: std_msgs/Float64MultiArray: events and the shape covariance); the generic serializer.
+    fast_encoding: bool = True
 
 
 OUTPUT_TOPICS: tuple[OutputTopic, ...] = (
@@ -92,7 +95,7 @@ OUTPUT_TOPICS: tuple[OutputTopic, ...] = (
                 'prediction_shape_covariance', shape_covariance_to_ros,
                 'prediction_covariance: covariance of (qbar, qbar_dot) at the horizon, '
                 '2m x 2m row-major; dims 2.. label the order (qbar:<joint>, '
-                'qbar_dot:<joint>)'),
+                'qbar_dot:<joint>)', fast_encoding=False),
     OutputTopic(DIAGNOSTICS_TOPIC, 'diagnostic_msgs/msg/DiagnosticArray', 'diagnostics',
                 diagnostics_to_ros, 'estimator status'),
 )
@@ -161,7 +164,8 @@ def cdr_encoder(topic: OutputTopic, types: RosbagsTypes) -> Callable[[Any], byte
     applies to ``types.typestore``, else the converter plus the typestore's
     generic serializer (same bytes, about ten times slower).
     """
-    if topic.msgtype in cdr.ENCODERS and cdr.fast_path_applies(types.typestore, topic.msgtype):
+    if topic.fast_encoding and topic.msgtype in cdr.ENCODERS \
+            and cdr.fast_path_applies(types.typestore, topic.msgtype):
         return cdr.ENCODERS[topic.msgtype]
     store, to_ros, msgtype = types.typestore, topic.to_ros, topic.msgtype
     return lambda sample: bytes(store.serialize_cdr(to_ros(sample, types), msgtype))

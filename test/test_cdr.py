@@ -234,3 +234,13 @@ def test_fast_path_only_for_the_standard_definitions():
     limited = get_typestore(Stores.ROS2_JAZZY)
     limited.max_sequence_length = 100
     assert not cdr.fast_path_applies(limited, 'sensor_msgs/msg/JointState')
+
+
+def test_every_output_topic_encodes_its_own_sample_as_rosbags_does():
+    """Two outputs share Float64MultiArray (events, shape covariance): each its own bytes."""
+    from reduced_dynamics.messages.uncertainty import ShapeCovariance
+    from reduced_dynamics.topics import cdr_encoder, OUTPUT_TOPICS
+    topic = next(t for t in OUTPUT_TOPICS if t.name == 'prediction/shape_covariance')
+    sample = ShapeCovariance(('a', 'b'), np.arange(16.0).reshape(4, 4))
+    expected = bytes(STORE.serialize_cdr(topic.to_ros(sample, TYPES), topic.msgtype))
+    assert cdr_encoder(topic, TYPES)(sample) == expected
