@@ -55,6 +55,10 @@ NS = 1_000_000_000
 T0_NS = 1000 * NS  # input stamps: far from the (sim) clock, so a clock stamp would show
 SAMPLES = 300
 PERIOD_NS = 10_000_000
+#: Equality tests run without the node's wall-time prediction budget (default 0.5 s): on a
+#: loaded machine it drops predictions the directly fed estimator or the replay keeps
+#: (issue 24.1). The evaluation budget alone then decides, as in replay.
+NO_WALL_BUDGET = {'prediction_max_wall_time': 0.0}
 
 
 @pytest.fixture
@@ -382,7 +386,8 @@ def test_topic_names_and_qos(node_factory):
 def test_outputs_equal_an_estimator_fed_directly(ros, node_factory, base_input):
     # A torque mode (shape predictions) in one run, a prescribed one (phase paths) in the other.
     mode = 'held_torque' if base_input == 'odom' else 'held_velocity'
-    settings = {'prediction_rate': 2.0, 'diagnostics_rate': 2.0, 'prediction_mode': mode}
+    settings = {'prediction_rate': 2.0, 'diagnostics_rate': 2.0, 'prediction_mode': mode,
+                **NO_WALL_BUDGET}
     node = node_factory(urdf_path=str(paper_robot_urdf()), base_input=base_input, **settings)
     count = SAMPLES if base_input == 'odom' else SAMPLES // 2
     messages = input_messages(ros, base_input, count)
@@ -474,9 +479,13 @@ def test_message_covariances_give_the_outputs_of_an_estimator_fed_directly(
     assert plain.filter.log_likelihood != estimator.filter.log_likelihood
 
 
-def test_second_stage_outputs_equal_an_estimator_fed_directly(ros, node_factory):
+def test_second_stage_outputs_equal_an_estimator_fed_directly(ros, node_factory, monkeypatch):
+    import reduced_dynamics.integrators as integrators
     settings = {'prediction_rate': 2.0, 'diagnostics_rate': 2.0,
-                'prediction_mode': 'held_torque'}
+                'prediction_mode': 'held_torque', **NO_WALL_BUDGET}
+    # A loaded machine (issue 24.1: 3 of 6 predictions dropped): every clock reading 50 ms
+    # later. Without a wall-time budget the outputs cannot depend on it.
+    monkeypatch.setattr(integrators, 'time', _LoadedClock(0.05))
     urdf = wheel_robot_urdf()
     node = node_factory(urdf_path=urdf, cyclic_joints='auto', **settings)
     messages = input_messages(ros, 'odom', SAMPLES, urdf)
@@ -749,7 +758,7 @@ def test_node_and_replay_publish_the_same_bytes_for_the_same_bag(ros, node_facto
     from reduced_dynamics.replay import replay, ReplayOptions
     path = REPO_ROOT / 'test' / 'data' / bag
     replay(str(path), str(tmp_path / 'out'), load_robot(), ReplayOptions(smooth=False))  # causal
-    node = node_factory(urdf_path=str(paper_robot_urdf()))
+    node = node_factory(urdf_path=str(paper_robot_urdf()), **NO_WALL_BUDGET)
     with open_bag(path) as reader:
         for message in reader.raw_messages(['/joint_states', '/odom']):
             # The record time is the receive time, as the replay takes it.
@@ -777,7 +786,8 @@ def test_node_processes_waiting_joint_states_when_it_stops(ros, tmp_path):
             writer.write_raw(message.topic, message.timestamp_ns, bytes(message.data))
     replay(str(cut), str(tmp_path / 'out'), load_robot(), ReplayOptions(smooth=False))
     node = ReducedDynamicsNode(
-        parameter_overrides=[Parameter('urdf_path', value=str(paper_robot_urdf()))])
+        parameter_overrides=[Parameter('urdf_path', value=str(paper_robot_urdf()))]
+        + [Parameter(k, value=v) for k, v in NO_WALL_BUDGET.items()])
     for message in kept:
         ros.deliver(node, message.topic, bytes(message.data), message.timestamp_ns)
     node.wait_for_predictions()
@@ -812,7 +822,8 @@ def test_node_with_a_commanded_wrench_publishes_what_replay_writes(ros, node_fac
         inputs, base = ['/joint_states', '/odom', '/commanded_wrench'], {}
         options = ReplayOptions(smooth=False, commanded_wrench_topic='/commanded_wrench')
     summary = replay(str(path), str(tmp_path / 'out'), load_robot(urdf), options)
-    node = node_factory(urdf_path=urdf, commanded_wrench_topic='/commanded_wrench', **base)
+    node = node_factory(urdf_path=urdf, commanded_wrench_topic='/commanded_wrench', **base,
+                        **NO_WALL_BUDGET)
     assert node.describe_parameter('commanded_wrench_topic').read_only
     with open_bag(path) as reader:
         for message in reader.raw_messages(inputs):
@@ -838,7 +849,8 @@ def _plan_message(stamp_ns, frame_id=''):
 
 
 def test_planned_trajectory_and_base_motion_requests(ros, node_factory):
-    node = node_factory(urdf_path=str(paper_robot_urdf()), prediction_rate=2.0)
+    node = node_factory(urdf_path=str(paper_robot_urdf()), prediction_rate=2.0,
+                        **NO_WALL_BUDGET)
     assert {sub.topic_name for sub in node.subscriptions} >= {
         '/joint_trajectory', '/reduced_dynamics/predict_base_motion/request'}
     plan, message = _plan_message(T0_NS + NS)
