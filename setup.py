@@ -109,8 +109,9 @@ setup(
     entry_points={
         'console_scripts': [
             'reduced-dynamics = reduced_dynamics.cli:main',
-            'reduced_dynamics_node = reduced_dynamics.node:main',
-            'reduced_dynamics_lifecycle_node = reduced_dynamics.node:lifecycle_main',
+            # node_main: SIGINT/SIGTERM handled before the heavy imports (issue 24.2)
+            'reduced_dynamics_node = reduced_dynamics.node_main:main',
+            'reduced_dynamics_lifecycle_node = reduced_dynamics.node_main:lifecycle_main',
         ],
     },
 )
