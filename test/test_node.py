@@ -712,14 +712,14 @@ def _run_python(code, **kwargs):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         [str(REPO_ROOT), os.environ.get('PYTHONPATH', '')]))
     return subprocess.run([sys.executable, '-c', code], cwd=REPO_ROOT, env=env,
-                          capture_output=True, text=True, timeout=60, **kwargs)
+                          capture_output=True, text=True, timeout=600, **kwargs)
 
 
 def _run_node(*args):
     """Run ``python -m reduced_dynamics.node ARGS`` (the executables' main) to its end."""
     return subprocess.run(
         [sys.executable, '-m', 'reduced_dynamics.node', *args], cwd=REPO_ROOT,
-        capture_output=True, text=True, timeout=60, env=dict(os.environ, PYTHONPATH=(
+        capture_output=True, text=True, timeout=600, env=dict(os.environ, PYTHONPATH=(
             os.pathsep.join([str(REPO_ROOT), os.environ.get('PYTHONPATH', '')]))))
 
 
