@@ -163,6 +163,24 @@ def spin_until(executor, condition, timeout):
     return condition()
 
 
+def spin_while_progress(executor, condition, progress, stall=PATIENCE / 10):
+    """
+    Spin until ``condition()`` holds, or ``progress()`` has not changed for ``stall`` s.
+
+    A node that is slow (a loaded machine) keeps publishing and is waited for; one that
+    lost a message stops publishing, and the wait ends a minute later, not ten.
+    """
+    end = time.monotonic() + PATIENCE
+    last, changed = progress(), time.monotonic()
+    while not condition() and time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.05)
+        now = progress()
+        if now != last:
+            last, changed = now, time.monotonic()
+        elif time.monotonic() - changed > stall:
+            break
+
+
 # ------------------------------------------------------------------ bags over DDS
 @pytest.mark.parametrize('bag', list(BAGS))
 def test_bag_played_over_dds_gives_replays_bytes(install, client, tmp_path, bag):
@@ -238,8 +256,9 @@ def test_bag_played_over_dds_gives_replays_bytes(install, client, tmp_path, bag)
             for message in reader.raw_messages(inputs):
                 publishers[message.topic].publish(bytes(message.data))
                 executor.spin_once(timeout_sec=0.002)
-        spin_until(executor, lambda: all(len(got[n]) >= len(expected[n]) for n in expected),
-                   PATIENCE)
+        spin_while_progress(
+            executor, lambda: all(len(got[n]) >= len(expected[n]) for n in expected),
+            lambda: sum(len(v) for v in got.values()))
         code, output = stop(proc)
     finally:
         if proc.poll() is None:
