@@ -91,6 +91,7 @@ try:
     from rclpy.parameter import Parameter
     from rclpy.qos import DurabilityPolicy
     from rclpy.qos import HistoryPolicy
+    from rclpy.qos import QoSPolicyKind
     from rclpy.qos import QoSProfile
     from rclpy.qos import ReliabilityPolicy
     from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
@@ -728,7 +729,11 @@ class _Shell:
     # --- activation -------------------------------------------------------------------
     def _activate(self) -> None:
         """Advertise the outputs, subscribe to the inputs, start the worker and the status."""
-        overridable = QoSOverridingOptions.with_default_policies()
+        # rclpy's default policies, and durability: a transient-local reader gets what a
+        # writer sent before the two matched (issue 24.1: a late match lost a bag's start).
+        overridable = QoSOverridingOptions(
+            policy_kinds=(QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH,
+                          QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY))
         for topic in OUTPUT_TOPICS + FIXED_LAG_TOPICS:
             self._publishers_by_topic[topic.name] = self.create_publisher(
                 self._types.get(topic.msgtype),
