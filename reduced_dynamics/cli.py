@@ -26,8 +26,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
 from typing import Optional, Sequence
+
+from reduced_dynamics import stop_signals
 
 
 def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
@@ -165,8 +168,22 @@ def _command_of(argv: Sequence[str]) -> Optional[str]:
     return None
 
 
+#: While a subcommand runs, SIGINT and SIGTERM raise KeyboardInterrupt (its finally clauses
+#: stop child processes); ``received`` tells the stop from an error (issue 24.2).
+_INTERRUPTS = stop_signals.Interrupts()
+
+
+def _stopped_line(signum: int) -> str:
+    return f'reduced-dynamics: stopped by {signal.Signals(signum).name}'
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Entry point of ``reduced-dynamics``."""
+    # A signal in the subcommand's imports (pinocchio, numba: seconds): one line, exit
+    # 128 + its number, the shell's convention (an interrupted run is no success).
+    previous = stop_signals.current_handlers()  # main() is also called in-process
+    stop_signals.exit_at_once(_stopped_line, lambda signum: 128 + signum)
+    _INTERRUPTS.received = None
     try:
         code = _main(argv)
         sys.stdout.flush()  # inside the try: a closed pipe must surface here
@@ -178,6 +195,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 1
+    except BaseException:
+        # Whatever the KeyboardInterrupt became (numba's dispatcher turns it into a
+        # SystemError): a stop, not an error.
+        if _INTERRUPTS.received is None:
+            raise
+        print(_stopped_line(_INTERRUPTS.received), file=sys.stderr)
+        return 128 + _INTERRUPTS.received
+    finally:
+        stop_signals.restore(previous)
 
 
 def _main(argv: Optional[Sequence[str]]) -> int:
@@ -186,6 +212,7 @@ def _main(argv: Optional[Sequence[str]]) -> int:
     parser = build_parser(_command_of(argv))
     args = parser.parse_args(argv)
     from reduced_dynamics.robot.model import ModelError
+    _INTERRUPTS.install()  # imports done: the subcommand's cleanup runs on a signal
     try:
         return int(args.func(args) or 0)
     except (ModelError, FileNotFoundError, ValueError) as error:

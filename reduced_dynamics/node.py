@@ -92,6 +92,7 @@ try:
     from rclpy.parameter import Parameter
     from rclpy.qos import DurabilityPolicy
     from rclpy.qos import HistoryPolicy
+    from rclpy.qos import QoSPolicyKind
     from rclpy.qos import QoSProfile
     from rclpy.qos import ReliabilityPolicy
     from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
@@ -766,7 +767,11 @@ class _Shell:
     # --- activation -------------------------------------------------------------------
     def _activate(self) -> None:
         """Advertise the outputs, subscribe to the inputs, start the worker and the status."""
-        overridable = QoSOverridingOptions.with_default_policies()
+        # rclpy's default policies, and durability: a transient-local reader gets what a
+        # writer sent before the two matched (issue 24.1: a late match lost a bag's start).
+        overridable = QoSOverridingOptions(
+            policy_kinds=(QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH,
+                          QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY))
         # cyclic_joints and commanded_wrench_topic are read-only: a topic that can never
         # carry a message is not advertised (a stack would wait on it).
         self._output_topics = active_topics(bool(self._value('cyclic_joints')),

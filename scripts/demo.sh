@@ -30,9 +30,6 @@ OUT="${1:-out/demo}"
 export PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_INPUT=1
 
 step() { printf '\n==> %s\n' "$*"; }
-as_root() {
-  if [ "$(id -u)" -eq 0 ]; then "$@"; else sudo -n "$@"; fi
-}
 # The checkout's own venv, .colcon/venv (scripts/python_env.sh): never the interpreter itself.
 RD_SKIP_INSTALL=0
 # shellcheck source=scripts/python_env.sh

@@ -17,11 +17,12 @@
 # $WS/venv (.colcon/venv), created on first use from $PYTHON (default python3). The scripts
 # never pip-install into $PYTHON itself: a Debian/Ubuntu system Python refuses (PEP 668), and
 # a pyenv or conda interpreter would get a global editable install that later points at
-# whichever checkout ran last. Expects WS and the as_root and step helpers.
+# whichever checkout ran last. Expects REPO_ROOT, WS and the step helper.
 #
-# --system-site-packages keeps apt's Python modules visible (the ament linters; rclpy of a
-# ROS 2 install comes through PYTHONPATH anyway); the venv's own packages come first. pip
-# keeps its download/wheel cache (~/.cache/pip), so a re-created venv installs from cache.
+# --system-site-packages keeps apt's Python modules visible (ament_copyright and
+# ament_xmllint; rclpy of a ROS 2 install comes through PYTHONPATH anyway); the venv's own
+# packages come first. pip keeps its download/wheel cache (~/.cache/pip), so a re-created
+# venv installs from cache.
 # RD_SKIP_INSTALL=1 with no venv yet: use $PYTHON as it is (offline re-runs), install nothing.
 VENV="${RD_VENV:-$WS/venv}"
 if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -m pip --version >/dev/null 2>&1; then
@@ -31,9 +32,9 @@ elif [ "${RD_SKIP_INSTALL:-0}" = 1 ]; then
 else
   step "creating the venv $VENV (from $PYTHON)"
   # A half-made venv (Debian without python3-venv has no ensurepip) is re-created.
+  # python3-venv system-wide only with RD_APT=1 (scripts/system_packages.sh).
   if ! "$PYTHON" -m venv --clear --system-site-packages "$VENV"; then
-    as_root apt-get update -q && \
-      as_root apt-get install -y -q --no-install-recommends python3-venv
+    "$REPO_ROOT/scripts/system_packages.sh" python3-venv
     "$PYTHON" -m venv --clear --system-site-packages "$VENV"
   fi
   PYTHON="$VENV/bin/python"

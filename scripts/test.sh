@@ -15,11 +15,17 @@
 
 # The one test command: ./scripts/test.sh [pytest args...]
 #
-#   1. installs the ament linters from apt (Debian 12 / Ubuntu) when missing,
+# It changes only the checkout (.colcon/): nothing system-wide unless RD_APT says so.
+#   1. system packages pip cannot provide (ament_copyright, ament_xmllint and its xmllint:
+#      python3-ament-copyright python3-ament-xmllint libxml2-utils), when their commands
+#      are missing: installed only with RD_APT=1 (scripts/system_packages.sh: only the
+#      missing ones, --no-upgrade, never upgrading an installed package); without it their
+#      names are printed and the two linter tests fail saying so,
 #   2. creates the checkout's own venv (.colcon/venv, scripts/python_env.sh) and pip-installs
-#      the package there (editable, [test], [docs] and [fleet] extras; [ros] = the real rclpy
-#      wheels when no ROS 2 install provides rclpy) and colcon; checks that real rclpy imports and
-#      initialises,
+#      the package there (editable, [test], [docs], [fleet] and [lint] extras: [lint] =
+#      ament_flake8 and ament_pep257 with the flake8/pydocstyle they run; [ros] = the real
+#      rclpy wheels when no ROS 2 install provides rclpy) and colcon; checks that real rclpy
+#      imports and initialises,
 #   3. colcon build  (workspace under .colcon/, never build/ install/ log/),
 #   4. checks the ros2-run executable lib/reduced_dynamics/reduced_dynamics_node and the
 #      `reduced-dynamics` command on PATH after sourcing install/setup.bash; runs README's
@@ -33,6 +39,9 @@
 # Environment knobs:
 #   PYTHON=python3            interpreter the venv is created from
 #   RD_VENV=.colcon/venv      the venv used for pip, colcon and pytest
+#   RD_APT=0                  1: apt-get install the missing system packages of step 1 (and
+#                             python3-venv if the venv cannot be made); upgrade: also when
+#                             that upgrades installed packages (.ci/run: a fresh machine)
 #   RD_SKIP_INSTALL=1         skip the apt/pip steps (offline re-runs)
 #   RD_SYMLINK_INSTALL=0      plain `colcon build` instead of --symlink-install
 #   RD_README_INSTALL=0       skip running README's install blocks (step 4c)
@@ -61,48 +70,23 @@ export COLCON_EXTENSION_BLOCKLIST="colcon_core.event_handler.desktop_notificatio
 step() { printf '\n==> %s   [%d s]\n' "$*" "$SECONDS"; }
 warn() { printf 'WARNING: %s\n' "$*" >&2; }
 
-as_root() {
-  if [ "$(id -u)" -eq 0 ]; then
-    "$@"
-  elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
-    sudo -n "$@"
-  else
-    return 1
-  fi
-}
-
-# ---------------------------------------------------------------- 1. apt linters
-APT_PACKAGES=(python3-ament-flake8 python3-ament-pep257 python3-ament-copyright
-              python3-ament-xmllint python3-ament-index libxml2-utils)
-linters_available() {
-  local exe
-  for exe in ament_flake8 ament_pep257 ament_copyright ament_xmllint xmllint; do
-    command -v "$exe" >/dev/null 2>&1 || return 1
-  done
-}
+# ------------------------------------------------------- 1. system packages (RD_APT)
+# ament_copyright and ament_xmllint are not on PyPI as Jazzy or Debian ship them (PyPI's
+# ament-xmllint fetches package.xml's schema from the network; Debian's has it locally).
+# Present already (Debian packages, or a sourced ROS 2): nothing to do.
+SYSTEM_LINTERS=(ament_copyright:python3-ament-copyright ament_xmllint:python3-ament-xmllint
+                xmllint:libxml2-utils)
 if [ "$RD_SKIP_INSTALL" != 1 ]; then
-  step "ament linters"
-  if linters_available; then
-    echo "already on PATH ($(command -v ament_flake8))"
-  elif command -v apt-get >/dev/null 2>&1; then
-    missing=()
-    for p in "${APT_PACKAGES[@]}"; do
-      dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q 'install ok installed' \
-        || missing+=("$p")
-    done
-    echo "installing from apt: ${missing[*]:-(none)}"
-    if [ "${#missing[@]}" -gt 0 ]; then
-      if as_root apt-get update -q && \
-         as_root apt-get install -y -q --no-install-recommends "${missing[@]}"; then
-        :
-      else
-        warn "cannot apt-get install ${missing[*]} (not root / no sudo);" \
-             "the linter tests will fail until they are installed"
-      fi
-    fi
-  else
-    warn "no apt-get and no ament linters on PATH (source ROS 2 to get them);" \
-         "the linter tests will fail"
+  step "system packages (RD_APT=${RD_APT:-0})"
+  wanted=()
+  for entry in "${SYSTEM_LINTERS[@]}"; do
+    command -v "${entry%%:*}" >/dev/null 2>&1 || wanted+=("${entry#*:}")
+  done
+  if [ "${#wanted[@]}" -eq 0 ]; then
+    echo "ament_copyright, ament_xmllint, xmllint: on PATH ($(command -v ament_copyright))"
+  elif ! "$REPO_ROOT/scripts/system_packages.sh" "${wanted[@]}"; then
+    warn "test_copyright / test_xmllint will fail without ${wanted[*]}" \
+         "(RD_APT=1 ./scripts/test.sh installs the missing ones, or source ROS 2)"
   fi
 fi
 
@@ -115,10 +99,11 @@ if [ "$RD_SKIP_INSTALL" != 1 ]; then
   # Real ROS 2 Jazzy rclpy: a sourced ROS 2 install provides it; otherwise the PyPI wheels
   # of the [ros] extra (rclpy with Fast DDS and the message packages). [docs]: Sphinx, which
   # test/test_docs.py runs on docs/. [fleet]: Ray and Dask for replay-many's backends
-  # (test_fleet.py; ~1 min and ~280 MB from PyPI, measured).
-  extras=test,docs,fleet
+  # (test_fleet.py; ~1 min and ~280 MB from PyPI, measured). [lint]: ament_flake8 and
+  # ament_pep257 (test_flake8.py, test_pep257.py) into the venv's bin/.
+  extras=test,docs,fleet,lint
   if ! "$PYTHON" -c 'import rclpy' 2>/dev/null; then
-    extras=test,docs,ros,fleet
+    extras=test,docs,ros,fleet,lint
   fi
   step "pip install -e '.[$extras]' colcon-common-extensions"
   "$PYTHON" -m pip install -q -e "$REPO_ROOT[$extras]" colcon-common-extensions

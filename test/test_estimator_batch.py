@@ -136,8 +136,10 @@ def _bag_stream(name, robot):
 def test_batched_equals_streaming_on_shipped_bags(name, make_robot):
     robot = make_robot()
     stream, is_odom, base_driven = _bag_stream(name, robot)
-    # Default settings: predictions and diagnostics on, so chunks close at them.
-    config = EstimatorConfig(prediction_horizon=0.5, diagnostics_rate=2.0, innovation_gate=0.0)
+    # Default settings: predictions and diagnostics on, so chunks close at them. No
+    # wall-time budget: two paths must make the same predictions on a loaded machine too.
+    config = EstimatorConfig(prediction_horizon=0.5, diagnostics_rate=2.0, innovation_gate=0.0,
+                             prediction_max_wall_time=0.0)
     expected, reference = _compare_paths(
         lambda: Estimator(robot, config, use_odometry=is_odom, base_driven=base_driven),
         stream, sizes=(1, 7, 200, None))
@@ -167,7 +169,8 @@ def test_batched_equals_streaming_on_simulated_pulse(make_robot, odometry):
     config = EstimatorConfig(prediction_rate=2.0, prediction_horizon=0.3,
                              diagnostics_rate=5.0, event_hold=0.05, pose_position_noise=1e-5,
                              pose_angle_noise=1e-5, twist_linear_noise=1e-5,
-                             twist_angular_noise=1e-5, pose_stamp_noise=1e-3)
+                             twist_angular_noise=1e-5, pose_stamp_noise=1e-3,
+                             prediction_max_wall_time=0.0)
     expected, reference = _compare_paths(
         lambda: Estimator(robot, config, use_odometry=odometry), stream)
     assert len(expected) >= 395 and len(reference.events) >= 1
@@ -182,7 +185,7 @@ def test_batched_equals_streaming_with_the_second_stage():
     joints, bases = samples(robot, times, *run[:4], torque=scenario.torque)
     stream = [item for pair in zip(bases, joints) for item in pair]
     config = EstimatorConfig(prediction_rate=2.0, prediction_horizon=0.3, diagnostics_rate=5.0,
-                             prediction_mode='held_torque')
+                             prediction_mode='held_torque', prediction_max_wall_time=0.0)
     reference = Estimator(robot, config, cyclic_joints='auto')
     expected = _streaming(reference, stream)
     assert len(expected) == 301 and reference.predictor.made >= 2

@@ -105,7 +105,7 @@ def test_node_launch_arguments_and_node():
     assert _definitions(NODE_LAUNCH, {'PACKAGE'})['PACKAGE'] == 'reduced_dynamics'
     assert ast.literal_eval(keywords['name']) == NODE_NAME
     executable = ast.literal_eval(keywords['executable'])
-    assert f"'{executable} = reduced_dynamics.node:main'" in \
+    assert f"'{executable} = reduced_dynamics.node_main:main'" in \
         (REPO_ROOT / 'setup.py').read_text()
     # parameters: the file, then the overrides (use_sim_time, urdf_path from urdf)
     assert ast.unparse(keywords['parameters']) == \

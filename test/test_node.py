@@ -55,6 +55,10 @@ NS = 1_000_000_000
 T0_NS = 1000 * NS  # input stamps: far from the (sim) clock, so a clock stamp would show
 SAMPLES = 300
 PERIOD_NS = 10_000_000
+#: Equality tests run without the node's wall-time prediction budget (default 0.5 s): on a
+#: loaded machine it drops predictions the directly fed estimator or the replay keeps
+#: (issue 24.1). The evaluation budget alone then decides, as in replay.
+NO_WALL_BUDGET = {'prediction_max_wall_time': 0.0}
 
 
 @pytest.fixture
@@ -383,7 +387,8 @@ def test_topic_names_and_qos(node_factory):
 def test_outputs_equal_an_estimator_fed_directly(ros, node_factory, base_input):
     # A torque mode (shape predictions) in one run, a prescribed one (phase paths) in the other.
     mode = 'held_torque' if base_input == 'odom' else 'held_velocity'
-    settings = {'prediction_rate': 2.0, 'diagnostics_rate': 2.0, 'prediction_mode': mode}
+    settings = {'prediction_rate': 2.0, 'diagnostics_rate': 2.0, 'prediction_mode': mode,
+                **NO_WALL_BUDGET}
     node = node_factory(urdf_path=str(paper_robot_urdf()), base_input=base_input, **settings)
     count = SAMPLES if base_input == 'odom' else SAMPLES // 2
     messages = input_messages(ros, base_input, count)
@@ -475,9 +480,13 @@ def test_message_covariances_give_the_outputs_of_an_estimator_fed_directly(
     assert plain.filter.log_likelihood != estimator.filter.log_likelihood
 
 
-def test_second_stage_outputs_equal_an_estimator_fed_directly(ros, node_factory):
+def test_second_stage_outputs_equal_an_estimator_fed_directly(ros, node_factory, monkeypatch):
+    import reduced_dynamics.integrators as integrators
     settings = {'prediction_rate': 2.0, 'diagnostics_rate': 2.0,
-                'prediction_mode': 'held_torque'}
+                'prediction_mode': 'held_torque', **NO_WALL_BUDGET}
+    # A loaded machine (issue 24.1: 3 of 6 predictions dropped): every clock reading 50 ms
+    # later. Without a wall-time budget the outputs cannot depend on it.
+    monkeypatch.setattr(integrators, 'time', _LoadedClock(0.05))
     urdf = wheel_robot_urdf()
     node = node_factory(urdf_path=urdf, cyclic_joints='auto', **settings)
     messages = input_messages(ros, 'odom', SAMPLES, urdf)
@@ -704,14 +713,14 @@ def _run_python(code, **kwargs):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         [str(REPO_ROOT), os.environ.get('PYTHONPATH', '')]))
     return subprocess.run([sys.executable, '-c', code], cwd=REPO_ROOT, env=env,
-                          capture_output=True, text=True, timeout=60, **kwargs)
+                          capture_output=True, text=True, timeout=600, **kwargs)
 
 
 def _run_node(*args):
     """Run ``python -m reduced_dynamics.node ARGS`` (the executables' main) to its end."""
     return subprocess.run(
         [sys.executable, '-m', 'reduced_dynamics.node', *args], cwd=REPO_ROOT,
-        capture_output=True, text=True, timeout=60, env=dict(os.environ, PYTHONPATH=(
+        capture_output=True, text=True, timeout=600, env=dict(os.environ, PYTHONPATH=(
             os.pathsep.join([str(REPO_ROOT), os.environ.get('PYTHONPATH', '')]))))
 
 
@@ -728,16 +737,52 @@ def test_without_rclpy_main_prints_one_line_and_returns_1():
                                'the rclpy wheels: pip install ".[ros]"')  # issue 21.10
 
 
+class _StderrLines:
+    """Collect a process's stderr lines in a thread; wait for one holding a text."""
+
+    def __init__(self, proc):
+        import threading
+        self.lines, self._seen, self._wanted = [], threading.Event(), None
+        self._thread = threading.Thread(target=self._read, args=(proc.stderr,), daemon=True)
+        self._thread.start()
+
+    def _read(self, stream):
+        for line in stream:
+            self.lines.append(line)
+            if self._wanted is not None and self._wanted in line:
+                self._seen.set()
+        self._seen.set()  # end of stream: nothing more will come
+
+    def wait_for(self, text, timeout=600):
+        """Wait for a line holding ``text`` (the timeout only bounds a hang); return it seen."""
+        self._wanted = text
+        if not any(text in line for line in list(self.lines)):
+            self._seen.wait(timeout)
+        return any(text in line for line in self.lines)
+
+    def text(self):
+        """Return everything, once the stream has ended."""
+        self._thread.join()
+        return ''.join(self.lines)
+
+
 def test_sigterm_ends_the_node_cleanly(ros):
     import signal
-    import time
     proc = subprocess.Popen([sys.executable, '-m', 'reduced_dynamics.node'], cwd=REPO_ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(3.0)
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=20)
-    assert proc.returncode == 0, err
-    assert 'Traceback' not in err
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED='1'))
+    try:
+        err = _StderrLines(proc)
+        # Readiness, not a fixed sleep (issue 24.1): the node logs its model after its
+        # signal handling is in place (a fixed 3 s was not enough on a loaded machine).
+        assert err.wait_for('robot paper_robot from'), err.text()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=600)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err.text()
+    assert 'Traceback' not in err.text() and 'processed 0 samples' in err.text()
 
 
 # The paper robot's bags (joint states + odometry); the freeflyer and planar bags need
@@ -750,7 +795,7 @@ def test_node_and_replay_publish_the_same_bytes_for_the_same_bag(ros, node_facto
     from reduced_dynamics.replay import replay, ReplayOptions
     path = REPO_ROOT / 'test' / 'data' / bag
     replay(str(path), str(tmp_path / 'out'), load_robot(), ReplayOptions(smooth=False))  # causal
-    node = node_factory(urdf_path=str(paper_robot_urdf()))
+    node = node_factory(urdf_path=str(paper_robot_urdf()), **NO_WALL_BUDGET)
     with open_bag(path) as reader:
         for message in reader.raw_messages(['/joint_states', '/odom']):
             # The record time is the receive time, as the replay takes it.
@@ -778,7 +823,8 @@ def test_node_processes_waiting_joint_states_when_it_stops(ros, tmp_path):
             writer.write_raw(message.topic, message.timestamp_ns, bytes(message.data))
     replay(str(cut), str(tmp_path / 'out'), load_robot(), ReplayOptions(smooth=False))
     node = ReducedDynamicsNode(
-        parameter_overrides=[Parameter('urdf_path', value=str(paper_robot_urdf()))])
+        parameter_overrides=[Parameter('urdf_path', value=str(paper_robot_urdf()))]
+        + [Parameter(k, value=v) for k, v in NO_WALL_BUDGET.items()])
     for message in kept:
         ros.deliver(node, message.topic, bytes(message.data), message.timestamp_ns)
     node.wait_for_predictions()
@@ -813,7 +859,8 @@ def test_node_with_a_commanded_wrench_publishes_what_replay_writes(ros, node_fac
         inputs, base = ['/joint_states', '/odom', '/commanded_wrench'], {}
         options = ReplayOptions(smooth=False, commanded_wrench_topic='/commanded_wrench')
     summary = replay(str(path), str(tmp_path / 'out'), load_robot(urdf), options)
-    node = node_factory(urdf_path=urdf, commanded_wrench_topic='/commanded_wrench', **base)
+    node = node_factory(urdf_path=urdf, commanded_wrench_topic='/commanded_wrench', **base,
+                        **NO_WALL_BUDGET)
     assert node.describe_parameter('commanded_wrench_topic').read_only
     with open_bag(path) as reader:
         for message in reader.raw_messages(inputs):
@@ -839,7 +886,8 @@ def _plan_message(stamp_ns, frame_id=''):
 
 
 def test_planned_trajectory_and_base_motion_requests(ros, node_factory):
-    node = node_factory(urdf_path=str(paper_robot_urdf()), prediction_rate=2.0)
+    node = node_factory(urdf_path=str(paper_robot_urdf()), prediction_rate=2.0,
+                        **NO_WALL_BUDGET)
     assert {sub.topic_name for sub in node.subscriptions} >= {
         '/joint_trajectory', '/reduced_dynamics/predict_base_motion/request'}
     plan, message = _plan_message(T0_NS + NS)

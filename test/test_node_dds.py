@@ -53,10 +53,13 @@ from reduced_dynamics.topics import active_topics, DIAGNOSTICS_TOPIC, resolved_n
 REPO_ROOT = Path(__file__).resolve().parent.parent
 PKG = 'reduced_dynamics'
 DATA = REPO_ROOT / 'test' / 'data'
+#: Transient local: the node's readers get what our writers sent before they matched them
+#: (a volatile reader that matched late lost the start of a bag on a loaded machine).
 RELIABLE_INPUTS = [
     f'qos_overrides./{topic}.subscription.{policy}:={value}'
     for topic in ('joint_states', 'odom', 'base_pose')
-    for policy, value in (('reliability', 'reliable'), ('history', 'keep_all'))]
+    for policy, value in (('reliability', 'reliable'), ('history', 'keep_all'),
+                          ('durability', 'transient_local'))]
 #: The shipped bags and the node parameters they need (replay gets the same): the
 #: paper robot with Odometry (defaults; paper_spacecraft too: bit-equality does not need
 #: the settings it was made for), the planar testbed with joints and poses only
@@ -71,6 +74,10 @@ BAGS = {
     'freeflyer_realistic': {'urdf': 'robots/freeflyer.urdf', 'base_input': 'pose'},
     'freeflyer_testbed': {'urdf': 'robots/freeflyer.urdf', 'base_input': 'pose'},
 }
+#: Seconds a wait for a condition (the node up, an answer, a process's end) may take: it
+#: bounds a hang only, the condition ends the wait. A loaded machine took 10-25 s to bring
+#: the node up (issue 24.1), so no wait here is tight.
+PATIENCE = 600
 #: Input topics and their types as the bags and the node's defaults name them.
 INPUT_TYPES = {'/joint_states': 'sensor_msgs/msg/JointState',
                '/odom': 'nav_msgs/msg/Odometry',
@@ -114,14 +121,14 @@ def start_node(install, *ros_args, executable='reduced_dynamics_node'):
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
 
 
-def wait_until_up(client, topic='/joint_states', timeout=30):
+def wait_until_up(client, topic='/joint_states', timeout=PATIENCE):
     """Wait until the node subscribes ``topic`` (it is then spinning)."""
     node, executor = client
     assert spin_until(executor, lambda: node.count_subscribers(topic) > 0, timeout), \
         'the node did not come up'
 
 
-def stop(proc, sig=signal.SIGINT, timeout=30):
+def stop(proc, sig=signal.SIGINT, timeout=PATIENCE):
     """Send ``sig``; return (exit code, stdout + stderr)."""
     proc.send_signal(sig)
     out, err = proc.communicate(timeout=timeout)
@@ -159,6 +166,24 @@ def spin_until(executor, condition, timeout):
     return condition()
 
 
+def spin_while_progress(executor, condition, progress, stall=PATIENCE / 10):
+    """
+    Spin until ``condition()`` holds, or ``progress()`` has not changed for ``stall`` s.
+
+    A node that is slow (a loaded machine) keeps publishing and is waited for; one that
+    lost a message stops publishing, and the wait ends a minute later, not ten.
+    """
+    end = time.monotonic() + PATIENCE
+    last, changed = progress(), time.monotonic()
+    while not condition() and time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.05)
+        now = progress()
+        if now != last:
+            last, changed = now, time.monotonic()
+        elif time.monotonic() - changed > stall:
+            break
+
+
 # ------------------------------------------------------------------ bags over DDS
 @pytest.mark.parametrize('bag', list(BAGS))
 def test_bag_played_over_dds_gives_replays_bytes(install, client, tmp_path, bag):
@@ -178,7 +203,9 @@ def test_bag_played_over_dds_gives_replays_bytes(install, client, tmp_path, bag)
     spec = BAGS[bag]
     urdf = str(config_path(spec['urdf'])) if 'urdf' in spec else paper_robot_urdf()
     params = defaults()
-    node_params = [f'urdf_path:={urdf}']
+    # Bit equality with replay: no wall-time prediction budget (replay has none; a loaded
+    # machine would drop predictions, issue 24.1).
+    node_params = [f'urdf_path:={urdf}', 'prediction_max_wall_time:=0.0']
     for name in ('base_joint', 'gravity', 'base_input'):
         if name in spec:
             params[name] = spec[name]
@@ -207,13 +234,17 @@ def test_bag_played_over_dds_gives_replays_bytes(install, client, tmp_path, bag)
     keep_all = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1,
                           reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.VOLATILE)
+    # Inputs kept for a reader that matches late: no wait for the match (issue 24.1).
+    kept_inputs = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
     for topic in active_topics(False):
         name = resolved_name(topic)
         node.create_subscription(types.get(topic.msgtype), name,
                                  lambda data, name=name: keep(name, data), keep_all, raw=True)
     with open_bag(DATA / bag) as reader:
         inputs = [t for t in INPUT_TYPES if t in reader.topics()]
-    publishers = {t: node.create_publisher(types.get(INPUT_TYPES[t]), t, keep_all)
+    publishers = {t: node.create_publisher(types.get(INPUT_TYPES[t]), t, kept_inputs)
                   for t in inputs}
     # Outputs kept whole too: a reliable KEEP_LAST writer may overwrite what a busy
     # reader has not acknowledged yet.
@@ -223,17 +254,17 @@ def test_bag_played_over_dds_gives_replays_bytes(install, client, tmp_path, bag)
     try:
         matched = spin_until(executor, lambda: all(
             p.get_subscription_count() for p in publishers.values()) and all(
-            node.count_publishers(name) for name in expected), 30)
+            node.count_publishers(name) for name in expected), PATIENCE)
         assert matched, 'the node did not come up'
-        time.sleep(0.5)  # the node's readers match our writers too
         with open_bag(DATA / bag) as reader:
             # Paced: two topics have no common order in DDS; 2 ms apart, the node takes
             # them in the bag's order (the estimator's counts in /diagnostics follow it).
             for message in reader.raw_messages(inputs):
                 publishers[message.topic].publish(bytes(message.data))
                 executor.spin_once(timeout_sec=0.002)
-        spin_until(executor, lambda: all(len(got[n]) >= len(expected[n]) for n in expected),
-                   60)
+        spin_while_progress(
+            executor, lambda: all(len(got[n]) >= len(expected[n]) for n in expected),
+            lambda: sum(len(v) for v in got.values()))
         code, output = stop(proc)
     finally:
         if proc.poll() is None:
@@ -326,7 +357,7 @@ def test_twenty_sigints_under_a_1khz_stream_all_exit_0(install, client):
             timer.start()
             _stream_joint_states(node, executor, 0.8)
             timer.join()
-            out, err = proc.communicate(timeout=30)
+            out, err = proc.communicate(timeout=PATIENCE)
             code, output = proc.returncode, out + err
         finally:
             if proc.poll() is None:
@@ -360,11 +391,11 @@ def test_lifecycle_transitions_through_the_real_services(install, client):
         get_state = node.create_client(GetState, '/reduced_dynamics/get_state')
         change = node.create_client(ChangeState, '/reduced_dynamics/change_state')
         assert spin_until(executor, lambda: get_state.service_is_ready()
-                          and change.service_is_ready(), 30)
+                          and change.service_is_ready(), PATIENCE)
 
         def call(client_, request):
             future = client_.call_async(request)
-            assert spin_until(executor, future.done, 20)
+            assert spin_until(executor, future.done, PATIENCE)
             return future.result()
 
         def state():
@@ -380,12 +411,15 @@ def test_lifecycle_transitions_through_the_real_services(install, client):
         assert state() == State.PRIMARY_STATE_INACTIVE
         assert transition(Transition.TRANSITION_ACTIVATE)
         assert state() == State.PRIMARY_STATE_ACTIVE
-        assert spin_until(executor, lambda: node.count_subscribers('/joint_states') == 1, 10)
+        assert spin_until(executor, lambda: node.count_subscribers('/joint_states') == 1,
+                          PATIENCE)
         assert spin_until(executor,
-                          lambda: node.count_publishers('/reduced_dynamics/momentum') == 1, 10)
+                          lambda: node.count_publishers('/reduced_dynamics/momentum') == 1,
+                          PATIENCE)
         assert transition(Transition.TRANSITION_DEACTIVATE)
         assert state() == State.PRIMARY_STATE_INACTIVE
-        assert spin_until(executor, lambda: node.count_subscribers('/joint_states') == 0, 10)
+        assert spin_until(executor, lambda: node.count_subscribers('/joint_states') == 0,
+                          PATIENCE)
         assert transition(Transition.TRANSITION_CLEANUP)
         assert state() == State.PRIMARY_STATE_UNCONFIGURED
         assert transition(Transition.TRANSITION_UNCONFIGURED_SHUTDOWN)
@@ -407,13 +441,13 @@ def test_lifecycle_configure_fails_on_an_unusable_model(install, client):
         get_state = node.create_client(GetState, '/reduced_dynamics/get_state')
         change = node.create_client(ChangeState, '/reduced_dynamics/change_state')
         assert spin_until(executor, lambda: change.service_is_ready()
-                          and get_state.service_is_ready(), 30)
+                          and get_state.service_is_ready(), PATIENCE)
         future = change.call_async(ChangeState.Request(
             transition=Transition(id=Transition.TRANSITION_CONFIGURE)))
-        assert spin_until(executor, future.done, 20)
+        assert spin_until(executor, future.done, PATIENCE)
         assert not future.result().success
         future = get_state.call_async(GetState.Request())
-        assert spin_until(executor, future.done, 20)
+        assert spin_until(executor, future.done, PATIENCE)
         assert future.result().current_state.id == State.PRIMARY_STATE_UNCONFIGURED
         code, output = stop(proc)
     finally:
@@ -424,7 +458,7 @@ def test_lifecycle_configure_fails_on_an_unusable_model(install, client):
 
 
 # ------------------------------------------------------------------ issue 21: start-up seams
-def run_executable(install, *args, executable='reduced_dynamics_node', timeout=60):
+def run_executable(install, *args, executable='reduced_dynamics_node', timeout=PATIENCE):
     """Run the installed executable with ``args`` to its end; return the CompletedProcess."""
     script = (f'set +u; source {install}/setup.bash; set -u\n'
               f'exec {install}/{PKG}/lib/{PKG}/{executable} '
@@ -466,11 +500,12 @@ def test_invalid_lifecycle_transition_is_refused_and_the_node_stays(install, cli
         get_state = node.create_client(GetState, '/reduced_dynamics/get_state')
         change = node.create_client(ChangeState, '/reduced_dynamics/change_state')
         assert spin_until(executor, lambda: get_state.service_is_ready()
-                          and change.service_is_ready(), 30)
+                          and change.service_is_ready(), PATIENCE)
 
         def call(client_, request):
             future = client_.call_async(request)
-            assert spin_until(executor, future.done, 20), 'no answer: the node died'
+            assert spin_until(executor, lambda: future.done() or proc.poll() is not None,
+                              PATIENCE) and future.done(), 'no answer: the node died'
             return future.result()
 
         def transition(transition_id):

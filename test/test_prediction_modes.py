@@ -186,7 +186,7 @@ def test_planned_mode_predicts_the_measured_base_path():
                              pose_position_noise=1e-10, pose_angle_noise=1e-10,
                              twist_linear_noise=1e-10, twist_angular_noise=1e-10,
                              joint_velocity_noise=0.0, innovation_gate=0.0,
-                             pose_stamp_noise=0.0)
+                             pose_stamp_noise=0.0, prediction_max_wall_time=0.0)
     estimator = Estimator(robot, config)
     outputs = _feed(estimator, joints, bases, plan)
     started = [o for o in outputs if o.prediction_path is not None]
@@ -211,7 +211,8 @@ def test_deferred_predictions_give_identical_messages_and_residuals():
     joints, bases, plan, _ = _planned_run(robot, seconds=3.0)
     for mode in ('planned', 'held_torque', 'coast'):
         config = EstimatorConfig(prediction_rate=2.0, prediction_horizon=0.5,
-                                 prediction_mode=mode, diagnostics_rate=2.0)
+                                 prediction_mode=mode, diagnostics_rate=2.0,
+                                 prediction_max_wall_time=0.0)  # equal under any load
         inline = _feed(Estimator(robot, config), joints, bases, plan)
         deferred_estimator = Estimator(robot, config, defer_predictions=True)
         deferred = _feed(deferred_estimator, joints, bases, plan)
@@ -246,7 +247,7 @@ def test_a_prediction_over_budget_stops_with_the_reason():
     joints, bases, plan, _ = _planned_run(robot, seconds=3.0)
     config = EstimatorConfig(prediction_rate=1.0, prediction_horizon=1.0,
                              prediction_max_evaluations=10.0, diagnostics_rate=1.0,
-                             prediction_mode='coast')
+                             prediction_mode='coast', prediction_max_wall_time=0.0)
     estimator = Estimator(robot, config)
     outputs = _feed(estimator, joints, bases, plan)
     assert not any(o.prediction_path is not None for o in outputs)

@@ -15,10 +15,14 @@
 """Run ament_xmllint on the whole package (the repository root)."""
 
 from pathlib import Path
-import shutil
 import subprocess
 
 import pytest
+
+try:
+    from linters import find_linter, HOW, linter_env
+except ImportError:  # test/ imported as a package
+    from test.linters import find_linter, HOW, linter_env
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 # Workspace/build outputs created when colcon or pip run in the repository root;
@@ -30,11 +34,12 @@ ARTIFACT_DIRS = [d for d in ('build', 'install', 'log') if (REPO_ROOT / d).is_di
 @pytest.mark.linter
 def test_xmllint():
     # The ament CLI is used rather than an in-process import so the linter runs with
-    # the interpreter and flake8/pydocstyle versions it was packaged with (Debian apt
-    # or a sourced ROS 2 install), independent of the pip environment under test.
-    exe = shutil.which('ament_xmllint')
-    assert exe, 'ament_xmllint missing: apt install python3-ament-xmllint or source ROS 2'
+    # the interpreter and flake8/pydocstyle versions it was installed with (the venv's
+    # [lint] extra, Debian apt or a sourced ROS 2): test/linters.py says where.
+    exe = find_linter('ament_xmllint')
+    assert exe, f'ament_xmllint missing: {HOW["ament_xmllint"]}'
     argv = [exe] + (['--exclude'] + ARTIFACT_DIRS if ARTIFACT_DIRS else [])
-    proc = subprocess.run(argv, cwd=REPO_ROOT, capture_output=True, text=True, check=False)
+    proc = subprocess.run(argv, cwd=REPO_ROOT, capture_output=True, text=True, check=False,
+                          env=linter_env())
     assert proc.returncode == 0, \
         'Found errors:\n' + proc.stdout + proc.stderr

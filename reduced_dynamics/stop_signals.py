@@ -1,0 +1,108 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+SIGINT and SIGTERM in the executables: one line on stderr, never a traceback (issue 24.2).
+
+Two regimes. :func:`exit_at_once` is for start-up: the heavy imports (numpy,
+numba, pinocchio, rclpy) take seconds, and a ``KeyboardInterrupt`` raised inside
+them ends in a long traceback, or in a ``SystemError`` when it lands in numba's
+dispatcher; SIGTERM's default kills the process. There nothing needs cleaning
+up, so the handler writes its line and calls ``os._exit``. :class:`Interrupts`
+is for a command at work: either signal raises ``KeyboardInterrupt`` where the
+program is, so ``finally`` clauses stop child processes and close files, and
+remembers which signal came, so the caller can tell it from an error whatever
+exception it was turned into.
+
+This module imports only the standard library's ``os``, ``signal``, ``sys``,
+``threading`` and ``typing``: entry points import it before anything heavy.
+"""
+
+import os
+import signal
+import sys
+import threading
+from typing import Any, Callable, Optional
+
+#: The signals that stop a program (what Ctrl-C, ``timeout``, ``ros2 launch`` send).
+SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def exit_at_once(message: Optional[Callable[[int], str]], code: Callable[[int], int]) -> None:
+    """Make SIGINT and SIGTERM write ``message(signum)`` and exit ``code(signum)`` at once."""
+    owner = os.getpid()
+
+    def handler(signum: int, frame: Any) -> None:
+        if os.getpid() != owner:  # a forked child (multiprocessing 'fork'): as before
+            _default(signum)
+            return
+        # os._exit: no exception to unwind through a half-done import (no traceback, no
+        # library's except clause to swallow it); stderr is the one stream to flush.
+        try:
+            if message is not None:
+                sys.stderr.write(message(signum) + '\n')
+            sys.stderr.flush()
+        finally:
+            os._exit(code(signum))
+    _install(handler)
+
+
+def _default(signum: int) -> None:
+    """Do what the signal does by default in Python: KeyboardInterrupt, or die of it."""
+    if signum == signal.SIGINT:
+        raise KeyboardInterrupt
+    signal.signal(signum, signal.SIG_DFL)
+    os.kill(os.getpid(), signum)
+
+
+def _install(handler: Callable[[int, Any], None]) -> None:
+    # Python lets the main thread alone set handlers; elsewhere (a command run in a
+    # thread) the process's own handling stays.
+    if threading.current_thread() is threading.main_thread():
+        for sig in SIGNALS:
+            signal.signal(sig, handler)
+
+
+def current_handlers() -> dict:
+    """Return the handlers of :data:`SIGNALS` now (for :func:`restore`)."""
+    return {sig: signal.getsignal(sig) for sig in SIGNALS}
+
+
+def restore(handlers: dict) -> None:
+    """Put back handlers :func:`current_handlers` returned."""
+    if threading.current_thread() is threading.main_thread():
+        for sig, handler in handlers.items():
+            if handler is not None:  # None: set outside Python, cannot be put back
+                signal.signal(sig, handler)
+
+
+class Interrupts:
+    """SIGINT and SIGTERM raise KeyboardInterrupt; :attr:`received` says which came."""
+
+    def __init__(self) -> None:
+        """Handle nothing yet: :meth:`install` does."""
+        self.received: Optional[signal.Signals] = None
+        self._owner = os.getpid()
+
+    def install(self) -> None:
+        """Handle both signals from now on."""
+        self._owner = os.getpid()
+        _install(self._raise)
+
+    def _raise(self, signum: int, frame: Any) -> None:
+        if os.getpid() != self._owner:  # a forked child: as before
+            _default(signum)
+            return
+        self.received = signal.Signals(signum)
+        raise KeyboardInterrupt(self.received.name)

@@ -1,0 +1,149 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+Issue 24.2: SIGINT or SIGTERM at any point of start-up ends the process cleanly.
+
+The node executables (reduced_dynamics/node_main.py) handle both signals before
+their heavy imports; ``reduced-dynamics`` (cli.py) turns either into one line.
+The points of start-up are counted from the moment the heavy imports are under
+way, which this process sees in /proc/PID/maps: numpy's libraries are mapped.
+Before the executable's first line runs the interpreter itself is starting
+(node_main.py's docstring says what that leaves).
+"""
+
+import json
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+try:
+    from test_node_dds import client, error_lines, install, start_node, stop, wait_until_up
+except ImportError:  # test/ imported as a package
+    from test.test_node_dds import (client, error_lines, install, start_node, stop,
+                                    wait_until_up)
+
+from reduced_dynamics.node_main import start_up_message
+from reduced_dynamics.resources import paper_robot_urdf
+
+__all__ = ['client', 'install']  # fixtures of test_node_dds, used here
+REPO = Path(__file__).resolve().parent.parent
+SIGTERM_CAUGHT = 1 << (signal.SIGTERM - 1)
+#: Seconds after the heavy imports started; 'up': once the node subscribes its input.
+POINTS = [0.0, 0.05, 0.3, 1.0, 3.0, 'up']
+#: Bounds a hang only: a loaded machine took 10-25 s to bring the node up (issue 24).
+HANG = 600
+
+
+def caught_signals(pid: int) -> int:
+    """Return the SigCgt mask of process ``pid`` (0 once it is gone)."""
+    try:
+        status = Path(f'/proc/{pid}/status').read_text()
+    except OSError:
+        return 0
+    return int(status.split('SigCgt:')[1].split()[0], 16)
+
+
+def wait_for_heavy_imports(proc: subprocess.Popen) -> None:
+    """Wait until ``proc`` has mapped numpy's libraries: its heavy imports are under way."""
+    end = time.monotonic() + HANG
+    while True:
+        try:
+            if 'numpy' in Path(f'/proc/{proc.pid}/maps').read_text():
+                return
+        except OSError:
+            pass
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < end, 'the executable never imported numpy'
+        time.sleep(0.002)  # a polling period, not a wait for anything
+
+
+@pytest.mark.skipif(not Path('/proc/self/status').exists(), reason='needs Linux /proc')
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+@pytest.mark.parametrize('point', POINTS, ids=[str(p) for p in POINTS])
+def test_a_signal_at_any_point_of_start_up_exits_0_without_a_traceback(
+        install, client, sig, point):
+    proc = start_node(install, '-p', f'urdf_path:={paper_robot_urdf()}')
+    try:
+        wait_for_heavy_imports(proc)
+        # The handlers came first: SIGTERM is already the process's own.
+        assert caught_signals(proc.pid) & SIGTERM_CAUGHT
+        if point == 'up':
+            wait_until_up(client, timeout=HANG)
+        else:
+            time.sleep(point)  # the moment of start-up under test (any one must do)
+        code, output = stop(proc, sig, timeout=HANG)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert code == 0, output
+    assert 'Traceback' not in output and error_lines(output) == [], output
+    line = start_up_message('reduced_dynamics_node', sig)
+    if point == 'up' or line not in output:
+        assert 'processed 0 samples' in output, output  # the node's own orderly end
+    else:  # stopped in the imports: that one line and nothing else
+        assert output.splitlines() == [line]
+
+
+def test_the_entry_module_handles_the_signals_before_any_heavy_import():
+    probe = ('import signal, sys\n'
+             'from reduced_dynamics import node_main\n'
+             'node_main.stop_on_signal_during_start_up("x")\n'
+             'own = [signal.getsignal(s).__qualname__ for s in (2, 15)]\n'
+             'heavy = [m for m in ("rclpy", "numpy", "numba", "pinocchio", "scipy",\n'
+             '                     "reduced_dynamics.node") if m in sys.modules]\n'
+             'import json; print(json.dumps([own, heavy]))\n')
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(REPO)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p]))
+    done = subprocess.run([sys.executable, '-c', probe], env=env, capture_output=True,
+                          text=True, timeout=HANG, check=True)
+    own, heavy = json.loads(done.stdout.splitlines()[-1])
+    assert own == ['exit_at_once.<locals>.handler'] * 2 and heavy == []
+
+
+def test_setup_points_the_node_executables_at_the_entry_module():
+    setup = (REPO / 'setup.py').read_text()
+    assert "'reduced_dynamics_node = reduced_dynamics.node_main:main'" in setup
+    assert ("'reduced_dynamics_lifecycle_node = reduced_dynamics.node_main:lifecycle_main'"
+            in setup)
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+@pytest.mark.parametrize('point', [0.05, 0.3, 1.0])
+def test_the_cli_stopped_in_its_imports_prints_one_line(tmp_path, sig, point):
+    """``reduced-dynamics replay`` (pinocchio, numba, the estimator): one line, 128 + n."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(REPO)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p]))
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'reduced_dynamics.cli', 'replay', str(REPO / 'test' / 'data' /
+         'paper_constant'), '-o', str(tmp_path / 'out'), '--quiet'],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for_heavy_imports(proc)
+        time.sleep(point)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=HANG)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    if proc.returncode == 0:  # a fast machine: the replay ended before the signal came
+        assert err == '', err
+        return
+    assert proc.returncode == 128 + sig, err
+    assert err.splitlines() == [f'reduced-dynamics: stopped by {sig.name}'], err
