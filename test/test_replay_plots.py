@@ -154,7 +154,7 @@ def test_spatial_robot_plots_six_components(monkeypatch, tmp_path):
 
 def test_some_zero_residuals_are_left_out_and_counted():
     series = {'mu': _Rows([]), 'rate': _Rows([]), 'shape': _Rows([]),
-              'residual': [(0, 0.0, 1e-3), (10**9, 2e-4, 0.0), (2 * 10**9, 3e-4, 2e-3)]}
+              'residual': _Rows([(0, 0.0, 1e-3), (10**9, 2e-4, 0.0), (2 * 10**9, 3e-4, 2e-3)])}
     figures = replay_plots.make_figures(series, load_robot())
     ax = figures['prediction_residual.png'].axes[0]
     assert _labels(ax) == ['shape [rad] (1 of 3 zero, not drawn)',
