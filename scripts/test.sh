@@ -16,11 +16,12 @@
 # The one test command: ./scripts/test.sh [pytest args...]
 #
 # It changes only the checkout (.colcon/): nothing system-wide unless RD_APT says so.
-#   1. system packages pip cannot provide (ament_copyright, ament_xmllint and its xmllint:
+#   1. linters pip cannot provide (ament_copyright, ament_xmllint and its xmllint:
 #      python3-ament-copyright python3-ament-xmllint libxml2-utils), when their commands
-#      are missing: installed only with RD_APT=1 (scripts/system_packages.sh: only the
-#      missing ones, --no-upgrade, never upgrading an installed package); without it their
-#      names are printed and the two linter tests fail saying so,
+#      are missing: downloaded with `apt-get download` and unpacked into .colcon/debs/root,
+#      not installed (scripts/linter_packages.sh; test/linters.py runs them from there);
+#      with RD_APT=1 installed system-wide instead (scripts/system_packages.sh: only the
+#      missing ones, --no-upgrade, never upgrading an installed package),
 #   2. creates the checkout's own venv (.colcon/venv, scripts/python_env.sh) and pip-installs
 #      the package there (editable, [test], [docs], [fleet] and [lint] extras: [lint] =
 #      ament_flake8 and ament_pep257 with the flake8/pydocstyle they run; [ros] = the real
@@ -39,7 +40,8 @@
 # Environment knobs:
 #   PYTHON=python3            interpreter the venv is created from
 #   RD_VENV=.colcon/venv      the venv used for pip, colcon and pytest
-#   RD_APT=0                  1: apt-get install the missing system packages of step 1 (and
+#   RD_APT=0                  0: unpack step 1's packages into .colcon/debs; 1: apt-get
+#                             install the missing system packages of step 1 (and
 #                             python3-venv if the venv cannot be made); upgrade: also when
 #                             that upgrades installed packages (.ci/run: a fresh machine)
 #   RD_SKIP_INSTALL=1         skip the apt/pip steps (offline re-runs)
@@ -71,23 +73,14 @@ step() { printf '\n==> %s   [%d s]\n' "$*" "$SECONDS"; }
 warn() { printf 'WARNING: %s\n' "$*" >&2; }
 
 # ------------------------------------------------------- 1. system packages (RD_APT)
-# ament_copyright and ament_xmllint are not on PyPI as Jazzy or Debian ship them (PyPI's
-# ament-xmllint fetches package.xml's schema from the network; Debian's has it locally).
-# Present already (Debian packages, or a sourced ROS 2): nothing to do.
-SYSTEM_LINTERS=(ament_copyright:python3-ament-copyright ament_xmllint:python3-ament-xmllint
-                xmllint:libxml2-utils)
+# ament_copyright, ament_xmllint and xmllint are not on PyPI as Jazzy or Debian ship them:
+# scripts/linter_packages.sh unpacks the missing Debian packages into .colcon/debs/root
+# (apt-get download, not installed), or with RD_APT=1 installs them system-wide.
 if [ "$RD_SKIP_INSTALL" != 1 ]; then
-  step "system packages (RD_APT=${RD_APT:-0})"
-  wanted=()
-  for entry in "${SYSTEM_LINTERS[@]}"; do
-    command -v "${entry%%:*}" >/dev/null 2>&1 || wanted+=("${entry#*:}")
-  done
-  if [ "${#wanted[@]}" -eq 0 ]; then
-    echo "ament_copyright, ament_xmllint, xmllint: on PATH ($(command -v ament_copyright))"
-  elif ! "$REPO_ROOT/scripts/system_packages.sh" "${wanted[@]}"; then
-    warn "test_copyright / test_xmllint will fail without ${wanted[*]}" \
-         "(RD_APT=1 ./scripts/test.sh installs the missing ones, or source ROS 2)"
-  fi
+  step "linters pip cannot provide (RD_APT=${RD_APT:-0})"
+  "$REPO_ROOT/scripts/linter_packages.sh" "$WS/debs" \
+    || warn "test_copyright / test_xmllint will fail without ament_copyright, ament_xmllint," \
+            "xmllint (RD_APT=1 ./scripts/test.sh installs the missing ones, or source ROS 2)"
 fi
 
 # ------------------------------------------------------ 2. python environment

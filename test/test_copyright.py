@@ -44,6 +44,6 @@ def test_copyright():
                 for p in (REPO_ROOT / d).rglob('*') if p.is_file() and not p.is_symlink()]
     argv = [exe] + (['--exclude'] + excluded if excluded else [])
     proc = subprocess.run(argv, cwd=REPO_ROOT, capture_output=True, text=True, check=False,
-                          env=linter_env())
+                          env=linter_env(exe))
     assert proc.returncode == 0, \
         'Found errors:\n' + proc.stdout + proc.stderr

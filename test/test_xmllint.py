@@ -40,6 +40,6 @@ def test_xmllint():
     assert exe, f'ament_xmllint missing: {HOW["ament_xmllint"]}'
     argv = [exe] + (['--exclude'] + ARTIFACT_DIRS if ARTIFACT_DIRS else [])
     proc = subprocess.run(argv, cwd=REPO_ROOT, capture_output=True, text=True, check=False,
-                          env=linter_env())
+                          env=linter_env(exe))
     assert proc.returncode == 0, \
         'Found errors:\n' + proc.stdout + proc.stderr
