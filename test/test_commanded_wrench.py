@@ -42,7 +42,7 @@ from reduced_dynamics.params import defaults
 from reduced_dynamics.replay import replay, ReplayOptions
 from reduced_dynamics.resources import config_path
 from reduced_dynamics.robot.model import load_robot
-from reduced_dynamics.topics import active_topics, resolved_name
+from reduced_dynamics.topics import active_topics, EVENTS_TOPIC, resolved_name
 
 from filter_helpers import minus, plus
 
@@ -238,7 +238,7 @@ def test_without_the_option_nothing_changes(causal, tmp_path):
     assert '/commanded_wrench' not in summary['messages_in']
     with open_bag(out) as reader:
         topics = set(reader.topics())
-    assert topics == {resolved_name(t) for t in active_topics(False)}
+    assert topics == {resolved_name(t) for t in active_topics(False) + (EVENTS_TOPIC,)}
     assert '/reduced_dynamics/drift/disturbance' not in topics
     # The momentum estimate differs only through the wrench model, not the inputs.
     _, with_command = causal
