@@ -555,9 +555,9 @@ def bench_multiscale(report: Report, robot, settings: Settings) -> None:
     calls: list = []
 
     class Recording(MultiScaleTest):
-        def update(self, stamp_ns, mu, cov, measured=None):
-            calls.append((stamp_ns, mu.copy(), cov.copy(), measured))
-            return super().update(stamp_ns, mu, cov, measured)
+        def update(self, stamp_ns, mu, cov, measured=None, wanted=True):
+            calls.append((stamp_ns, mu.copy(), cov.copy(), measured, wanted))
+            return super().update(stamp_ns, mu, cov, measured, wanted)
 
     samples = max(settings.step_test_samples, int(LONGEST * 1000) + 1000)
     joints, bases = update_samples(robot, samples)
@@ -572,10 +572,10 @@ def bench_multiscale(report: Report, robot, settings: Settings) -> None:
     for _ in range(settings.repeats):
         test = MultiScaleTest(robot.n, 1.0)
         start = 0.0
-        for k, (stamp, mu, cov, measured) in enumerate(calls):
+        for k, (stamp, mu, cov, measured, wanted) in enumerate(calls):
             if k == full:
                 start = time.perf_counter()
-            test.update(stamp, mu, cov, measured)
+            test.update(stamp, mu, cov, measured, wanted)
         alone.append((time.perf_counter() - start) / max(len(calls) - full, 1))
         updates.append(time_update(robot, joints, bases, warmup=full))
     report.add(make_figure(

@@ -266,3 +266,29 @@ def test_the_measured_momentum_bound_is_where_the_block_statistic_reaches_its_th
     blocks.update(int(end * 100) * NS // 100, None)
     # The blocks hold floor(L f) samples, not L f: within 2 %.
     assert blocks.statistics[window] == pytest.approx(chi2.isf(significance, 3), rel=0.02)
+
+
+def test_a_lasting_push_is_located_once_not_at_every_sample(monkeypatch):
+    # Issue 27: a push that goes on (in the soak, twists that disagree with the arm's
+    # motion) keeps the block statistic above its threshold at every sample. The fit
+    # that dates a pulse (MomentumBlocks.locate, ~points^2 x the window's samples) is
+    # needed only to open an event; run at every sample it cost the node ~10 ms each.
+    from reduced_dynamics.estimator.events import EventDetector
+    calls = []
+    locate = MomentumBlocks.locate
+
+    def counted(self, *args, **kwargs):
+        calls.append(args[0])
+        return locate(self, *args, **kwargs)
+    monkeypatch.setattr(MomentumBlocks, 'locate', counted)
+    detector = EventDetector(3, 1e-6, 0.1, 1.0)
+    rng = np.random.default_rng(11)
+    filtered = np.eye(3) * 0.05 ** 2
+    samples = 0
+    for stamp, mu in _blocks(40.0, rng, push=(10.0, 1000.0, [3000.0, 0.0, 0.0])):
+        drift = np.array([3000.0 * max(stamp / NS - 10.0, 0.0) / 1000.0, 0.0, 0.0])
+        detector.update(stamp, drift, 0.0, 0.0, False, filtered, [(stamp, mu, NOISE)])
+        samples += 1
+    assert detector.in_event and len(detector.events) >= 1
+    # Before: located at every sample from the detection on (2 991 of 4 000).
+    assert len(calls) <= len(detector.events) < 5, (len(calls), samples)

@@ -232,8 +232,9 @@ class EventDetector:
         sample (multiscale.twist_momenta; None: none), for the block test and the
         impulse's ends.
         """
+        # A pulse is used only outside an event: inside one it is not located.
         pulse = None if mu_cov is None else \
-            self.multiscale.update(stamp_ns, mu, mu_cov, measured)
+            self.multiscale.update(stamp_ns, mu, mu_cov, measured, not self.in_event)
         event = self.events[-1] if self.in_event else None
         if event is None and not step:
             # A step within SETTLE re-opens the last event: final only after that.

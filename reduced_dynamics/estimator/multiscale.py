@@ -155,13 +155,16 @@ class MultiScaleTest:
         self._end += 1
 
     def update(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
-               measured: Optional[list[tuple]] = None) -> Optional[ImpulseDetection]:
+               measured: Optional[list[tuple]] = None,
+               wanted: bool = True) -> Optional[ImpulseDetection]:
         """
         Take one filtered momentum and its covariance; return the detecting window.
 
         ``measured``: (stamp, mu, covariance) the measured twists since the last
         update give (:func:`twist_momenta`; None or empty: none). The block test on
         them runs beside the test on the filtered momentum, each at half the rate.
+        ``wanted`` False: the caller has no use for a detection now (an event is
+        open); the statistics are updated, nothing is located, None is returned.
         """
         if not self.active:
             return None
@@ -172,8 +175,12 @@ class MultiScaleTest:
                 self.blocks.add(*item)
         found = self._filtered(stamp_ns, mu, cov)
         if not self.blocks.active or self._period is None:
-            return found
+            return found if wanted else None
         best = self.blocks.update(stamp_ns, self.floor_ns)
+        if not wanted:
+            # The fit below costs ~ points^2 x the window's samples (MomentumBlocks.locate):
+            # once per sample it was most of the node's time while a push lasted.
+            return None
         if best < 0 or not self.blocks.statistics[best] > self.threshold:
             return found
         block = self.blocks.locate(stamp_ns, best, self.floor_ns)
