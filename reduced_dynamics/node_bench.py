@@ -278,6 +278,8 @@ def soak_publish(args: argparse.Namespace) -> int:
     from nav_msgs.msg import Odometry
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import JointState
+    import pinocchio as pin
+    from reduced_dynamics.consistent_motion import ConsistentMotion
     from reduced_dynamics.robot.model import load_robot
     robot = load_robot()
     names = list(robot.shape_joint_names)
@@ -291,15 +293,14 @@ def soak_publish(args: argparse.Namespace) -> int:
             print('soak publisher: no subscriber on the inputs', file=sys.stderr)
             return 1
         rclpy.spin_once(node, timeout_sec=0.05)
-    motion = _Motion(len(names))
+    # No external wrench in the stream: predictions run at their rate (soak.soak_messages).
+    motion = ConsistentMotion(robot)
     joint_msg = JointState()
     joint_msg.name = names
     joint_msg.effort = [0.0] * len(names)
     odom_msg = Odometry()
     odom_msg.header.frame_id = 'world'
     odom_msg.child_frame_id = robot.base_link
-    odom_msg.twist.twist.linear.x = 0.01
-    odom_msg.twist.twist.angular.z = 0.05
     clock = time.time_ns
     joint_period = 1.0 / args.joint_rate
     base_every = max(1, round(args.joint_rate / args.base_rate))
@@ -309,6 +310,8 @@ def soak_publish(args: argparse.Namespace) -> int:
     sent['start_ns'] = clock()
     for k in range(count + 1):
         offset = k * joint_period
+        # This instant's sample: the joint state now, the odometry 0.3 ms later.
+        (qbar, qbar_dot), pose, twist = motion.shape(motion.t), motion.pose, motion.twist6()
         for kind in ((0, 1) if k % base_every == 0 else (0,)):
             # The last round: one odometry message after the last joint state (the
             # estimator processes a joint state once a base sample at or after it came).
@@ -321,21 +324,25 @@ def soak_publish(args: argparse.Namespace) -> int:
             else:
                 sent['late_max_s'] = max(sent['late_max_s'], -delay)
             stamp = clock()
-            t = offset
             if kind == 0:
                 joint_msg.header.stamp.sec, joint_msg.header.stamp.nanosec = divmod(
                     stamp, 1_000_000_000)
-                joint_msg.position, joint_msg.velocity = motion(t)
+                joint_msg.position, joint_msg.velocity = qbar.tolist(), qbar_dot.tolist()
                 joints_pub.publish(joint_msg)
                 sent['joint_states'] += 1
             else:
                 odom_msg.header.stamp.sec, odom_msg.header.stamp.nanosec = divmod(
                     stamp, 1_000_000_000)
-                odom_msg.pose.pose.position.x = 0.01 * t
-                odom_msg.pose.pose.orientation.z = float(np.sin(0.025 * t))
-                odom_msg.pose.pose.orientation.w = float(np.cos(0.025 * t))
+                base = odom_msg.pose.pose
+                base.position.x, base.position.y, base.position.z = pose.translation.tolist()
+                (base.orientation.x, base.orientation.y, base.orientation.z,
+                 base.orientation.w) = pin.Quaternion(pose.rotation).coeffs().tolist()
+                velocity = odom_msg.twist.twist
+                velocity.linear.x, velocity.linear.y, velocity.linear.z = twist[:3].tolist()
+                velocity.angular.x, velocity.angular.y, velocity.angular.z = twist[3:].tolist()
                 odom_pub.publish(odom_msg)
                 sent['odometry'] += 1
+        motion.advance(joint_period)
     sent['end_ns'] = clock()
     with open(args.out, 'w', encoding='utf-8') as stream:
         json.dump(sent, stream)

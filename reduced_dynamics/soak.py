@@ -196,15 +196,32 @@ print(json.dumps(retained_per_sample(int(sys.argv[1]), int(sys.argv[2]))))
 
 
 def soak_messages(robot: Any, count: int) -> list:
-    """Return the bench's 1 kHz joint states, odometry at 200 Hz 0.3 ms after (arrival order)."""
-    from reduced_dynamics.bench import ODOMETRY_EVERY, ODOMETRY_OFFSET_NS, update_samples
-    from reduced_dynamics.messages.samples import BaseStateSample
-    joints, bases = update_samples(robot, count)
-    odometry = [BaseStateSample(b.stamp_ns + ODOMETRY_OFFSET_NS, b.frame_id, b.child_frame_id,
-                                b.position, b.orientation_xyzw, b.twist_linear,
-                                b.twist_angular) for b in bases[::ODOMETRY_EVERY]]
-    return sorted([(j.stamp_ns, 0, j) for j in joints] + [(b.stamp_ns, 1, b) for b in odometry],
-                  key=lambda entry: entry[:2])
+    """
+    Return ``count`` joint states at 1 kHz and odometry at 200 Hz 0.3 ms after (arrival order).
+
+    The motion is :class:`~reduced_dynamics.consistent_motion.ConsistentMotion`: no
+    external wrench, so no event opens and predictions run at their rate, as the
+    node's defaults have them.
+    """
+    from reduced_dynamics.bench import ODOMETRY_EVERY, ODOMETRY_OFFSET_NS
+    from reduced_dynamics.consistent_motion import ConsistentMotion
+    from reduced_dynamics.messages.samples import BaseStateSample, JointStateSample
+    motion = ConsistentMotion(robot)
+    efforts = np.zeros(robot.m)
+    messages = []
+    for index in range(count):
+        stamp = NS + index * 1_000_000
+        qbar, qbar_dot = motion.shape(motion.t)
+        messages.append((stamp, 0, JointStateSample(stamp, '', robot.shape_joint_names, qbar,
+                                                    qbar_dot, efforts)))
+        if index % ODOMETRY_EVERY == 0:
+            twist = motion.twist6()
+            messages.append((stamp + ODOMETRY_OFFSET_NS, 1, BaseStateSample(
+                stamp + ODOMETRY_OFFSET_NS, 'world', robot.base_link,
+                motion.pose.translation.copy(), motion.orientation_xyzw(), twist[:3].copy(),
+                twist[3:].copy())))
+        motion.advance(1e-3)
+    return messages
 
 
 def retained_per_sample(warmup: int, samples: int) -> dict:
