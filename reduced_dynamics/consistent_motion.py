@@ -81,7 +81,7 @@ class ConsistentMotion:
         return np.asarray(self.group.twist(self._xi), dtype=float)
 
     def orientation_xyzw(self) -> np.ndarray:
-        """The base orientation as a unit quaternion (x, y, z, w), ROS order."""
+        """Return the base orientation as a unit quaternion (x, y, z, w), ROS order."""
         return np.array(pin.Quaternion(self.pose.rotation).coeffs())
 
     def advance(self, dt: float) -> None:
