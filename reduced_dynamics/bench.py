@@ -123,7 +123,8 @@ class Settings:
     fleet_bag_seconds: float = 2.0
     #: section soak: the node's window [s], tracemalloc samples, replay bag lengths [s]
     soak_seconds: float = 60.0
-    soak_retained_warmup: int = 10_000
+    # The finished-prediction store (64 at 1 Hz) fills in ~66 s: warm up beyond it.
+    soak_retained_warmup: int = 80_000
     soak_retained_samples: int = 20_000
     soak_short_bag_seconds: float = 60.0
     soak_bag_seconds: float = 300.0
