@@ -171,6 +171,11 @@ def expected_outputs(node, messages, config, use_odometry=True, urdf='', cyclic_
     estimator = Estimator(load_robot(urdf or str(paper_robot_urdf()), 'floating',
                                      numpy.zeros(3)),
                           config, use_odometry=use_odometry, cyclic_joints=cyclic_joints)
+    return estimator_outputs(node, estimator, messages)
+
+
+def estimator_outputs(node, estimator, messages, pose_from_ros=pose_stamped_from_ros):
+    """Feed ``estimator`` the (topic, message) pairs; return {node's topic: [messages]}."""
     expected = {_resolved(node, topic): [] for topic in OUTPUT_TOPICS}
     for topic, msg in messages:
         if topic == 'joint_states':
@@ -178,7 +183,7 @@ def expected_outputs(node, messages, config, use_odometry=True, urdf='', cyclic_
         elif topic == 'odom':
             outputs = estimator.add_base_state(odometry_from_ros(msg))
         else:
-            outputs = estimator.add_base_state(pose_stamped_from_ros(msg, 'spacecraft'))
+            outputs = estimator.add_base_state(pose_from_ros(msg, 'spacecraft'))
         for output in outputs:
             for out_topic, out_msg in output_messages(output, RclpyTypes()):
                 expected[_resolved(node, out_topic)].append(out_msg)
@@ -447,18 +452,7 @@ def test_message_covariances_give_the_outputs_of_an_estimator_fed_directly(
     feed(ros, node, messages)
     robot = load_robot(str(paper_robot_urdf()), 'floating', numpy.zeros(3))
     estimator = Estimator(robot, EstimatorConfig(**settings), use_odometry=base_input == 'odom')
-    expected = {_resolved(node, topic): [] for topic in OUTPUT_TOPICS}
-    for topic, msg in messages:
-        if topic == 'joint_states':
-            outputs = estimator.add_joint_state(joint_state_from_ros(msg))
-        elif topic == 'odom':
-            outputs = estimator.add_base_state(odometry_from_ros(msg))
-        else:
-            outputs = estimator.add_base_state(
-                pose_with_covariance_stamped_from_ros(msg, 'spacecraft'))
-        for output in outputs:
-            for out_topic, out_msg in output_messages(output, RclpyTypes()):
-                expected[_resolved(node, out_topic)].append(out_msg)
+    expected = estimator_outputs(node, estimator, messages, pose_with_covariance_stamped_from_ros)
     momentum = expected[node.resolve_topic_name('~/momentum')]
     assert len(momentum) > 0.9 * count
     for topic, wanted in expected.items():
@@ -469,13 +463,7 @@ def test_message_covariances_give_the_outputs_of_an_estimator_fed_directly(
     # The covariances were used: the parameters alone give other numbers.
     plain = Estimator(robot, EstimatorConfig(**settings, use_message_covariance=False),
                       use_odometry=base_input == 'odom')
-    for topic, msg in messages:
-        if topic == 'joint_states':
-            plain.add_joint_state(joint_state_from_ros(msg))
-        elif topic == 'odom':
-            plain.add_base_state(odometry_from_ros(msg))
-        else:
-            plain.add_base_state(pose_with_covariance_stamped_from_ros(msg, 'spacecraft'))
+    estimator_outputs(node, plain, messages, pose_with_covariance_stamped_from_ros)
     assert not estimator.covariance_fallbacks
     assert plain.filter.log_likelihood != estimator.filter.log_likelihood
 
