@@ -195,6 +195,17 @@ def _resolved(node, topic):
                                    else '~/' + topic.name)
 
 
+def assert_published(ros, expected, every_topic=True):
+    """Assert each topic published exactly ``expected``'s messages (and, by default, some)."""
+    for topic, wanted in expected.items():
+        if every_topic:
+            assert wanted, f'the run produced nothing on {topic}'
+        got = ros.published(topic)
+        assert len(got) == len(wanted), topic
+        for i, (actual, want) in enumerate(zip(got, wanted)):
+            assert_same_message(actual, want, f'{topic}[{i}]')
+
+
 def assert_same_message(actual, expected, path='msg'):
     """Assert equal type and, recursively, exactly equal fields."""
     if hasattr(expected, 'get_fields_and_field_types'):
@@ -408,12 +419,7 @@ def test_outputs_equal_an_estimator_fed_directly(ros, node_factory, base_input):
     # No commanded wrench: no disturbance (test_node_with_a_commanded_wrench_... has it).
     disturbance = node.resolve_topic_name('~/drift/disturbance')
     assert expected.pop(disturbance) == [] and ros.published(disturbance) == []
-    for topic, wanted in expected.items():
-        assert wanted, f'the run produced nothing on {topic}'  # every topic is exercised
-        got = ros.published(topic)
-        assert len(got) == len(wanted), topic
-        for i, (actual, want) in enumerate(zip(got, wanted)):
-            assert_same_message(actual, want, f'{topic}[{i}]')
+    assert_published(ros, expected)  # every topic is exercised
     stamps = {int(s) for s in trajectory()['stamps'][:count]}
     momentum = ros.published('~/momentum', node)
     assert {m.header.stamp.sec * NS + m.header.stamp.nanosec for m in momentum} <= stamps
@@ -455,11 +461,7 @@ def test_message_covariances_give_the_outputs_of_an_estimator_fed_directly(
     expected = estimator_outputs(node, estimator, messages, pose_with_covariance_stamped_from_ros)
     momentum = expected[node.resolve_topic_name('~/momentum')]
     assert len(momentum) > 0.9 * count
-    for topic, wanted in expected.items():
-        got = ros.published(topic)
-        assert len(got) == len(wanted), topic
-        for i, (actual, want) in enumerate(zip(got, wanted)):
-            assert_same_message(actual, want, f'{topic}[{i}]')
+    assert_published(ros, expected, every_topic=False)
     # The covariances were used: the parameters alone give other numbers.
     plain = Estimator(robot, EstimatorConfig(**settings, use_message_covariance=False),
                       use_odometry=base_input == 'odom')
@@ -485,12 +487,7 @@ def test_second_stage_outputs_equal_an_estimator_fed_directly(ros, node_factory,
     assert expected.pop(phase) == [] and ros.published(phase) == []  # a torque mode
     disturbance = node.resolve_topic_name('~/drift/disturbance')  # no commanded wrench
     assert expected.pop(disturbance) == [] and ros.published(disturbance) == []
-    for topic, wanted in expected.items():
-        assert wanted, f'the run produced nothing on {topic}'
-        got = ros.published(topic)
-        assert len(got) == len(wanted), topic
-        for i, (actual, want) in enumerate(zip(got, wanted)):
-            assert_same_message(actual, want, f'{topic}[{i}]')
+    assert_published(ros, expected)
     cyclic = ros.published(node.resolve_topic_name('~/cyclic_momenta'))
     assert list(cyclic[0].name) == ['wheel_x', 'wheel_y', 'wheel_z']
     shape = ros.published(node.resolve_topic_name('~/shape_state'))
