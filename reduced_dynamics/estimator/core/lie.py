@@ -39,7 +39,7 @@ def _skew(w: np.ndarray) -> np.ndarray:
 @njit(cache=True)
 def exp6_coefficients(t2: float) -> tuple:
     """
-    Return exp6's coefficients (a, b, c) at t2 = |omega|^2.
+    Return exp6's coefficients (a, b, c) at ``t2 = |omega|^2``.
 
     ``R = 1 + a [w] + b [w]^2`` and ``V = 1 + b [w] + c [w]^2`` with ``a = sin t / t``,
     ``b = (1 - cos t) / t^2``, ``c = (t - sin t) / t^3`` (series below 1e-4 rad).
