@@ -63,6 +63,7 @@ from __future__ import annotations
 import argparse
 import csv
 from dataclasses import asdict, dataclass, field
+import functools
 import json
 import os
 import platform
@@ -73,6 +74,7 @@ import sys
 import tempfile
 import time
 from typing import Any, Callable, Optional, Sequence
+from unittest import mock
 
 import numpy as np
 import pinocchio as pin
@@ -470,12 +472,8 @@ def record_step_calls(robot, joints: list, bases: list) -> list:
             calls.append(('update',) + tuple(a.copy() for a in args))
             return super().update(*args)
 
-    original = filter_module.WrenchStepTest
-    filter_module.WrenchStepTest = Recording
-    try:
+    with mock.patch.object(filter_module, 'WrenchStepTest', Recording):
         time_update(robot, joints, bases, warmup=1)
-    finally:
-        filter_module.WrenchStepTest = original
     return calls
 
 
@@ -515,17 +513,13 @@ def bench_step_test(report: Report, robot, settings: Settings) -> None:
     kinds = {'explicit': ExplicitStepTest, 'anchored': WrenchStepTest}
     tests: dict = {kind: [] for kind in kinds}
     updates: dict = {kind: [] for kind in kinds}
-    original = filter_module.WrenchStepTest
     for _ in range(settings.repeats):
         for kind, cls in kinds.items():
             test = cls(robot.n, significance, 3 * robot.n)
             seconds, rows = time_step_calls(test, calls, from_ns)
             tests[kind].append(seconds / rows)
-            filter_module.WrenchStepTest = cls
-            try:
+            with mock.patch.object(filter_module, 'WrenchStepTest', cls):
                 updates[kind].append(time_update(robot, joints, bases, warmup=full))
-            finally:
-                filter_module.WrenchStepTest = original
     for kind, label in (('explicit', 'explicit bank, 40 onsets x dim'),
                         ('anchored', 'anchored signatures')):
         report.add(make_figure(
@@ -562,12 +556,8 @@ def bench_multiscale(report: Report, robot, settings: Settings) -> None:
 
     samples = max(settings.step_test_samples, int(LONGEST * 1000) + 1000)
     joints, bases = update_samples(robot, samples)
-    original = events_module.MultiScaleTest
-    events_module.MultiScaleTest = Recording
-    try:
+    with mock.patch.object(events_module, 'MultiScaleTest', Recording):
         time_update(robot, joints, bases, warmup=1)
-    finally:
-        events_module.MultiScaleTest = original
     full = int(LONGEST * 1000) + 10
     alone, updates = [], []
     for _ in range(settings.repeats):
@@ -625,7 +615,6 @@ def bench_prediction(report: Report, robot, settings: Settings) -> None:
     """Section 2: 2 s prediction, reduced against full dynamics at equal accuracy."""
     from reduced_dynamics.full_dynamics import FullDynamics
     from reduced_dynamics.geometry.isotropy import MomentumClass
-    from reduced_dynamics.reduction.reconstruction import ReducedPropagator
     from reduced_dynamics.validation import random_scenario
 
     from reduced_dynamics.reduction.lean_field import warm_up
@@ -638,21 +627,8 @@ def bench_prediction(report: Report, robot, settings: Settings) -> None:
     def error_of(qbar: np.ndarray) -> float:
         return float(np.max(np.abs(qbar - reference)))
 
-    def full_run(rtol: float, counter: Optional[list] = None) -> Callable[[], Any]:
-        def run():
-            model = FullDynamics(robot, torque)
-            _count_evaluations(model, counter)
-            return model.simulate(state, times, rtol, rtol)
-        return run
-
-    def reduced_run(integrator: str, tol: float,
-                    counter: Optional[list] = None) -> Callable[[], Any]:
-        def run():
-            propagator, y0 = ReducedPropagator.from_full_state(robot, state, torque)
-            _count_evaluations(propagator, counter)
-            return propagator.propagate(y0, times, integrator, tol, tol, tol)
-        return run
-
+    full_run = functools.partial(full_prediction, robot, torque, state, times)
+    reduced_run = functools.partial(reduced_prediction, robot, torque, state, times)
     sweep: dict[str, list] = {'full dop853': [], 'reduced dop853': [],
                               'reduced discrete_gradient': []}
     runs = [('full dop853', rtol, full_run(rtol)) for rtol in settings.full_rtols]
@@ -660,14 +636,7 @@ def bench_prediction(report: Report, robot, settings: Settings) -> None:
              for rtol in settings.reduced_rtols]
     runs += [('reduced discrete_gradient', step, reduced_run('discrete_gradient', step))
              for step in settings.dg_steps]
-    # Repeats go round-robin over all runs, so a change of machine load during the
-    # section hits the reduced and the full runs alike (ratios stay comparable).
-    seconds = [[] for _ in runs]
-    trajectories = [None] * len(runs)
-    for _ in range(settings.repeats):
-        for index, (_, _, run) in enumerate(runs):
-            trajectories[index], timing = _timed(run, 1, PREDICTION_CLOCK)
-            seconds[index] += timing
+    trajectories, seconds = round_robin([run for _, _, run in runs], settings.repeats)
     for (method, tol, _), trajectory, timing in zip(runs, trajectories, seconds):
         sweep[method].append({'tolerance': tol, 'error': error_of(trajectory.qbar),
                               'seconds': timing})
@@ -720,6 +689,46 @@ def bench_prediction(report: Report, robot, settings: Settings) -> None:
     # What the reduction costs: the random-tree row and the Pinocchio floors (issue 26).
     from reduced_dynamics.reduction_bench import bench_reduction_cost
     bench_reduction_cost(report, robot, settings)
+
+
+def full_prediction(robot, torque: Callable, state, times: np.ndarray, rtol: float,
+                    counter: Optional[list] = None) -> Callable[[], Any]:
+    """Return a run of the full dynamics' DOP853 prediction (rtol = atol) from ``state``."""
+    from reduced_dynamics.full_dynamics import FullDynamics
+
+    def run():
+        model = FullDynamics(robot, torque)
+        _count_evaluations(model, counter)
+        return model.simulate(state, times, rtol, rtol)
+    return run
+
+
+def reduced_prediction(robot, torque: Callable, state, times: np.ndarray, integrator: str,
+                       tol: float, counter: Optional[list] = None) -> Callable[[], Any]:
+    """Return a run of the reduced prediction (tol: rtol, atol and DG step) from ``state``."""
+    from reduced_dynamics.reduction.reconstruction import ReducedPropagator
+
+    def run():
+        propagator, y0 = ReducedPropagator.from_full_state(robot, state, torque)
+        _count_evaluations(propagator, counter)
+        return propagator.propagate(y0, times, integrator, tol, tol, tol)
+    return run
+
+
+def round_robin(runs: Sequence[Callable[[], Any]], repeats: int) -> tuple[list, list]:
+    """
+    Time each run ``repeats`` times on :data:`PREDICTION_CLOCK`; return (results, seconds).
+
+    The repeats go round-robin over all runs, so a change of machine load during
+    a section hits the reduced and the full runs alike (ratios stay comparable).
+    """
+    seconds: list = [[] for _ in runs]
+    results: list = [None] * len(runs)
+    for _ in range(repeats):
+        for index, run in enumerate(runs):
+            results[index], timing = _timed(run, 1, PREDICTION_CLOCK)
+            seconds[index] += timing
+    return results, seconds
 
 
 def _count_evaluations(system: Any, counter: Optional[list]) -> None:
@@ -1432,6 +1441,12 @@ SECTIONS = ('update', 'prediction', 'replay', 'scaling', 'planned', 'node', 'pay
 ON_REQUEST = ('soak',)
 
 
+def _workdir() -> tempfile.TemporaryDirectory:
+    """Return a scratch folder (context manager) removed after the section, errors ignored."""
+    return tempfile.TemporaryDirectory(prefix='reduced_dynamics_bench_',
+                                       ignore_cleanup_errors=True)
+
+
 def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
               progress: Optional[Callable[[str], None]] = None) -> Report:
     """Run the chosen sections and return the report."""
@@ -1451,51 +1466,33 @@ def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
         bench_covariance(report, robot, settings)
     if 'replay' in sections:
         say('replay...')
-        workdir = tempfile.mkdtemp(prefix='reduced_dynamics_bench_')
-        try:
+        with _workdir() as workdir:
             bench_replay(report, robot, settings, workdir)
-        finally:
-            shutil.rmtree(workdir, ignore_errors=True)
     if 'scaling' in sections:
         say('scaling...')
         bench_scaling(report, settings)
     if 'planned' in sections:
         say('planned...')
-        workdir = tempfile.mkdtemp(prefix='reduced_dynamics_bench_')
-        try:
+        with _workdir() as workdir:
             bench_planned(report, settings, workdir)
-        finally:
-            shutil.rmtree(workdir, ignore_errors=True)
     if 'payload' in sections:
         say('payload...')
         from reduced_dynamics.payload_bench import bench_payload
-        workdir = tempfile.mkdtemp(prefix='reduced_dynamics_bench_')
-        try:
+        with _workdir() as workdir:
             bench_payload(report, robot, settings, workdir)
-        finally:
-            shutil.rmtree(workdir, ignore_errors=True)
     if 'node' in sections:
         say('node (real DDS)...')
-        workdir = tempfile.mkdtemp(prefix='reduced_dynamics_bench_')
-        try:
+        with _workdir() as workdir:
             bench_node(report, settings, workdir)
-        finally:
-            shutil.rmtree(workdir, ignore_errors=True)
     if 'fleet' in sections:
         say('fleet (replay-many)...')
-        workdir = tempfile.mkdtemp(prefix='reduced_dynamics_bench_')
-        try:
+        with _workdir() as workdir:
             bench_fleet(report, robot, settings, workdir)
-        finally:
-            shutil.rmtree(workdir, ignore_errors=True)
     if 'soak' in sections:
         say(f'soak (node {settings.soak_seconds:g} s over real DDS, then replays)...')
         from reduced_dynamics.soak import bench_soak
-        workdir = tempfile.mkdtemp(prefix='reduced_dynamics_bench_')
-        try:
+        with _workdir() as workdir:
             bench_soak(report, robot, settings, workdir)
-        finally:
-            shutil.rmtree(workdir, ignore_errors=True)
     return report
 
 

@@ -85,16 +85,41 @@ def relay(_args: argparse.Namespace) -> int:
     return 0
 
 
-def probe(args: argparse.Namespace) -> int:
-    """Record (stamp, receive time) of every output until SIGINT/SIGTERM; write JSON."""
+def _probe_node(name: str) -> tuple[Any, Any, Any]:
+    """
+    Return (rclpy, node, QoS) of a probe: rclpy up without its signal handlers.
+
+    The probe stops on SIGINT/SIGTERM itself (:func:`_spin_until_stopped`) and
+    then writes its records; the QoS keeps every output (reliable, deep).
+    """
     rclpy = _rclpy()
-    from geometry_msgs.msg import WrenchStamped
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import JointState
     rclpy.init(signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-    node = rclpy.create_node('bench_probe')
+    node = rclpy.create_node(name)
     qos = QoSProfile(depth=PROBE_DEPTH, history=HistoryPolicy.KEEP_LAST,
                      reliability=ReliabilityPolicy.RELIABLE)
+    return rclpy, node, qos
+
+
+def _spin_until_stopped(rclpy: Any, node: Any, topics: Sequence[str], ready: str) -> None:
+    """Spin until SIGINT/SIGTERM; write the file ``ready`` once each topic has a publisher."""
+    stop = []
+    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    announced = False
+    while not stop:
+        rclpy.spin_once(node, timeout_sec=0.05)
+        if not announced and all(node.count_publishers(t) for t in topics):
+            announced = True
+            with open(ready, 'w', encoding='utf-8') as stream:
+                stream.write('ready\n')
+
+
+def probe(args: argparse.Namespace) -> int:
+    """Record (stamp, receive time) of every output until SIGINT/SIGTERM; write JSON."""
+    from geometry_msgs.msg import WrenchStamped
+    from sensor_msgs.msg import JointState
+    rclpy, node, qos = _probe_node('bench_probe')
     records: dict[str, list] = {RELAY_OUTPUT: [], NODE_OUTPUT: []}
     clock = time.time_ns
 
@@ -107,16 +132,7 @@ def probe(args: argparse.Namespace) -> int:
         return record
     node.create_subscription(JointState, RELAY_OUTPUT, recorder(RELAY_OUTPUT), qos)
     node.create_subscription(WrenchStamped, NODE_OUTPUT, recorder(NODE_OUTPUT), qos)
-    stop = []
-    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
-    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
-    ready = False
-    while not stop:
-        rclpy.spin_once(node, timeout_sec=0.05)
-        if not ready and all(node.count_publishers(t) for t in records):
-            ready = True
-            with open(args.ready, 'w', encoding='utf-8') as stream:
-                stream.write('ready\n')
+    _spin_until_stopped(rclpy, node, list(records), args.ready)
     with open(args.out, 'w', encoding='utf-8') as stream:
         json.dump(records, stream)
     node.destroy_node()
@@ -139,6 +155,52 @@ class _Motion:
                 (self.amplitude * self.frequency * np.cos(angle)).tolist())
 
 
+class _Inputs:
+    """The joint state and odometry messages of the publishers, refilled per send."""
+
+    def __init__(self, robot: Any) -> None:
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import JointState
+        names = list(robot.shape_joint_names)
+        self.motion = _Motion(len(names))
+        self.joint = JointState()
+        self.joint.name = names
+        self.joint.effort = [0.0] * len(names)
+        self.odom = Odometry()
+        self.odom.header.frame_id = 'world'
+        self.odom.child_frame_id = robot.base_link
+        self.odom.twist.twist.linear.x = 0.01
+        self.odom.twist.twist.angular.z = 0.05
+
+    def joint_state(self, stamp: int, t: float) -> Any:
+        """Return the joint state stamped ``stamp`` [ns] at motion time t."""
+        msg = self.joint
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        msg.position, msg.velocity = self.motion(t)
+        return msg
+
+    def odometry(self, stamp: int, t: float) -> Any:
+        """Return the odometry stamped ``stamp`` [ns] at motion time t."""
+        msg = self.odom
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        msg.pose.pose.position.x = 0.01 * t
+        msg.pose.pose.orientation.z = float(np.sin(0.025 * t))
+        msg.pose.pose.orientation.w = float(np.cos(0.025 * t))
+        return msg
+
+
+def _await_subscribers(rclpy: Any, node: Any, publishers: Sequence[Any], timeout: float,
+                       who: str) -> bool:
+    """Spin until every publisher has a subscriber; False (and a message) after timeout s."""
+    deadline = time.monotonic() + timeout
+    while not all(p.get_subscription_count() for p in publishers):
+        if time.monotonic() > deadline:
+            print(f'{who}: no subscriber on the inputs', file=sys.stderr)
+            return False
+        rclpy.spin_once(node, timeout_sec=0.05)
+    return True
+
+
 def publish(args: argparse.Namespace) -> int:
     """Publish the phases; write the stamps sent in each phase's measured window."""
     rclpy = _rclpy()
@@ -147,29 +209,17 @@ def publish(args: argparse.Namespace) -> int:
     from sensor_msgs.msg import JointState
     from reduced_dynamics.robot.model import load_robot
     robot = load_robot()
-    names = list(robot.shape_joint_names)
     rclpy.init()
     node = rclpy.create_node('bench_publisher')
     targets = {'relay': RELAY_INPUTS, 'node': NODE_INPUTS}
     publishers = {name: (node.create_publisher(JointState, topics[0], qos_profile_sensor_data),
                          node.create_publisher(Odometry, topics[1], qos_profile_sensor_data))
                   for name, topics in targets.items()}
-    deadline = time.monotonic() + args.discovery_timeout
-    while not all(p.get_subscription_count() for pair in publishers.values() for p in pair):
-        if time.monotonic() > deadline:
-            print('bench publisher: no subscriber on the inputs', file=sys.stderr)
-            return 1
-        rclpy.spin_once(node, timeout_sec=0.05)
+    if not _await_subscribers(rclpy, node, [p for pair in publishers.values() for p in pair],
+                              args.discovery_timeout, 'bench publisher'):
+        return 1
     phase_seconds = args.warmup + args.seconds
-    motion = _Motion(len(names))
-    joint_msg = JointState()
-    joint_msg.name = names
-    joint_msg.effort = [0.0] * len(names)
-    odom_msg = Odometry()
-    odom_msg.header.frame_id = 'world'
-    odom_msg.child_frame_id = robot.base_link
-    odom_msg.twist.twist.linear.x = 0.01
-    odom_msg.twist.twist.angular.z = 0.05
+    inputs = _Inputs(robot)
     phases = []
     clock = time.time_ns
     joint_rates = [float(r) for r in args.joint_rates.split(',')]
@@ -201,19 +251,11 @@ def publish(args: argparse.Namespace) -> int:
                     stamp = clock()
                     t = motion_time + offset
                     if kind == 0:
-                        joint_msg.header.stamp.sec, joint_msg.header.stamp.nanosec = divmod(
-                            stamp, 1_000_000_000)
-                        joint_msg.position, joint_msg.velocity = motion(t)
-                        joints_pub.publish(joint_msg)
+                        joints_pub.publish(inputs.joint_state(stamp, t))
                         if measured:
                             sent.append(stamp)
                     else:
-                        odom_msg.header.stamp.sec, odom_msg.header.stamp.nanosec = divmod(
-                            stamp, 1_000_000_000)
-                        odom_msg.pose.pose.position.x = 0.01 * t
-                        odom_msg.pose.pose.orientation.z = float(np.sin(0.025 * t))
-                        odom_msg.pose.pose.orientation.w = float(np.cos(0.025 * t))
-                        odom_pub.publish(odom_msg)
+                        odom_pub.publish(inputs.odometry(stamp, t))
                         base_sent += measured
                 lateness = time.monotonic() - start - events[-1][0]
                 motion_time += phase_seconds + args.pause
@@ -231,13 +273,8 @@ def publish(args: argparse.Namespace) -> int:
 
 def soak_probe(args: argparse.Namespace) -> int:
     """Record (stamp, receive time) of every ``~/momentum`` until SIGINT/SIGTERM; write .npy."""
-    rclpy = _rclpy()
     from geometry_msgs.msg import WrenchStamped
-    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-    rclpy.init(signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-    node = rclpy.create_node('soak_probe')
-    qos = QoSProfile(depth=PROBE_DEPTH, history=HistoryPolicy.KEEP_LAST,
-                     reliability=ReliabilityPolicy.RELIABLE)
+    rclpy, node, qos = _probe_node('soak_probe')
     rows = [np.zeros((1 << 16, 2), np.int64), 0]
     clock = time.time_ns
 
@@ -249,16 +286,7 @@ def soak_probe(args: argparse.Namespace) -> int:
         table[count] = (stamp.sec * 1_000_000_000 + stamp.nanosec, clock())
         rows[1] = count + 1
     node.create_subscription(WrenchStamped, NODE_OUTPUT, record, qos)
-    stop = []
-    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
-    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
-    ready = False
-    while not stop:
-        rclpy.spin_once(node, timeout_sec=0.05)
-        if not ready and node.count_publishers(NODE_OUTPUT):
-            ready = True
-            with open(args.ready, 'w', encoding='utf-8') as stream:
-                stream.write('ready\n')
+    _spin_until_stopped(rclpy, node, [NODE_OUTPUT], args.ready)
     np.save(args.out, rows[0][:rows[1]])
     node.destroy_node()
     rclpy.try_shutdown()
@@ -282,25 +310,17 @@ def soak_publish(args: argparse.Namespace) -> int:
     from reduced_dynamics.consistent_motion import ConsistentMotion
     from reduced_dynamics.robot.model import load_robot
     robot = load_robot()
-    names = list(robot.shape_joint_names)
     rclpy.init()
     node = rclpy.create_node('soak_publisher')
     joints_pub = node.create_publisher(JointState, NODE_INPUTS[0], qos_profile_sensor_data)
     odom_pub = node.create_publisher(Odometry, NODE_INPUTS[1], qos_profile_sensor_data)
-    deadline = time.monotonic() + args.discovery_timeout
-    while not (joints_pub.get_subscription_count() and odom_pub.get_subscription_count()):
-        if time.monotonic() > deadline:
-            print('soak publisher: no subscriber on the inputs', file=sys.stderr)
-            return 1
-        rclpy.spin_once(node, timeout_sec=0.05)
+    if not _await_subscribers(rclpy, node, (joints_pub, odom_pub), args.discovery_timeout,
+                              'soak publisher'):
+        return 1
     # No external wrench in the stream: predictions run at their rate (soak.soak_messages).
     motion = ConsistentMotion(robot)
-    joint_msg = JointState()
-    joint_msg.name = names
-    joint_msg.effort = [0.0] * len(names)
-    odom_msg = Odometry()
-    odom_msg.header.frame_id = 'world'
-    odom_msg.child_frame_id = robot.base_link
+    inputs = _Inputs(robot)
+    joint_msg, odom_msg = inputs.joint, inputs.odom
     clock = time.time_ns
     joint_period = 1.0 / args.joint_rate
     base_every = max(1, round(args.joint_rate / args.base_rate))

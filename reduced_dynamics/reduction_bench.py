@@ -27,6 +27,7 @@ Bench rows of section ``prediction`` on what the reduction costs (issue 26, item
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import Any, Callable, Optional
 
@@ -113,11 +114,10 @@ def bench_reduction_cost(report: Any, robot, settings: Any) -> None:
 
 
 def _bench_tree(report: Any, settings: Any, horizon: float) -> None:
-    from reduced_dynamics.bench import _count_evaluations, _timed, make_figure, matched_time, \
-        PREDICTION_CLOCK
+    from reduced_dynamics.bench import full_prediction, make_figure, matched_time, \
+        reduced_prediction, round_robin
     from reduced_dynamics.full_dynamics import FullDynamics
     from reduced_dynamics.geometry.isotropy import MomentumClass
-    from reduced_dynamics.reduction.reconstruction import ReducedPropagator
     from reduced_dynamics.robot.model import load_robot
     from reduced_dynamics.robot.random_tree import random_tree_urdf
     from reduced_dynamics.validation import random_scenario
@@ -127,30 +127,15 @@ def _bench_tree(report: Any, settings: Any, horizon: float) -> None:
     times = np.linspace(0.0, horizon, settings.prediction_points)
     reference = FullDynamics(robot, torque).simulate(state, times, 1e-13, 1e-13).qbar
 
-    def full_run(rtol: float, counter: Optional[list] = None) -> Callable[[], Any]:
-        def run():
-            model = FullDynamics(robot, torque)
-            _count_evaluations(model, counter)
-            return model.simulate(state, times, rtol, rtol)
-        return run
+    full_run = functools.partial(full_prediction, robot, torque, state, times)
 
     def reduced_run(counter: Optional[list] = None) -> Callable[[], Any]:
-        def run():
-            propagator, y0 = ReducedPropagator.from_full_state(robot, state, torque)
-            _count_evaluations(propagator, counter)
-            return propagator.propagate(y0, times, 'dop853', TREE_RTOL, TREE_RTOL)
-        return run
+        return reduced_prediction(robot, torque, state, times, 'dop853', TREE_RTOL, counter)
 
     rtols = TREE_FULL_RTOLS[::2] if settings.quick else TREE_FULL_RTOLS
     runs = [('full', rtol, full_run(rtol)) for rtol in rtols]
     runs.append(('reduced', TREE_RTOL, reduced_run()))
-    seconds: list = [[] for _ in runs]
-    results: list = [None] * len(runs)
-    # Round-robin repeats, as in bench_prediction (load changes hit both alike).
-    for _ in range(settings.repeats):
-        for index, (_, _, run) in enumerate(runs):
-            results[index], timing = _timed(run, 1, PREDICTION_CLOCK)
-            seconds[index] += timing
+    results, seconds = round_robin([run for _, _, run in runs], settings.repeats)
     rows = []
     for (kind, rtol, _), result, timing in zip(runs, results, seconds):
         counter = [0]

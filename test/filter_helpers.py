@@ -12,11 +12,16 @@
 # See the License for the specific language governing permissions and
 # limitations under the License.
 
-"""Helpers shared by the filter tests: wrench series from a bag, group error-state arithmetic."""
+"""
+Helpers shared by the filter tests.
+
+Wrench series from a bag, group error-state arithmetic, a random linearisation.
+"""
 
 import numpy as np
 
 from reduced_dynamics.bag.reader import open_bag
+from reduced_dynamics.estimator.filter import Linearisation
 
 
 def wrench_series(path, topic: str) -> np.ndarray:
@@ -40,3 +45,19 @@ def plus(group, g, x, d):
 def minus(group, g, x, g0, x0):
     """Return the error of (g, x) from (g0, x0): log(g0^-1 g), x - x0."""
     return np.concatenate((group.log(g0.inverse() * g), x - x0))
+
+
+def linearisation_problem(n: int, seed: int):
+    """
+    Return (rng, Linearisation) of a random n-dimensional problem, rng after drawing it.
+
+    Locked inertia SPD and well conditioned, connection term ~0.3, joint covariance of
+    rank 2 (the compiled-kernel tests' fixture).
+    """
+    rng = np.random.default_rng(seed)
+    root = rng.normal(size=(n, n))
+    locked = root @ root.T + n * np.eye(n)
+    joint = rng.normal(size=(n, 2)) * 0.1
+    lin = Linearisation(locked, np.linalg.inv(locked), rng.normal(size=n) * 0.3,
+                        joint @ joint.T)
+    return rng, lin

@@ -86,3 +86,14 @@ def feed(estimator, joints, bases):
         outputs += estimator.add_joint_state(joint)
         outputs += estimator.add_base_state(base)
     return outputs + estimator.flush()
+
+
+def feed_stream(estimator, stream):
+    """Feed joint state and base samples in stream order; return all outputs and the flush."""
+    outputs = []
+    for sample in stream:
+        if isinstance(sample, JointStateSample):
+            outputs += estimator.add_joint_state(sample)
+        else:
+            outputs += estimator.add_base_state(sample)
+    return outputs + estimator.flush()

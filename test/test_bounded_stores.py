@@ -20,15 +20,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from reduced_dynamics.bench import ODOMETRY_EVERY, ODOMETRY_OFFSET_NS, update_samples
 from reduced_dynamics.estimator import Estimator, EstimatorConfig
 from reduced_dynamics.estimator.event_log import EventLog
 from reduced_dynamics.estimator.observations import ObservationBuffer
 from reduced_dynamics.estimator.prediction import FINISHED_KEEP
 from reduced_dynamics.estimator.running_quantile import RunningQuantile
 from reduced_dynamics.estimator.stores import store_sizes
-from reduced_dynamics.messages.samples import BaseStateSample
 from reduced_dynamics.robot.model import load_robot
+from reduced_dynamics.soak import soak_messages
 
 #: Largest store of any kind allowed: items of a collection, bytes of an array (the largest
 #: is the fixed-lag smoother's gains: 0.75 s of 1200 steps/s in a ring of 2048, 18 x 18 each).
@@ -38,14 +37,8 @@ SLACK_ITEMS, SLACK_BYTES = 64, 64 << 10
 
 
 def _messages(seconds: float) -> list:
-    """1 kHz joint states and 200 Hz odometry 0.3 ms after them (the node bench's mix)."""
-    robot = load_robot()
-    joints, bases = update_samples(robot, int(seconds * 1000))
-    odometry = [BaseStateSample(b.stamp_ns + ODOMETRY_OFFSET_NS, b.frame_id, b.child_frame_id,
-                                b.position, b.orientation_xyzw, b.twist_linear,
-                                b.twist_angular) for b in bases[::ODOMETRY_EVERY]]
-    return sorted([(j.stamp_ns, 0, j) for j in joints] + [(b.stamp_ns, 1, b) for b in odometry],
-                  key=lambda entry: entry[:2])
+    """1 kHz joint states and 200 Hz odometry 0.3 ms after them (the soak's mix)."""
+    return soak_messages(load_robot(), int(seconds * 1000))
 
 
 def _feed(estimator: Estimator, messages: list) -> int:

@@ -284,19 +284,27 @@ def test_cli_option_and_summary_json(tmp_path):
     assert 'no geometry_msgs/msg/WrenchStamped topic /thrust' in missing.stderr
 
 
+#: The freeflyer's simulated 15 s thruster runs (poses only, 120 Hz, gains off one), without
+#: their firings and bias.
+FREEFLYER_SIMULATION = [
+    '--urdf', str(config_path('robots/freeflyer.urdf')), '--duration', '15', '--rate', '120',
+    '--seed', '5', '--torque', 'zero', '--base-pose-only', '--noise-pose', '0.0005',
+    '--noise-orientation', '0.002', '--thruster-layout', 'freeflyer',
+    '--thrust-gain', '0.9', '0.85', '1', '1', '1', '0.95', '--command-rate', '8']
+
+
+def _simulate(path, *args):
+    """Write ``reduced-dynamics simulate`` with ``args`` to ``path`` (it must succeed)."""
+    subprocess.run([sys.executable, '-m', 'reduced_dynamics.cli', 'simulate', '-o', str(path),
+                    *args], check=True, capture_output=True, cwd=REPO)
+
+
 def test_a_body_force_bias_is_recovered(tmp_path):
     """The bias of the delivered body force: 0.02 N on Fx (and 2 mN m on Mz)."""
     bag = tmp_path / 'biased'
-    subprocess.run(
-        [sys.executable, '-m', 'reduced_dynamics.cli', 'simulate', '-o', str(bag),
-         '--urdf', str(config_path('robots/freeflyer.urdf')), '--duration', '15',
-         '--rate', '120', '--seed', '5', '--torque', 'zero', '--base-pose-only',
-         '--noise-pose', '0.0005', '--noise-orientation', '0.002',
-         '--thruster-layout', 'freeflyer', '--fire', '2,1,2,5', '--fire', '5,1.5,4,7',
-         '--fire', '9,0.8,1,3,5,7', '--fire', '12,1,6,1',
-         '--thrust-gain', '0.9', '0.85', '1', '1', '1', '0.95',
-         '--thrust-bias', '0.02', '0', '0', '0', '0', '0.002', '--command-rate', '8'],
-        check=True, capture_output=True, cwd=REPO)
+    _simulate(bag, *FREEFLYER_SIMULATION, '--fire', '2,1,2,5', '--fire', '5,1.5,4,7',
+              '--fire', '9,0.8,1,3,5,7', '--fire', '12,1,6,1',
+              '--thrust-bias', '0.02', '0', '0', '0', '0', '0.002')
     summary, _ = _replay(tmp_path, bag=str(bag))
     command = summary['commanded_wrench']
     bias, sigma = np.array(command['bias_estimate']), np.array(command['bias_sigma'])
@@ -330,8 +338,7 @@ PAPER_SIMULATION = [
 
 def simulate_paper_thrusters(path):
     """Write the paper robot's thruster bag (PAPER_SIMULATION) to ``path``."""
-    subprocess.run([sys.executable, '-m', 'reduced_dynamics.cli', 'simulate', '-o', str(path),
-                    *PAPER_SIMULATION], check=True, capture_output=True, cwd=REPO)
+    _simulate(path, *PAPER_SIMULATION)
 
 
 def test_paper_robot_gains_with_joint_states_and_odometry(tmp_path):
@@ -574,14 +581,7 @@ STILL = ['--fire', '0,16,2,5', '--thrust-bias', '-0.36', '0', '0', '0', '0', '0'
 
 def test_a_still_robot_gives_an_unidentified_gain(tmp_path):
     bag = tmp_path / 'still'
-    subprocess.run(
-        [sys.executable, '-m', 'reduced_dynamics.cli', 'simulate', '-o', str(bag),
-         '--urdf', str(config_path('robots/freeflyer.urdf')), '--duration', '15',
-         '--rate', '120', '--seed', '5', '--torque', 'zero', '--base-pose-only',
-         '--noise-pose', '0.0005', '--noise-orientation', '0.002',
-         '--thruster-layout', 'freeflyer', *STILL,
-         '--thrust-gain', '0.9', '0.85', '1', '1', '1', '0.95', '--command-rate', '8'],
-        check=True, capture_output=True, cwd=REPO)
+    _simulate(bag, *FREEFLYER_SIMULATION, *STILL)
     summary, _ = _replay(tmp_path, bag=str(bag))
     command = summary['commanded_wrench']
     # Measured: fx gain 0.26 +- 0.25 (truth 0.9), its multiple correlation with the bias

@@ -34,7 +34,7 @@ from reduced_dynamics.replay import choose_inputs, ReplayOptions
 from reduced_dynamics.resources import config_path
 from reduced_dynamics.robot.model import load_robot
 from reduced_dynamics.validation import random_scenario
-from sim_samples import samples, simulate
+from sim_samples import feed_stream, samples, simulate
 
 DATA = os.path.join(os.path.dirname(__file__), 'data')
 MS = 1_000_000
@@ -62,16 +62,6 @@ def _same(a, b, where='output'):
         assert a == b, f'{where}: {a!r} != {b!r}'
 
 
-def _streaming(estimator, stream):
-    outputs = []
-    for sample in stream:
-        if isinstance(sample, JointStateSample):
-            outputs += estimator.add_joint_state(sample)
-        else:
-            outputs += estimator.add_base_state(sample)
-    return outputs + estimator.flush()
-
-
 def _batched(estimator, stream, size):
     outputs, columns = [], []
     for start in range(0, len(stream), size or len(stream) or 1):
@@ -97,7 +87,7 @@ def _state(estimator):
 def _compare_paths(make, stream, sizes=(1, 3, 64, None)):
     """Run the stream sample by sample, then batched in slices of each size."""
     reference = make()
-    expected = _streaming(reference, stream)
+    expected = feed_stream(reference, stream)
     expected_state = _state(reference)
     for size in sizes:
         estimator = make()
@@ -187,7 +177,7 @@ def test_batched_equals_streaming_with_the_second_stage():
     config = EstimatorConfig(prediction_rate=2.0, prediction_horizon=0.3, diagnostics_rate=5.0,
                              prediction_mode='held_torque', prediction_max_wall_time=0.0)
     reference = Estimator(robot, config, cyclic_joints='auto')
-    expected = _streaming(reference, stream)
+    expected = feed_stream(reference, stream)
     assert len(expected) == 301 and reference.predictor.made >= 2
     assert all(o.cyclic_state.names == ('wheel_x', 'wheel_y', 'wheel_z') for o in expected)
     assert all(len(o.shape_state.names) == 6 for o in expected)
@@ -303,7 +293,7 @@ def test_a_failed_prediction_and_a_later_rejection_keep_their_order(monkeypatch)
             if size:
                 _batched(estimator, stream[:cut], size)
             else:
-                _streaming(estimator, stream[:cut])
+                feed_stream(estimator, stream[:cut])
             results.append((estimator.last_rejection, dict(estimator.prediction_failures)))
         assert results[0] == results[1] == results[2]
         last.append(results[0][0])

@@ -21,16 +21,11 @@ from reduced_dynamics.estimator.filter import (Linearisation, Measurement, Momen
                                                NoiseModel, smooth)
 from reduced_dynamics.geometry.lie_group import SUBGROUPS
 
-from filter_helpers import minus, plus
+from filter_helpers import linearisation_problem, minus, plus
 
 
 def _linearisation(n: int, seed: int) -> Linearisation:
-    rng = np.random.default_rng(seed)
-    root = rng.normal(size=(n, n))
-    locked = root @ root.T + n * np.eye(n)
-    joint = rng.normal(size=(n, 2)) * 0.1
-    return Linearisation(locked, np.linalg.inv(locked), rng.normal(size=n) * 0.3,
-                         joint @ joint.T)
+    return linearisation_problem(n, seed)[1]
 
 
 @pytest.mark.parametrize('name', ['SE(3)', 'SE(2)'])

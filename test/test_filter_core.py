@@ -20,6 +20,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from filter_helpers import linearisation_problem
 from reduced_dynamics.estimator import Estimator, EstimatorConfig
 from reduced_dynamics.estimator.core import kernels, lie
 from reduced_dynamics.estimator.filter import Linearisation, MomentumFilter, NoiseModel
@@ -44,22 +45,12 @@ def test_group_maps_match_pinocchio() -> None:
             assert np.abs(lie.action(g.homogeneous) - g.action).max() < 1e-12
 
 
-def _problem(n: int, seed: int):
-    rng = np.random.default_rng(seed)
-    root = rng.normal(size=(n, n))
-    locked = root @ root.T + n * np.eye(n)
-    joint = rng.normal(size=(n, 2)) * 0.1
-    lin = Linearisation(locked, np.linalg.inv(locked), rng.normal(size=n) * 0.3,
-                        joint @ joint.T)
-    return rng, lin
-
-
 @pytest.mark.parametrize('name,command', [('SE(3)', False), ('SE(2)', False), ('SE(2)', True)])
 def test_compiled_kernels_equal_their_interpreted_source(name: str, command: bool) -> None:
     """The reference path is the kernels' own source run by the interpreter (py_func)."""
     group = SUBGROUPS[name]
     n = group.dim
-    rng, lin = _problem(n, 1)
+    rng, lin = linearisation_problem(n, 1)
     flt = MomentumFilter(group, NoiseModel(), 1e-6, command=command)
     dim = flt.dim
     g = group.exp(rng.normal(size=n) * 0.3).homogeneous
@@ -91,7 +82,7 @@ def test_process_noise_is_positive_semidefinite_after_a_long_gap(command: bool) 
     """
     group = SUBGROUPS['SE(2)']
     n = group.dim
-    _, lin = _problem(n, 2)
+    _, lin = linearisation_problem(n, 2)
     lin = lin._replace(joint_cov=np.zeros((n, n)))
     flt = MomentumFilter(group, NoiseModel(), 0.0, command=command)
     g = group.exp(np.array([0.1, -0.2, 0.3]))

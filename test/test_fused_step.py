@@ -17,19 +17,10 @@
 import numpy as np
 import pytest
 
+from filter_helpers import linearisation_problem
 from reduced_dynamics.estimator.core import kernels
 from reduced_dynamics.estimator.filter import Linearisation, MomentumFilter, NoiseModel
 from reduced_dynamics.geometry.lie_group import SUBGROUPS
-
-
-def _problem(n: int, seed: int):
-    rng = np.random.default_rng(seed)
-    root = rng.normal(size=(n, n))
-    locked = root @ root.T + n * np.eye(n)
-    joint = rng.normal(size=(n, 2)) * 0.1
-    lin = Linearisation(locked, np.linalg.inv(locked), rng.normal(size=n) * 0.3,
-                        joint @ joint.T)
-    return rng, lin
 
 
 @pytest.mark.parametrize('name,with_twist,gate', [
@@ -40,7 +31,7 @@ def test_fused_step_equals_propagate_then_update_bit_for_bit(
     """One compiled call per step gives what propagate then update gave, to the bit."""
     group = SUBGROUPS[name]
     n = group.dim
-    rng, lin = _problem(n, 3)
+    rng, lin = linearisation_problem(n, 3)
     step = Linearisation(lin.locked, lin.locked_inverse * 1.01, lin.connection_qd * 0.9,
                          lin.joint_cov)
     flt = MomentumFilter(group, NoiseModel(), 1e-6)

@@ -60,6 +60,7 @@ from reduced_dynamics.estimator.config import EstimatorConfig
 from reduced_dynamics.messages.convert import joint_state_from_ros, odometry_from_ros
 from reduced_dynamics.messages.samples import BaseStateSample, JointStateSample
 from reduced_dynamics.robot.model import load_robot
+from sim_samples import feed_stream
 
 DATA = os.path.join(os.path.dirname(__file__), 'data')
 NS = 1_000_000_000
@@ -428,15 +429,9 @@ def _run(samples, batched):
     faulthandler.dump_traceback_later(60, exit=True)
     try:
         if batched:
-            outputs = estimator.add_samples(samples).outputs()
+            outputs = estimator.add_samples(samples).outputs() + estimator.flush()
         else:
-            outputs = []
-            for sample in samples:
-                if isinstance(sample, JointStateSample):
-                    outputs += estimator.add_joint_state(sample)
-                else:
-                    outputs += estimator.add_base_state(sample)
-        outputs += estimator.flush()
+            outputs = feed_stream(estimator, samples)
     finally:
         faulthandler.cancel_dump_traceback_later()
     return estimator, outputs

@@ -29,6 +29,7 @@ from reduced_dynamics.messages.samples import BaseStateSample, JointStateSample
 from reduced_dynamics.params import defaults
 from reduced_dynamics.replay import replay, ReplayOptions
 from reduced_dynamics.robot.model import load_robot, RobotModel
+from sim_samples import feed_stream
 
 DATA = os.path.join(os.path.dirname(__file__), 'data')
 MS = 1_000_000
@@ -224,16 +225,6 @@ def _good(robot, stamp, receive=None, q=None):
     return joint, base
 
 
-def _feed(estimator, stream):
-    outputs = []
-    for sample in stream:
-        if isinstance(sample, JointStateSample):
-            outputs += estimator.add_joint_state(sample)
-        else:
-            outputs += estimator.add_base_state(sample)
-    return outputs + estimator.flush()
-
-
 def test_estimator_follows_a_backwards_clock_jump_of_both_streams():
     robot = RobotModel()
     config = EstimatorConfig(prediction_rate=0.0, diagnostics_rate=0.0)
@@ -241,7 +232,7 @@ def test_estimator_follows_a_backwards_clock_jump_of_both_streams():
                                                            for k in range(40)]
     stream = [s for stamp in stamps for s in _good(robot, stamp)]
     estimator = Estimator(robot, config)
-    outputs = _feed(estimator, stream)
+    outputs = feed_stream(estimator, stream)
     assert [o.stamp_ns for o in outputs] == stamps
     assert not estimator.rejected and estimator.clock_resets == 1
     assert all(np.isfinite(o.momentum_rate.force).all() for o in outputs)
@@ -256,10 +247,11 @@ def test_estimator_follows_a_backwards_clock_jump_of_both_streams():
 def test_reset_restarts_the_clock_and_keeps_counts():
     robot = RobotModel()
     estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0, diagnostics_rate=0.0))
-    first = _feed(estimator, [s for k in range(10) for s in _good(robot, 50 * S + k * 10 * MS)])
+    first = feed_stream(estimator,
+                        [s for k in range(10) for s in _good(robot, 50 * S + k * 10 * MS)])
     assert len(first) == 10
     estimator.reset('ROS time jumped back')
-    again = _feed(estimator, [s for k in range(10) for s in _good(robot, S + k * 10 * MS)])
+    again = feed_stream(estimator, [s for k in range(10) for s in _good(robot, S + k * 10 * MS)])
     assert len(again) == 10 and not estimator.rejected
     assert estimator.clock_resets == 1 and estimator.last_reset == 'ROS time jumped back'
     assert estimator.summary()['processed'] == 20

@@ -19,6 +19,7 @@ import pinocchio as pin
 import pytest
 
 from conftest_robots import ROBOTS
+from reduced_dynamics.estimator.core import lie
 from reduced_dynamics.geometry.isotropy import MomentumClass
 from reduced_dynamics.reduction import lean_field
 from reduced_dynamics.reduction.reconstruction import ReducedPropagator
@@ -71,6 +72,26 @@ def test_se3_jacobians_equal_pinocchio(scale):
         assert np.abs(lean_field.left_jacobian6(twist) - pin.Jexp6(-twist)).max() <= 1e-13
         assert np.abs(lean_field.right_jacobian6_inverse(twist)
                       - pin.Jlog6(pin.exp6(twist))).max() <= 1e-13
+
+
+@pytest.mark.parametrize('scale', [0.0, 1e-9, 1e-5, 1e-3, 0.3, 3.0])
+def test_chart_exp_is_the_estimator_cores_exp6(scale):
+    # chi = exp(S C q~1) g_ref takes exp6's closed form from the estimator core (one copy
+    # of its series and closed-form branches): the core's exp6 then compose to round-off
+    # (the sums run in another order), on both sides of the 1e-4 rad switch.
+    rng = np.random.default_rng(int(1e3 * scale) + 7)
+    reference = pin.exp6(rng.standard_normal(6)).homogeneous
+    out, scratch = np.empty((4, 4)), np.empty((lean_field.SCRATCH3, 3, 3))
+    for _ in range(5):
+        twist = np.r_[rng.standard_normal(3), scale * rng.standard_normal(3)]
+        lean_field._exp_times(twist, reference, out, scratch)
+        assert np.abs(out - lie.compose(lie.exp6(twist), reference)).max() <= 1e-14
+        t2 = float(twist[3:] @ twist[3:])
+        if t2 > 1e-4:
+            t = np.sqrt(t2)
+            assert np.allclose(lie.exp6_coefficients(t2),
+                               (np.sin(t) / t, (1 - np.cos(t)) / t2, (t - np.sin(t)) / t2 / t),
+                               rtol=1e-13, atol=0.0)
 
 
 def test_left_jacobian_small_angle_matches_its_definition():

@@ -171,6 +171,11 @@ def expected_outputs(node, messages, config, use_odometry=True, urdf='', cyclic_
     estimator = Estimator(load_robot(urdf or str(paper_robot_urdf()), 'floating',
                                      numpy.zeros(3)),
                           config, use_odometry=use_odometry, cyclic_joints=cyclic_joints)
+    return estimator_outputs(node, estimator, messages)
+
+
+def estimator_outputs(node, estimator, messages, pose_from_ros=pose_stamped_from_ros):
+    """Feed ``estimator`` the (topic, message) pairs; return {node's topic: [messages]}."""
     expected = {_resolved(node, topic): [] for topic in OUTPUT_TOPICS}
     for topic, msg in messages:
         if topic == 'joint_states':
@@ -178,7 +183,7 @@ def expected_outputs(node, messages, config, use_odometry=True, urdf='', cyclic_
         elif topic == 'odom':
             outputs = estimator.add_base_state(odometry_from_ros(msg))
         else:
-            outputs = estimator.add_base_state(pose_stamped_from_ros(msg, 'spacecraft'))
+            outputs = estimator.add_base_state(pose_from_ros(msg, 'spacecraft'))
         for output in outputs:
             for out_topic, out_msg in output_messages(output, RclpyTypes()):
                 expected[_resolved(node, out_topic)].append(out_msg)
@@ -188,6 +193,17 @@ def expected_outputs(node, messages, config, use_odometry=True, urdf='', cyclic_
 def _resolved(node, topic):
     return node.resolve_topic_name(topic.name if topic.name.startswith('/')
                                    else '~/' + topic.name)
+
+
+def assert_published(ros, expected, every_topic=True):
+    """Assert each topic published exactly ``expected``'s messages (and, by default, some)."""
+    for topic, wanted in expected.items():
+        if every_topic:
+            assert wanted, f'the run produced nothing on {topic}'
+        got = ros.published(topic)
+        assert len(got) == len(wanted), topic
+        for i, (actual, want) in enumerate(zip(got, wanted)):
+            assert_same_message(actual, want, f'{topic}[{i}]')
 
 
 def assert_same_message(actual, expected, path='msg'):
@@ -403,12 +419,7 @@ def test_outputs_equal_an_estimator_fed_directly(ros, node_factory, base_input):
     # No commanded wrench: no disturbance (test_node_with_a_commanded_wrench_... has it).
     disturbance = node.resolve_topic_name('~/drift/disturbance')
     assert expected.pop(disturbance) == [] and ros.published(disturbance) == []
-    for topic, wanted in expected.items():
-        assert wanted, f'the run produced nothing on {topic}'  # every topic is exercised
-        got = ros.published(topic)
-        assert len(got) == len(wanted), topic
-        for i, (actual, want) in enumerate(zip(got, wanted)):
-            assert_same_message(actual, want, f'{topic}[{i}]')
+    assert_published(ros, expected)  # every topic is exercised
     stamps = {int(s) for s in trajectory()['stamps'][:count]}
     momentum = ros.published('~/momentum', node)
     assert {m.header.stamp.sec * NS + m.header.stamp.nanosec for m in momentum} <= stamps
@@ -447,35 +458,14 @@ def test_message_covariances_give_the_outputs_of_an_estimator_fed_directly(
     feed(ros, node, messages)
     robot = load_robot(str(paper_robot_urdf()), 'floating', numpy.zeros(3))
     estimator = Estimator(robot, EstimatorConfig(**settings), use_odometry=base_input == 'odom')
-    expected = {_resolved(node, topic): [] for topic in OUTPUT_TOPICS}
-    for topic, msg in messages:
-        if topic == 'joint_states':
-            outputs = estimator.add_joint_state(joint_state_from_ros(msg))
-        elif topic == 'odom':
-            outputs = estimator.add_base_state(odometry_from_ros(msg))
-        else:
-            outputs = estimator.add_base_state(
-                pose_with_covariance_stamped_from_ros(msg, 'spacecraft'))
-        for output in outputs:
-            for out_topic, out_msg in output_messages(output, RclpyTypes()):
-                expected[_resolved(node, out_topic)].append(out_msg)
+    expected = estimator_outputs(node, estimator, messages, pose_with_covariance_stamped_from_ros)
     momentum = expected[node.resolve_topic_name('~/momentum')]
     assert len(momentum) > 0.9 * count
-    for topic, wanted in expected.items():
-        got = ros.published(topic)
-        assert len(got) == len(wanted), topic
-        for i, (actual, want) in enumerate(zip(got, wanted)):
-            assert_same_message(actual, want, f'{topic}[{i}]')
+    assert_published(ros, expected, every_topic=False)
     # The covariances were used: the parameters alone give other numbers.
     plain = Estimator(robot, EstimatorConfig(**settings, use_message_covariance=False),
                       use_odometry=base_input == 'odom')
-    for topic, msg in messages:
-        if topic == 'joint_states':
-            plain.add_joint_state(joint_state_from_ros(msg))
-        elif topic == 'odom':
-            plain.add_base_state(odometry_from_ros(msg))
-        else:
-            plain.add_base_state(pose_with_covariance_stamped_from_ros(msg, 'spacecraft'))
+    estimator_outputs(node, plain, messages, pose_with_covariance_stamped_from_ros)
     assert not estimator.covariance_fallbacks
     assert plain.filter.log_likelihood != estimator.filter.log_likelihood
 
@@ -497,12 +487,7 @@ def test_second_stage_outputs_equal_an_estimator_fed_directly(ros, node_factory,
     assert expected.pop(phase) == [] and ros.published(phase) == []  # a torque mode
     disturbance = node.resolve_topic_name('~/drift/disturbance')  # no commanded wrench
     assert expected.pop(disturbance) == [] and ros.published(disturbance) == []
-    for topic, wanted in expected.items():
-        assert wanted, f'the run produced nothing on {topic}'
-        got = ros.published(topic)
-        assert len(got) == len(wanted), topic
-        for i, (actual, want) in enumerate(zip(got, wanted)):
-            assert_same_message(actual, want, f'{topic}[{i}]')
+    assert_published(ros, expected)
     cyclic = ros.published(node.resolve_topic_name('~/cyclic_momenta'))
     assert list(cyclic[0].name) == ['wheel_x', 'wheel_y', 'wheel_z']
     shape = ros.published(node.resolve_topic_name('~/shape_state'))

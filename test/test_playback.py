@@ -286,12 +286,17 @@ def test_only_the_ros_shells_import_rclpy():
     assert found == ROS_SHELLS
 
 
-def test_play_help_and_bad_options_need_no_rclpy():
+def _play_without_rclpy(*args: str) -> subprocess.CompletedProcess:
+    """Run ``reduced-dynamics play BAG args`` in an interpreter where rclpy cannot import."""
     code = ('import sys\nsys.modules["rclpy"] = None\n'
             'from reduced_dynamics.cli import main\n'
-            f'sys.exit(main(["play", {str(BAG)!r}, "--rate", "0", "--topics", "/nope"]))')
-    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+            f'sys.exit(main(["play", {str(BAG)!r}, *{list(args)!r}]))')
+    return subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                           timeout=120, cwd=REPO_ROOT)
+
+
+def test_play_help_and_bad_options_need_no_rclpy():
+    done = _play_without_rclpy('--rate', '0', '--topics', '/nope')
     assert done.returncode == 2, done.stderr
     assert done.stderr.splitlines() == [
         'reduced-dynamics play: error: --rate must be a positive number, got 0.0',
@@ -301,11 +306,7 @@ def test_play_help_and_bad_options_need_no_rclpy():
 
 
 def test_play_without_rclpy_says_so_in_one_line():
-    code = ('import sys\nsys.modules["rclpy"] = None\n'
-            'from reduced_dynamics.cli import main\n'
-            f'sys.exit(main(["play", {str(BAG)!r}]))')
-    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
-                          timeout=120, cwd=REPO_ROOT)
+    done = _play_without_rclpy()
     assert done.returncode == 1
     assert done.stderr.splitlines() == [
         'reduced-dynamics play: rclpy is not importable; source /opt/ros/jazzy/setup.bash, '

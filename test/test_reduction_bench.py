@@ -44,3 +44,13 @@ def test_tree_row_and_paper_floor_are_measured():
     assert 'reduced dop853 rtol 1e-10 (paper robot): ratio over its floor' in names
     rows = report.details['tree_prediction_sweep']
     assert all(r['evaluations'] > 0 and r['error'] < 1e-4 for r in rows)
+
+
+def test_prediction_runs_take_turns_over_the_repeats():
+    # round_robin (bench_prediction and the tree row): every run once per repeat, in turns,
+    # so a change of machine load hits the reduced and the full runs alike.
+    order = []
+    runs = [lambda k=k: order.append(k) or 10 * k for k in range(3)]
+    results, seconds = bench.round_robin(runs, 2)
+    assert order == [0, 1, 2, 0, 1, 2] and results == [0, 10, 20]
+    assert [len(s) for s in seconds] == [2, 2, 2] and min(min(s) for s in seconds) >= 0.0

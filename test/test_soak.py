@@ -13,8 +13,9 @@
 # limitations under the License.
 
 
-"""The soak section's figures: RSS slope, first and last tenth (ROS-free parts)."""
+"""The soak section's figures: RSS slope, first and last tenth; one short run over real DDS."""
 
+import importlib.util
 import json
 import os
 
@@ -22,7 +23,8 @@ import numpy as np
 import pytest
 
 from reduced_dynamics.bench import register_command, Settings
-from reduced_dynamics.soak import MIB, node_soak_figures, proc_sample, rss_slope, tenth_figures
+from reduced_dynamics.soak import MIB, node_soak_figures, proc_sample, rss_slope, \
+    run_node_soak, tenth_figures
 
 NS = 1_000_000_000
 
@@ -84,3 +86,24 @@ def test_soak_section_only_on_request_and_its_options():
     args = parser.parse_args(['bench', '--sections', 'soak', '--soak-duration', '600'])
     assert args.sections == ['soak'] and args.soak_duration == 600.0
     assert Settings().soak_seconds == 60.0 and Settings.quick_settings().soak_seconds < 60.0
+
+
+@pytest.mark.skipif(importlib.util.find_spec('rclpy') is None,
+                    reason='rclpy not importable (CI installs it: pip install .[ros])')
+def test_node_soak_over_real_dds(tmp_path):
+    # node_bench's soak-probe and soak-publish around the real node for 2 s: the probe
+    # comes up (its ready file), the publisher sends on schedule, outputs come back
+    # stamped with sent joint states (no figure asserted: machines are noisy).
+    from reduced_dynamics.bench import node_domain_id
+    from reduced_dynamics.soak import _package_env
+    env = dict(_package_env(), ROS_DOMAIN_ID=str(node_domain_id()),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
+    raw = run_node_soak(str(tmp_path), 2.0, env)
+    sent, records = raw['sent'], raw['records']
+    assert sent['joint_states'] == 2000 and sent['odometry'] == 401, sent
+    assert sent['start_ns'] < sent['end_ns']
+    assert records.dtype == np.int64 and records.shape[1] == 2 and len(records) > 0
+    # Stamps are send times inside the window; each output is received after its input.
+    assert np.all((records[:, 0] >= sent['start_ns']) & (records[:, 0] <= sent['end_ns']))
+    assert np.all(records[:, 1] >= records[:, 0])
+    assert len(raw['proc']) >= 2 and raw['exit_code'] == 0

@@ -43,6 +43,8 @@ import numpy as np
 from numba import njit
 import pinocchio as pin
 
+from reduced_dynamics.estimator.core.lie import exp6_coefficients
+
 _crba = pin.crba
 _coriolis = pin.computeCoriolisMatrix
 
@@ -247,19 +249,14 @@ def _solve_factor(factor: np.ndarray, size: int, rhs: np.ndarray) -> None:
 
 @njit(cache=True)
 def _exp_times(twist: np.ndarray, g: np.ndarray, out: np.ndarray, s3: np.ndarray) -> None:
-    """Write exp6(twist) g into out (``pin.exp6``'s closed form, in loops: no BLAS)."""
+    """
+    Write exp6(twist) g into out (``pin.exp6``'s closed form, in loops: no BLAS).
+
+    The closed form's coefficients are :func:`.core.lie.exp6_coefficients`, the
+    estimator core's ``exp6``.
+    """
     w0, w1, w2 = twist[3], twist[4], twist[5]
-    t2 = w0 * w0 + w1 * w1 + w2 * w2
-    t = math.sqrt(t2)
-    if t < 1e-4:
-        a = 1.0 - t2 / 6.0 * (1.0 - t2 / 20.0)
-        b = 0.5 - t2 / 24.0 * (1.0 - t2 / 30.0)
-        c = 1.0 / 6.0 - t2 / 120.0 * (1.0 - t2 / 42.0)
-    else:
-        s, half = math.sin(t), math.sin(0.5 * t)
-        a = s / t
-        b = 2.0 * half * half / t2
-        c = (t - s) / (t2 * t)
+    a, b, c = exp6_coefficients(w0 * w0 + w1 * w1 + w2 * w2)
     k, k2 = s3[0], s3[1]
     _hat(w0, w1, w2, k)
     _mm3(k, k, k2)

@@ -37,10 +37,13 @@ def _skew(w: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def exp6(twist: np.ndarray) -> np.ndarray:
-    """Return exp of a twist (v, omega) as a 4 x 4 homogeneous matrix."""
-    v, w = twist[:3], twist[3:]
-    t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+def exp6_coefficients(t2: float) -> tuple:
+    """
+    Return exp6's coefficients (a, b, c) at ``t2 = |omega|^2``.
+
+    ``R = 1 + a [w] + b [w]^2`` and ``V = 1 + b [w] + c [w]^2`` with ``a = sin t / t``,
+    ``b = (1 - cos t) / t^2``, ``c = (t - sin t) / t^3`` (series below 1e-4 rad).
+    """
     t = math.sqrt(t2)
     if t < 1e-4:
         # Series: the closed forms lose digits to cancellation at small angles.
@@ -52,6 +55,14 @@ def exp6(twist: np.ndarray) -> np.ndarray:
         a = s / t
         b = 2.0 * half * half / t2          # (1 - cos t) / t^2 without cancellation
         c = (t - s) / (t2 * t)
+    return a, b, c
+
+
+@njit(cache=True)
+def exp6(twist: np.ndarray) -> np.ndarray:
+    """Return exp of a twist (v, omega) as a 4 x 4 homogeneous matrix."""
+    v, w = twist[:3], twist[3:]
+    a, b, c = exp6_coefficients(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
     k = _skew(w)
     k2 = k @ k
     out = np.zeros((4, 4))
