@@ -97,6 +97,53 @@ def proc_sample(pid: int) -> tuple[int, float]:
     return resident, ticks / os.sysconf('SC_CLK_TCK')
 
 
+#: glibc's thread arenas are heaps of HEAP_MAX_SIZE (64 MiB on 64-bit), aligned to it.
+ARENA_ALIGN = 64 << 20
+#: Kinds of resident memory :func:`rss_by_kind` tells apart.
+RSS_KINDS = ('heap', 'thread_arenas', 'anon', 'shm', 'files')
+#: Every how many /proc samples the node's smaps is read (~ms each).
+SMAPS_EVERY = 10
+
+
+def classify_smaps(text: str) -> dict[str, int]:
+    """
+    Return resident bytes per kind from a ``/proc/PID/smaps`` text.
+
+    ``heap``: the main thread's malloc heap (brk); ``thread_arenas``: anonymous
+    mappings starting on a 64 MiB boundary (other threads' malloc arenas);
+    ``anon``: other anonymous memory (Python's object arenas, large numpy arrays,
+    stacks); ``shm``: /dev/shm (Fast DDS shared-memory transport); ``files``:
+    every other file-backed mapping (libraries). Which kind grows tells a
+    Python-level leak from a thread's malloc arena or the middleware.
+    """
+    out = dict.fromkeys(RSS_KINDS, 0)
+    kind = 'anon'
+    for line in text.splitlines():
+        head, _, rest = line.partition(' ')
+        if head == 'Rss:':
+            out[kind] += int(rest.split()[0]) * 1024
+        elif '-' in head and not head.endswith(':'):
+            fields = rest.split()
+            path = fields[4] if len(fields) > 4 else ''
+            if path == '[heap]':
+                kind = 'heap'
+            elif path.startswith('/dev/shm'):
+                kind = 'shm'
+            elif path.startswith('/'):
+                kind = 'files'
+            elif not path and int(head.partition('-')[0], 16) % ARENA_ALIGN == 0:
+                kind = 'thread_arenas'
+            else:
+                kind = 'anon'
+    return out
+
+
+def rss_by_kind(pid: int) -> dict[str, int]:
+    """Return a process's resident bytes per kind (:func:`classify_smaps`)."""
+    with open(f'/proc/{pid}/smaps', encoding='ascii', errors='replace') as stream:
+        return classify_smaps(stream.read())
+
+
 def _stop(process: subprocess.Popen, timeout: float = 20.0) -> Optional[int]:
     """SIGINT, then SIGKILL after ``timeout``; return the exit code (None: killed)."""
     from reduced_dynamics.bench import _stop as stop
@@ -108,7 +155,9 @@ def run_node_soak(workdir: str, seconds: float, env: dict, period: float = 1.0) 
     Run the node, the probe and the publisher for ``seconds``; return the raw measurements.
 
     Returns the publisher's JSON, the probe's records (K, 2), the /proc samples
-    (J, 3: wall ns, RSS bytes, CPU s) of the node, its log lines and its exit code.
+    (J, 3: wall ns, RSS bytes, CPU s) of the node, every SMAPS_EVERY-th with its
+    RSS by kind ((wall ns, {kind: bytes}), :func:`rss_by_kind`), its log lines
+    and its exit code.
     """
     python = sys.executable
     node_log = os.path.join(workdir, 'node.log')
@@ -123,6 +172,7 @@ def run_node_soak(workdir: str, seconds: float, env: dict, period: float = 1.0) 
                               '--out', probe_out, '--ready', ready],
                              env=env, stdout=log, stderr=log)
     samples: list[tuple[int, int, float]] = []
+    kinds: list[tuple[int, dict]] = []
     code: Optional[int] = None
     try:
         deadline = time.monotonic() + 120.0
@@ -142,6 +192,8 @@ def run_node_soak(workdir: str, seconds: float, env: dict, period: float = 1.0) 
                 raise RuntimeError(f'soak: the node exited early (see {node_log})')
             resident, cpu = proc_sample(node.pid)
             samples.append((time.time_ns(), resident, cpu))
+            if len(samples) % SMAPS_EVERY == 1:
+                kinds.append((samples[-1][0], rss_by_kind(node.pid)))
             next_at += period
             time.sleep(max(0.0, next_at - time.monotonic()))
         if publisher.returncode:
@@ -158,7 +210,7 @@ def run_node_soak(workdir: str, seconds: float, env: dict, period: float = 1.0) 
     with open(node_log, encoding='utf-8', errors='replace') as stream:
         lines = stream.read().splitlines()
     return {'sent': sent, 'records': np.load(probe_out), 'proc': np.array(samples, float),
-            'log_lines': lines, 'exit_code': code}
+            'log_lines': lines, 'exit_code': code, 'rss_kinds': kinds}
 
 
 def node_soak_figures(raw: dict, warmup_s: float) -> dict:
@@ -183,9 +235,21 @@ def node_soak_figures(raw: dict, warmup_s: float) -> dict:
             'log_lines_per_hour': len(raw['log_lines']) / hours if hours else float('nan'),
             'publisher_late_max_s': sent['late_max_s'], 'exit_code': raw['exit_code'],
             'first_tenth': tenths['first'], 'last_tenth': tenths['last'],
+            'rss_slope_by_kind_mib_per_h': kind_slopes(raw.get('rss_kinds', []), start_ns,
+                                                       warmup_s),
             # the RSS curve itself, every 10th sample (~10 s), to tell a step from a slope
             'rss_series_s_mib': [[round(float(a), 1), round(float(b), 2)]
                                  for a, b in zip(t[during][::10], rss[::10])]}
+
+
+def kind_slopes(kinds: Sequence[tuple[int, dict]], start_ns: int,
+                warmup_s: float) -> dict[str, float]:
+    """Return the RSS slope [MiB/h] of each kind after the warm-up (empty: too few samples)."""
+    t = np.array([(wall - start_ns) * 1e-9 for wall, _ in kinds])
+    if (t >= warmup_s).sum() < 2:
+        return {}
+    return {kind: rss_slope(t, [sample[kind] for _, sample in kinds], warmup_s)
+            for kind in RSS_KINDS}
 
 
 _RETAINED_SCRIPT = """
@@ -342,7 +406,9 @@ def bench_soak(report: Any, robot: Any, settings: Any, workdir: str) -> None:
             target=f'<= {SLOPE_TARGET_MIB_H:g} MiB/h',
             check=lambda v: v <= SLOPE_TARGET_MIB_H,
             note=f'{window}; RSS {node["rss_at_warmup_mib"]:.1f} -> {node["rss_end_mib"]:.1f}'
-                 ' MiB (least squares over 1 s samples of /proc)'))
+                 ' MiB (least squares over 1 s samples of /proc); by kind (MiB/h): '
+                 + ', '.join(f'{kind} {slope:.1f}' for kind, slope in
+                             node['rss_slope_by_kind_mib_per_h'].items())))
         first, last = node['first_tenth'], node['last_tenth']
         for key, name, unit in (('cpu_us_per_sample', 'node CPU per sample', 'us'),
                                 ('p99_ms', 'node latency p99', 'ms')):

@@ -23,8 +23,9 @@ import numpy as np
 import pytest
 
 from reduced_dynamics.bench import register_command, Settings
-from reduced_dynamics.soak import MIB, node_soak_figures, proc_sample, rss_slope, \
-    run_node_soak, tenth_figures
+from reduced_dynamics.soak import (classify_smaps, kind_slopes, MIB, node_soak_figures,
+                                   proc_sample, rss_by_kind, RSS_KINDS, rss_slope, run_node_soak,
+                                   tenth_figures)
 
 NS = 1_000_000_000
 
@@ -107,3 +108,40 @@ def test_node_soak_over_real_dds(tmp_path):
     assert np.all((records[:, 0] >= sent['start_ns']) & (records[:, 0] <= sent['end_ns']))
     assert np.all(records[:, 1] >= records[:, 0])
     assert len(raw['proc']) >= 2 and raw['exit_code'] == 0
+
+
+SMAPS = """\
+55d0c0a00000-55d0c5a00000 rw-p 00000000 00:00 0                          [heap]
+Size:              81920 kB
+Rss:               40000 kB
+7f026c000000-7f026c480000 rw-p 00000000 00:00 0
+Size:               4608 kB
+Rss:                4608 kB
+7f026c480000-7f0270000000 ---p 00000000 00:00 0
+Size:              60928 kB
+Rss:                   0 kB
+7f02a5f00000-7f02a6000000 rw-p 00000000 00:00 0
+Rss:                1024 kB
+7f02b0000000-7f02b0001000 rw-s 00000000 00:1a 12   /dev/shm/fastrtps_abc
+Rss:                   4 kB
+7f02c0000000-7f02c0100000 r-xp 00000000 08:01 99   /usr/lib/libfoo.so
+Rss:                 512 kB
+"""
+
+
+def test_resident_memory_is_told_apart_by_kind():
+    # A thread's malloc arena starts on a 64 MiB boundary; Python's arenas do not.
+    kinds = classify_smaps(SMAPS)
+    assert kinds == {'heap': 40000 * 1024, 'thread_arenas': 4608 * 1024, 'anon': 1024 * 1024,
+                     'shm': 4 * 1024, 'files': 512 * 1024}
+    assert sum(rss_by_kind(os.getpid()).values()) > 10 * MIB
+
+
+def test_the_growing_kind_has_the_slope():
+    # 1 MiB per 100 s in the thread arenas only, from the warm-up on.
+    kinds = [(k * 10 * NS, {'heap': 5 * MIB, 'thread_arenas': k * MIB // 10, 'anon': MIB,
+                            'shm': 0, 'files': 0}) for k in range(20)]
+    slopes = kind_slopes(kinds, 0, 50.0)
+    assert slopes['thread_arenas'] == pytest.approx(36.0)
+    assert slopes['heap'] == pytest.approx(0.0) and set(slopes) == set(RSS_KINDS)
+    assert kind_slopes(kinds[:3], 0, 50.0) == {}
