@@ -235,6 +235,7 @@ class EventDetector:
         sample (multiscale.twist_momenta; None: none), for the block test and the
         impulse's ends.
         """
+        self.multiscale.quiet = not self.in_event
         pulse = None if mu_cov is None else \
             self.multiscale.update(stamp_ns, mu, mu_cov, measured)
         event = self.events[-1] if self.in_event else None

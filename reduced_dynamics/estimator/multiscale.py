@@ -53,6 +53,7 @@ from typing import Any, NamedTuple, Optional
 
 import numpy as np
 from reduced_dynamics.chi_square import chi2
+from scipy.special import chdtri
 from reduced_dynamics.estimator.core import blocks
 
 #: Shortest and longest window [s] and the ratio between successive windows.
@@ -65,6 +66,10 @@ PERIOD_TOLERANCE = 0.2
 #: noise's running mean (samples).
 EXCESS_MINIMUM = 200
 EXCESS_SAMPLES = 2000
+#: Memory [s] of the null calibration (the running fraction of quiet updates whose
+#: statistic is above the chi2_n median), and updates between its inflation's updates.
+CALIBRATION_MEMORY = 600.0
+CALIBRATION_EVERY = 256
 
 
 def window_bank(shortest: float = SHORTEST, longest: float = LONGEST,
@@ -97,9 +102,11 @@ class MultiScaleTest:
     """GLR of a constant-wrench pulse over each window of a geometric bank (module doc)."""
 
     def __init__(self, n: int, false_alarm_rate: float,
-                 windows: Optional[np.ndarray] = None) -> None:
+                 windows: Optional[np.ndarray] = None,
+                 calibration_memory: float = CALIBRATION_MEMORY) -> None:
         """Set up for momenta of dimension ``n``; ``false_alarm_rate`` [1/h], 0: off."""
         self.n = n
+        self.calibration_memory = calibration_memory
         self.rate = false_alarm_rate
         self.windows = window_bank() if windows is None else np.asarray(windows, float)
         self._lags_ns = np.round(self.windows * 1e9).astype(np.int64)
@@ -119,6 +126,14 @@ class MultiScaleTest:
         #: the same bank on measured momenta (a twist measured: :class:`MomentumBlocks`)
         self.blocks = MomentumBlocks(n, self.windows)
         self._moving_thresholds: dict[int, float] = {}
+        #: per test (filtered momentum, blocks) and window: the running fraction of
+        #: quiet updates above the chi2_n median, and the inflation of T it implies
+        self._above = np.full((2, len(self.windows)), 0.5)
+        self.inflation = np.ones((2, len(self.windows)))
+        self._median = float(chi2.isf(0.5, n))
+        self._updates = 0
+        #: whether no event is open (the detector sets it): only then is the null learnt
+        self.quiet = True
 
     @property
     def active(self) -> bool:
@@ -172,10 +187,19 @@ class MultiScaleTest:
                 self._threshold_period = 0.0  # two tests now share the rate
             for item in measured:
                 self.blocks.add(*item)
+        self._updates += 1
+        if not self._updates % CALIBRATION_EVERY:
+            # T ~ lambda chi2_n above the median a fraction p of the time: lambda =
+            # median / isf(p). Never below 1 (never looser than the noise model).
+            p = np.clip(self._above, 0.5, 1.0 - 1e-3)
+            self.inflation = np.maximum(1.0, self._median / chdtri(self.n, p))
         found = self._filtered(stamp_ns, mu, cov)
         if not self.blocks.active or self._period is None:
             return found
         best = self.blocks.update(stamp_ns, self.floor_ns)
+        if best >= 0:
+            self.blocks.statistics[:] = self._calibrate(1, self.blocks.statistics)
+            best = int(np.argmax(self.blocks.statistics))
         if best < 0 or not self.blocks.statistics[best] > self.threshold:
             return found
         block = self.blocks.locate(stamp_ns, best, self.floor_ns)
@@ -222,6 +246,8 @@ class MultiScaleTest:
             return None
         values = np.einsum('ij,ij->i', d, solved)
         self.statistics[covered] = values
+        self.statistics[:] = self._calibrate(0, self.statistics)
+        values = self.statistics[covered]
         best = int(np.argmax(values))
         if not values[best] > self.threshold:
             return None
@@ -236,6 +262,23 @@ class MultiScaleTest:
                                 float(self.windows[np.flatnonzero(covered)[best]]),
                                 float(values[best]), self._mu[rows[longest]].copy(),
                                 self._cov[rows[longest]].copy())
+
+    def _calibrate(self, test: int, raw: np.ndarray) -> np.ndarray:
+        """
+        Learn test ``test``'s null from quiet updates; return ``raw`` / its inflation.
+
+        The union bound holds if T_L is chi2_n without a wrench. Noise the model does
+        not know (a moving arm's model error, coloured noise the excess from
+        successive differences misses) scales T_L up, most at long windows. Its scale
+        comes from the test's own median (robust: a push is a small part of the
+        time), learnt over ``calibration_memory`` s while no event is open.
+        """
+        if self.quiet and self._period is not None:
+            covered = raw > 0.0
+            rate = min(1.0, self._period / self.calibration_memory)
+            above = self._above[test]
+            above[covered] += rate * ((raw[covered] > self._median) - above[covered])
+        return raw / self.inflation[test]
 
     def still_moving(self, window: float) -> bool:
         """
