@@ -573,8 +573,9 @@ def bench_multiscale(report: Report, robot, settings: Settings) -> None:
         'update', 'multi-scale event test (paper robot)', 'us/sample',
         [1e6 * t for t in alone], 'estimator update with it', [1e6 * u for u in updates],
         [t / u for t, u in zip(alone, updates)],
-        note='the test alone on one run\'s recorded calls, every window covered; ratio: '
-             'its share of a streaming update (1 kHz pose + twist)'))
+        note='the test alone on one run\'s recorded calls (the filtered momentum\'s windows '
+             'and the compiled block test on measured twists and centre of mass), every '
+             'window covered; ratio: its share of a streaming update (1 kHz pose + twist)'))
 
 
 # --------------------------------------------------------------------------- 2. prediction

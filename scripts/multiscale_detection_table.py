@@ -90,6 +90,8 @@ MULTIPLES = (1.0, 3.0, 10.0, 30.0)
 #: Seconds from one push's end to the next push (the longest window and settling).
 GAP = 9.0
 FIRST = 5.0
+#: Print every bag's events and pushes (--verbose).
+VERBOSE = False
 
 
 def _bound(name: str, robot, duration: float) -> float:
@@ -152,7 +154,13 @@ def detection_rows(name: str, work: Path, seeds: int, pushes: int,
                 seconds = FIRST + pushes * (duration + GAP)
                 bag = work / f'{name}-{duration:g}-{multiple:g}-{seed}'
                 truth = _simulate(name, bag, seconds, 100 + seed, plan)
-                events = list(_replay(name, robot, bag)['events'])
+                events = list(_replay(name, robot, bag)["events"])
+                if VERBOSE:
+                    origin = truth['start_time_ns']
+                    print('events (start, detected, window):',
+                          [(round((e['start_stamp_ns'] - origin) * 1e-9, 2),
+                            round((e['detected_stamp_ns'] - origin) * 1e-9, 2), e['window_s'])
+                           for e in events], 'pushes at', [p[0] for p in plan], flush=True)
                 origin = truth['start_time_ns']
                 for (start, _, _), pulse in zip(plan, truth['pulses']):
                     mine = [e for e in events
@@ -213,9 +221,12 @@ def main() -> int:
     parser.add_argument('--coast-minutes', type=float, default=30.0)
     parser.add_argument('--coast-seeds', type=int, nargs='+', default=[31])
     parser.add_argument('--skip-pushes', action='store_true')
+    parser.add_argument('--verbose', action='store_true')
     parser.add_argument('--durations', type=float, nargs='+', default=list(DURATIONS))
     parser.add_argument('--multiples', type=float, nargs='+', default=list(MULTIPLES))
     args = parser.parse_args()
+    global VERBOSE
+    VERBOSE = args.verbose
     work = Path(args.workdir)
     work.mkdir(parents=True, exist_ok=True)
     humanoid = work / 'humanoid_on_bus.urdf'

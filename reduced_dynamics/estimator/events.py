@@ -55,6 +55,9 @@ __all__ = ['EventDetector', 'EventNotice', 'MomentumEvent', 'SETTLE', 'StepDetec
 
 #: Seconds after an event's end during which its mu_after follows the filter.
 SETTLE = 1.0
+#: Longest block window [s] whose change keeps an event that no window started open
+#: (its end comes at most three such windows after the push's).
+MOVING_WINDOW = 0.3
 
 
 @dataclass
@@ -232,6 +235,7 @@ class EventDetector:
         sample (multiscale.twist_momenta; None: none), for the block test and the
         impulse's ends.
         """
+        self.multiscale.quiet = not self.in_event
         # A pulse is used only outside an event: inside one it is not located.
         pulse = None if mu_cov is None else \
             self.multiscale.update(stamp_ns, mu, mu_cov, measured, not self.in_event)
@@ -293,6 +297,10 @@ class EventDetector:
         # still moves mu beyond the median (a slow push barely moves w's chi-square).
         pushing = event.window is not None and self.multiscale.window_statistic(
             event.window / 2) >= self.rest_threshold
+        # With measured twists: while the measured momenta still move (a long push
+        # goes on after the wrench estimate's chi-square dips; multiscale.py).
+        pushing = pushing or self.multiscale.still_moving(
+            MOVING_WINDOW if event.window is None else event.window / 2)
         if significance >= self.end_threshold or step or pushing:
             self._quiet_since = None
             return

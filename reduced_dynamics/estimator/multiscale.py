@@ -53,6 +53,8 @@ from typing import Any, NamedTuple, Optional
 
 import numpy as np
 from reduced_dynamics.chi_square import chi2
+from scipy.special import chdtri
+from reduced_dynamics.estimator.core import blocks
 
 #: Shortest and longest window [s] and the ratio between successive windows.
 SHORTEST = 0.05
@@ -64,6 +66,10 @@ PERIOD_TOLERANCE = 0.2
 #: noise's running mean (samples).
 EXCESS_MINIMUM = 200
 EXCESS_SAMPLES = 2000
+#: Memory [s] of the null calibration (the running fraction of quiet updates whose
+#: statistic is above the chi2_n median), and updates between its inflation's updates.
+CALIBRATION_MEMORY = 600.0
+CALIBRATION_EVERY = 256
 
 
 def window_bank(shortest: float = SHORTEST, longest: float = LONGEST,
@@ -96,9 +102,11 @@ class MultiScaleTest:
     """GLR of a constant-wrench pulse over each window of a geometric bank (module doc)."""
 
     def __init__(self, n: int, false_alarm_rate: float,
-                 windows: Optional[np.ndarray] = None) -> None:
+                 windows: Optional[np.ndarray] = None,
+                 calibration_memory: float = CALIBRATION_MEMORY) -> None:
         """Set up for momenta of dimension ``n``; ``false_alarm_rate`` [1/h], 0: off."""
         self.n = n
+        self.calibration_memory = calibration_memory
         self.rate = false_alarm_rate
         self.windows = window_bank() if windows is None else np.asarray(windows, float)
         self._lags_ns = np.round(self.windows * 1e9).astype(np.int64)
@@ -117,6 +125,15 @@ class MultiScaleTest:
         self.statistics = np.zeros(len(self.windows))
         #: the same bank on measured momenta (a twist measured: :class:`MomentumBlocks`)
         self.blocks = MomentumBlocks(n, self.windows)
+        self._moving_thresholds: dict[int, float] = {}
+        #: per test (filtered momentum, blocks) and window: the running fraction of
+        #: quiet updates above the chi2_n median, and the inflation of T it implies
+        self._above = np.full((2, len(self.windows)), 0.5)
+        self.inflation = np.ones((2, len(self.windows)))
+        self._median = float(chi2.isf(0.5, n))
+        self._updates = 0
+        #: whether no event is open (the detector sets it): only then is the null learnt
+        self.quiet = True
 
     @property
     def active(self) -> bool:
@@ -173,10 +190,19 @@ class MultiScaleTest:
                 self._threshold_period = 0.0  # two tests now share the rate
             for item in measured:
                 self.blocks.add(*item)
+        self._updates += 1
+        if not self._updates % CALIBRATION_EVERY:
+            # T ~ lambda chi2_n above the median a fraction p of the time: lambda =
+            # median / isf(p). Never below 1 (never looser than the noise model).
+            p = np.clip(self._above, 0.5, 1.0 - 1e-3)
+            self.inflation = np.maximum(1.0, self._median / chdtri(self.n, p))
         found = self._filtered(stamp_ns, mu, cov)
         if not self.blocks.active or self._period is None:
             return found if wanted else None
         best = self.blocks.update(stamp_ns, self.floor_ns)
+        if best >= 0:
+            self.blocks.statistics[:] = self._calibrate(1, self.blocks.statistics)
+            best = int(np.argmax(self.blocks.statistics))
         if not wanted:
             # The fit below costs ~ points^2 x the window's samples (MomentumBlocks.locate):
             # once per sample it was most of the node's time while a push lasted.
@@ -227,6 +253,8 @@ class MultiScaleTest:
             return None
         values = np.einsum('ij,ij->i', d, solved)
         self.statistics[covered] = values
+        self.statistics[:] = self._calibrate(0, self.statistics)
+        values = self.statistics[covered]
         best = int(np.argmax(values))
         if not values[best] > self.threshold:
             return None
@@ -241,6 +269,40 @@ class MultiScaleTest:
                                 float(self.windows[np.flatnonzero(covered)[best]]),
                                 float(values[best]), self._mu[rows[longest]].copy(),
                                 self._cov[rows[longest]].copy())
+
+    def _calibrate(self, test: int, raw: np.ndarray) -> np.ndarray:
+        """
+        Learn test ``test``'s null from quiet updates; return ``raw`` / its inflation.
+
+        The union bound holds if T_L is chi2_n without a wrench. Noise the model does
+        not know (a moving arm's model error, coloured noise the excess from
+        successive differences misses) scales T_L up, most at long windows. Its scale
+        comes from the test's own median (robust: a push is a small part of the
+        time), learnt over ``calibration_memory`` s while no event is open.
+        """
+        if self.quiet and self._period is not None:
+            covered = raw > 0.0
+            rate = min(1.0, self._period / self.calibration_memory)
+            above = self._above[test]
+            above[covered] += rate * ((raw[covered] > self._median) - above[covered])
+        return raw / self.inflation[test]
+
+    def still_moving(self, window: float) -> bool:
+        """
+        Return whether the measured momenta still move over windows of up to ``window`` s.
+
+        True when a block window that short is beyond its 99 % quantile (Bonferroni
+        over those windows): a push goes on. Ends an event where the push does, not
+        where the wrench estimate's chi-square happens to dip (a long push's events
+        integrated half of its impulse otherwise).
+        """
+        if not self.blocks.active:
+            return False
+        short = self.windows <= max(window, self.windows[0]) * (1 + 1e-9)
+        count = int(short.sum())
+        if count not in self._moving_thresholds:
+            self._moving_thresholds[count] = float(chi2.isf(0.01 / count, self.n))
+        return bool(np.any(self.blocks.statistics[short] > self._moving_thresholds[count]))
 
     def window_statistic(self, window: float) -> float:
         """Return the last statistic of the bank window nearest ``window`` s."""
@@ -298,11 +360,55 @@ def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stam
             connection = before.connection_qd + fraction * (lin.connection_qd
                                                             - before.connection_qd)
         own = None if measurement.noise is None else measurement.noise[1]
+        locked = lin.locked
+        if span and measurement.stamp_ns < stamp_ns:
+            locked = before.locked + fraction * (lin.locked - before.locked)
+        own_pose = None if measurement.noise is None else measurement.noise[0]
         out.append((measurement.stamp_ns, *twist_momentum(
             ad_inverse, lin.locked, connection, measurement.twist,
             flt._r_twist if own is None else own, lin.joint_cov, pose_cov,
-            flt.group.coadjoint_form)))
+            flt.group.coadjoint_form), centre_of_mass(
+                flt.group.name, measurement.pose, locked,
+                flt._r_pose if own_pose is None else own_pose)))
     return out
+
+
+#: The algebra coordinates of the linear momentum, per base group whose measured
+#: centre of mass the block test reads (world x, y, z; x, y in the plane).
+LINEAR = {'SE(3)': (0, 1, 2), 'SE(2)': (0, 1)}
+
+
+def centre_of_mass(group: str, pose: Any, locked: np.ndarray, pose_cov: np.ndarray
+                   ) -> Optional[tuple]:
+    """
+    Return the measured centre of mass in the world, its covariance, the mass, the axes.
+
+    The locked inertia holds the first moment: its linear-angular block is -M [c]x
+    for SE(3) (c in the base frame), -M c_y, M c_x in the plane for SE(2). With the
+    measured pose g = (R, p): c_world = p + R c, and a pose error exp(d) (body
+    coordinates: translation d_v, rotation d_w) moves it by R (d_v - [c]x d_w).
+    None for other base groups (the linear momentum is not the slope of a point).
+    """
+    axes = LINEAR.get(group)
+    if axes is None:
+        return None
+    mass = float(locked[0, 0])
+    if group == 'SE(3)':
+        c = np.array([locked[1, 5], locked[2, 3], locked[0, 4]]) / mass
+        rotation = pose.rotation
+        jacobian = np.zeros((3, 6))
+        jacobian[:, :3] = rotation
+        jacobian[:, 3:] = -rotation @ np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]],
+                                                [-c[1], c[0], 0.0]])
+        world = pose.translation + rotation @ c
+    else:
+        c = np.array([locked[1, 2], -locked[0, 2]]) / mass
+        rotation = pose.rotation[:2, :2]
+        jacobian = np.zeros((2, 3))
+        jacobian[:, :2] = rotation
+        jacobian[:, 2] = rotation @ np.array([-c[1], c[0]])
+        world = pose.translation[:2] + rotation @ c
+    return world, jacobian @ pose_cov @ jacobian.T, mass, axes
 
 
 class BlockDetection(NamedTuple):
@@ -333,7 +439,11 @@ class MomentumBlocks:
     is exactly chi2_n. A push inside the gap moves the difference by its impulse.
     Unlike the filtered momentum (whose covariance holds the filter's random-walk
     wrench, :class:`MultiScaleTest`), a block of L seconds averages every sample in
-    it: a 3 s block of 62.5 Hz twists is ~14 times as precise as one.
+    it: a 3 s block of 62.5 Hz twists is ~14 times as precise as one. Where the
+    base pose comes with the twist, the measured centre of mass joins each block
+    (its line fit's slope times the mass is the linear momentum:
+    estimator/core/blocks.py), which on a heavy base with noisy velocities carries
+    most of a slow push's evidence.
     """
 
     def __init__(self, n: int, windows: np.ndarray) -> None:
@@ -347,6 +457,12 @@ class MomentumBlocks:
         self._info = np.zeros((self._capacity, n, n))
         self._score = np.zeros((self._capacity, n))
         self._common = np.zeros((self._capacity, n, n))
+        # Prefix moments of the measured centre of mass (estimator/core/blocks.py), times
+        # from ``_origin_ns`` [s]; d = 0 until a position comes in.
+        self.linear = np.zeros(0, dtype=np.int64)
+        self.mass = 0.0
+        self._origin_ns = 0
+        self._positions = self._position_arrays(self._capacity, 0)
         self._end = 0
         self.statistics = np.zeros(len(self.windows))
         #: whether any measured momentum came in (the test then runs)
@@ -357,6 +473,17 @@ class MomentumBlocks:
         self._excess_raw = np.zeros((n, n))
         self._differences = 0
         self._last: Optional[tuple[np.ndarray, np.ndarray]] = None
+
+    @staticmethod
+    def _position_arrays(capacity: int, d: int) -> list[np.ndarray]:
+        """Return empty prefix arrays s0, s1, s2, y0, t1, counts for ``capacity`` rows."""
+        return [np.zeros((capacity, d, d)), np.zeros((capacity, d, d)),
+                np.zeros((capacity, d, d)), np.zeros((capacity, d)), np.zeros((capacity, d)),
+                np.zeros(capacity, dtype=np.int64)]
+
+    def _arrays(self) -> tuple:
+        """Return the prefix arrays the kernels take (estimator/core/blocks.py)."""
+        return (self._info, self._score, *self._positions)
 
     @property
     def ready(self) -> bool:
@@ -385,30 +512,43 @@ class MomentumBlocks:
             self.excess = (vectors * np.maximum(values, 0.0)) @ vectors.T
 
     def add(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
-            common: Optional[np.ndarray] = None) -> None:
+            common: Optional[np.ndarray] = None,
+            position: Optional[tuple] = None) -> None:
         """
         Take one measured momentum, its white noise's covariance (stamps increasing).
 
         ``common``: the covariance of its slowly changing error (the filter pose's),
-        which a block's mean keeps whole.
+        which a block's mean keeps whole. ``position``: the measured centre of mass
+        at the same stamp, (c, its covariance, total mass, linear coordinates)
+        (:func:`centre_of_mass`; None: none).
         """
         if self._end and stamp_ns <= self._stamps[self._end - 1]:
             return
         self._learn_excess(mu, cov)
         try:
             info = np.linalg.inv(cov + self.excess)
+            lam = None if position is None else np.linalg.inv(position[1])
         except np.linalg.LinAlgError:
             return
+        if lam is not None and not len(self.linear):
+            self.linear = np.asarray(position[3], dtype=np.int64)
+            self.mass = float(position[2])
+            self._positions = self._position_arrays(self._capacity, len(self.linear))
         if self._end == self._capacity:
             self._compact(stamp_ns)
         k = self._end
+        if not k:
+            self._origin_ns = stamp_ns
         self._stamps[k] = stamp_ns
         self._common[k] = 0.0 if common is None else common
-        if k:
-            self._info[k] = self._info[k - 1] + info
-            self._score[k] = self._score[k - 1] + info @ mu
-        else:
-            self._info[k], self._score[k] = info, info @ mu
+        blocks.accumulate(self._info, self._score, k, info, mu)
+        if len(self.linear):
+            present = lam is not None and len(position[0]) == len(self.linear)
+            d = len(self.linear)
+            blocks.accumulate_position(
+                *self._positions, k, lam if present else np.zeros((d, d)),
+                (stamp_ns - self._origin_ns) * 1e-9,
+                np.asarray(position[0], float) if present else np.zeros(d), present)
         self._end += 1
         self.active = True
 
@@ -417,45 +557,32 @@ class MomentumBlocks:
         oldest = stamp_ns - 3 * self._lags_ns[-1] - 1
         keep = max(0, int(np.searchsorted(self._stamps[:self._end], oldest, 'right')) - 1)
         count = self._end - keep
-        base_info = self._info[keep - 1].copy() if keep else 0.0
-        base_score = self._score[keep - 1].copy() if keep else 0.0
         if count > self._capacity // 2:
             self._capacity *= 2
-        stamps = np.zeros(self._capacity, dtype=np.int64)
-        info = np.zeros((self._capacity, self.n, self.n))
-        score = np.zeros((self._capacity, self.n))
-        common = np.zeros((self._capacity, self.n, self.n))
-        common[:count] = self._common[keep:self._end]
-        self._common = common
-        stamps[:count] = self._stamps[keep:self._end]
-        info[:count] = self._info[keep:self._end] - base_info
-        score[:count] = self._score[keep:self._end] - base_score
-        self._stamps, self._info, self._score, self._end = stamps, info, score, count
+        old = [self._stamps, self._info, self._score, self._common, *self._positions]
+        new = [np.zeros((self._capacity,) + array.shape[1:], array.dtype) for array in old]
+        for source, target in zip(old, new):
+            target[:count] = source[keep:self._end]
+        # Prefix sums from the first kept sample (common and stamps are per sample).
+        for index in [1, 2] + list(range(4, len(new))):
+            if keep:
+                new[index][:count] -= old[index][keep - 1]
+        self._stamps, self._info, self._score, self._common = new[:4]
+        positions = new[4:]
+        if len(self.linear) and count:
+            # Times from the first kept sample: the moments stay small numbers.
+            shift = (int(self._stamps[0]) - self._origin_ns) * 1e-9
+            s0, s1, s2, y0, t1, _ = positions
+            s2[:count] += -2.0 * shift * s1[:count] + shift * shift * s0[:count]
+            s1[:count] -= shift * s0[:count]
+            t1[:count] -= shift * y0[:count]
+            self._origin_ns = int(self._stamps[0])
+        self._positions = positions
+        self._end = count
 
-    def _sums(self, after: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Return the prefix sums up to index ``after`` (-1: none)."""
-        index = np.maximum(after, 0)
-        empty = (after < 0)[..., None]
-        return (np.where(empty[..., None], 0.0, self._info[index]),
-                np.where(empty, 0.0, self._score[index]))
-
-    def _statistics(self, lo: np.ndarray, split0: np.ndarray, split1: np.ndarray,
-                    hi: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Return T, the before mean and its covariance for blocks (lo, split0], (split1, hi]."""
-        info0, score0 = self._sums(lo)
-        info1, score1 = self._sums(split0)
-        info2, score2 = self._sums(split1)
-        info3, score3 = self._sums(hi)
-        cov_before = np.linalg.inv(info1 - info0)
-        cov_after = np.linalg.inv(info3 - info2)
-        before = np.matmul(cov_before, (score1 - score0)[..., None])[..., 0]
-        after = np.matmul(cov_after, (score3 - score2)[..., None])[..., 0]
-        # The filter pose's error is not averaged: each block keeps its last one.
-        cov_before = cov_before + self._common[split0]
-        cov_after = cov_after + self._common[hi]
-        d = after - before
-        solved = np.linalg.solve(cov_before + cov_after, d[..., None])[..., 0]
-        return np.einsum('ij,ij->i', d, solved), before, cov_before
+    def _mean(self, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return the mean over prefix rows (lo, hi] and its covariance (without common)."""
+        return blocks.block_mean(*self._arrays(), int(lo), int(hi), self.mass, self.linear)
 
     def update(self, stamp_ns: int, floor_ns: Optional[int]) -> int:
         """Compute every window's statistic at ``stamp_ns``; return the best window's index."""
@@ -471,9 +598,10 @@ class MomentumBlocks:
             (index[:, 3] > index[:, 2])
         if not covered.any():
             return -1
-        rows = index[covered]
+        rows = np.ascontiguousarray(index[covered])
         try:
-            values = self._statistics(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3])[0]
+            values = blocks.window_statistics(*self._arrays(), self._common, rows,
+                                              self.mass, self.linear)
         except np.linalg.LinAlgError:
             return -1
         self.statistics[covered] = values
@@ -488,7 +616,8 @@ class MomentumBlocks:
         y_k = mu0 + J r_k, r_k = clip((t_k - s) / (e - s), 0, 1): constant before s,
         a ramp (a constant force) to e, constant after (e = t: still pushing). The
         start s and end e (on a grid of ``points``) maximise the GLR of J with mu0 a
-        nuisance; mu0 and its covariance are the momentum before. The detecting
+        nuisance (with the measured centre of mass: :meth:`_position_rows`); mu0 and
+        its covariance are the momentum before. The detecting
         window may hold the push in its after block (a strong push is flagged while it
         goes on), so its gap does not date it. Done at a detection only.
         """
@@ -518,22 +647,91 @@ class MomentumBlocks:
         square = ((ramp ** 2) @ flat_info).reshape(-1, n, n)   # sum r^2 Lambda
         score_j = ramp @ score_k                                 # sum r Lambda y
         score_mu = score_k.sum(axis=0)
-        inverse = np.linalg.inv(total)
-        schur = square - cross @ inverse @ cross.transpose(0, 2, 1)
-        residual = score_j - (cross @ (inverse @ score_mu))
+        # Unknowns (mu0, c0, J): the twists' rows, then the positions' (_position_rows).
+        size = 2 * n + len(self.linear)
+        normal = np.zeros((len(starts), size, size))
+        rhs = np.zeros((len(starts), size))
+        mu0, jj = slice(0, n), slice(size - n, size)
+        normal[:, mu0, mu0] = total
+        normal[:, jj, mu0] = cross
+        normal[:, mu0, jj] = cross.transpose(0, 2, 1)
+        normal[:, jj, jj] = square
+        rhs[:, mu0] = score_mu
+        rhs[:, jj] = score_j
+        self._position_rows(index, previous, times, starts, ends, normal, rhs)
+        # The GLR of J with (mu0, c0) a nuisance: J^T S J, S the Schur complement.
+        nuisance = slice(0, size - n)
         try:
+            inverse = np.linalg.inv(normal[:, nuisance, nuisance])
+            couple = normal[:, jj, nuisance]
+            schur = normal[:, jj, jj] - couple @ inverse @ couple.transpose(0, 2, 1)
+            residual = rhs[:, jj] - (couple @ (inverse @ rhs[:, nuisance, None]))[..., 0]
             impulse = np.linalg.solve(schur, residual[..., None])[..., 0]
         except np.linalg.LinAlgError:
-            impulse = np.zeros_like(residual)
+            impulse = residual = np.zeros((len(starts), n))
         values = np.einsum('ij,ij->i', residual, impulse)
         best = int(np.argmax(values))
-        joint = np.block([[total, cross[best].T], [cross[best], square[best]]])
-        cov = np.linalg.inv(joint)[:n, :n]
-        before = inverse @ (score_mu - cross[best].T @ impulse[best])
+        try:
+            joint = np.linalg.inv(normal[best])
+        except np.linalg.LinAlgError:
+            joint = np.linalg.pinv(normal[best])
+        cov = joint[:n, :n]
+        before = (joint @ rhs[best])[:n]
         start = int(stamps[hi] + round(starts[best] * 1e9))
         end = int(stamps[hi] + round(ends[best] * 1e9))
         return BlockDetection(start, end, float(self.windows[window]), float(values[best]),
                               before, cov + self._common[max(lo, 0)])
+
+    def _position_rows(self, index: np.ndarray, previous: np.ndarray, times: np.ndarray,
+                       starts: np.ndarray, ends: np.ndarray, normal: np.ndarray,
+                       rhs: np.ndarray) -> None:
+        """
+        Add the measured centre of mass to the pulse fits of :meth:`locate`.
+
+        A pulse from s to e moves c by J R(t) / M, R the ramp's integral (0 before s,
+        (t - s)^2 / 2 (e - s) during it, (e - s) / 2 + t - e after), so
+        c_k = c0 + t_k E mu0 / M + R_k E J / M (E: the linear coordinates), with the
+        sample's information P_k.
+        """
+        d = len(self.linear)
+        if not d:
+            return
+        s0, _, _, y0, _, counts = self._positions
+        low = np.maximum(previous, 0)
+        first = (previous < 0)[:, None, None]
+        lam = s0[index] - np.where(first, 0.0, s0[low])
+        weighted = y0[index] - np.where(first[..., 0], 0.0, y0[low])
+        present = (counts[index] - np.where(previous < 0, 0, counts[low])) > 0
+        if present.sum() < 2:
+            return
+        lam, weighted, t = lam[present], weighted[present], times[present]
+        c = np.linalg.solve(lam, weighted[..., None])[..., 0]
+        c = c - c.mean(axis=0)
+        span = (ends - starts)[:, None]
+        during = np.clip(t[None, :] - starts[:, None], 0.0, span)
+        ramp = during ** 2 / (2.0 * span) + np.maximum(t[None, :] - ends[:, None], 0.0)
+        flat = lam.reshape(len(t), d * d)
+        mass, n = self.mass, self.n
+        sums = {name: (weights @ flat).reshape(-1, d, d) for name, weights in (
+            ('R', ramp), ('tR', ramp * t[None, :]), ('RR', ramp ** 2))}
+        p0, p1, p2 = (((t ** j)[None, :] @ flat).reshape(d, d) for j in range(3))
+        pc = np.einsum('kij,kj->ki', lam, c)
+        select = np.zeros((d, n))
+        select[np.arange(d), self.linear] = 1.0
+        st = select.T
+        mu0, c0, jj = slice(0, n), slice(n, n + d), slice(n + d, 2 * n + d)
+        normal[:, mu0, mu0] += st @ p2 @ select / mass ** 2
+        normal[:, mu0, c0] += st @ p1 / mass
+        normal[:, c0, mu0] += p1 @ select / mass
+        normal[:, c0, c0] += p0
+        normal[:, mu0, jj] += st @ sums['tR'] @ select / mass ** 2
+        normal[:, jj, mu0] += st @ sums['tR'] @ select / mass ** 2
+        normal[:, c0, jj] += sums['R'] @ select / mass
+        normal[:, jj, c0] += st @ sums['R'] / mass
+        normal[:, jj, jj] += st @ sums['RR'] @ select / mass ** 2
+        rhs[:, mu0] += (st @ (t @ pc)) / mass
+        rhs[:, c0] += pc.sum(axis=0)
+        rhs[:, jj] += (ramp @ pc) @ select / mass
 
     def mean(self, lo_ns: int, hi_ns: int) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """Return the mean measured momentum over (lo_ns, hi_ns] and its covariance."""
@@ -543,10 +741,8 @@ class MomentumBlocks:
         lo, hi = np.searchsorted(stamps, [lo_ns, hi_ns], 'right') - 1
         if hi <= lo or lo < -1:
             return None
-        info0, score0 = self._sums(np.array([lo]))
-        info1, score1 = self._sums(np.array([hi]))
         try:
-            cov = np.linalg.inv(info1[0] - info0[0])
+            mean, cov = self._mean(lo, hi)
         except np.linalg.LinAlgError:
             return None
-        return cov @ (score1[0] - score0[0]), cov + self._common[hi]
+        return mean, cov + self._common[hi]

@@ -72,6 +72,17 @@ def warm_up() -> None:
             h = np.zeros((m, dim))
             h[:, :m] = np.eye(m)
             test.update(h, np.eye(m), 0.1 * h.T, np.full(m, 1e-3))
+    # The block test's kernels (core/blocks.py): measured momenta with and without the
+    # centre of mass, every window covered.
+    from reduced_dynamics.estimator.multiscale import MomentumBlocks
+    for n, d in ((6, 3), (3, 2), (3, 0)):
+        blocks = MomentumBlocks(n, np.array([0.02, 0.04]))
+        blocks._differences = 10 ** 6  # ready at once
+        position = None if not d else (np.zeros(d), np.eye(d), 2.0, tuple(range(d)))
+        for k in range(16):
+            blocks.add(k * 10_000_000, np.full(n, 1e-3 * k), np.eye(n), None, position)
+        blocks.update(15 * 10_000_000, None)
+        blocks.mean(0, 15 * 10_000_000)
     # The re-timer's window fit (core/envelope.py): the strided columns it is given (a
     # window of one point is contiguous: another signature).
     from reduced_dynamics.estimator.core import envelope
