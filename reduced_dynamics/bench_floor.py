@@ -52,7 +52,11 @@ def _capture(robot) -> dict:
     from reduced_dynamics.estimator.core import kernels
     from reduced_dynamics.estimator.pipeline import Estimator
     joints, bases = update_samples(robot, WARMUP_SAMPLES + 2)
-    estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0, smoothing_lag=0.0))
+    # Without the multi-scale event test (not part of the floor): the bench's motion is not
+    # momentum-consistent, and locating the lasting wrench it sees took 97 % of this run's
+    # CPU; the captured arguments are the same bit for bit (measured).
+    estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0, smoothing_lag=0.0,
+                                                 event_false_alarm_rate=0.0))
     messages = [m for pair in zip(joints, bases) for m in pair]
     estimator.add_samples(messages[:2 * WARMUP_SAMPLES])
     captured: dict = {}

@@ -32,7 +32,8 @@
 #      `reduced-dynamics` command on PATH after sourcing install/setup.bash; runs README's
 #      two install blocks from clean clones (scripts/check_readme_install.sh) and
 #      scripts/demo.sh (README's other command),
-#   5. colcon test   (pytest runs once; its output and summary line are printed),
+#   5. colcon test   (pytest runs once, its tests spread over RD_TEST_WORKERS processes by
+#      pytest-xdist; its output and summary line are printed),
 #   6. colcon test-result --verbose.
 #
 # Extra arguments go to pytest, e.g. ./scripts/test.sh -k momentum -x
@@ -48,6 +49,8 @@
 #   RD_SYMLINK_INSTALL=0      plain `colcon build` instead of --symlink-install
 #   RD_README_INSTALL=0       skip running README's install blocks (step 4c)
 #   RD_DEMO=0                 skip running scripts/demo.sh (step 4d)
+#   RD_TEST_WORKERS=logical   pytest-xdist workers of step 5 (logical: one per CPU; 0: one
+#                             process, no xdist); each worker has a ROS domain of its own
 
 set -euo pipefail
 
@@ -174,10 +177,22 @@ fi
 # ------------------------------------------------------------- 5. colcon test
 # Every pytest argument is prefixed by a space so colcon's argparse never mistakes
 # it for one of its own options (colcon strips the space again).
+# pytest-xdist (the [test] extra): the tests in parallel worker processes, each with a ROS
+# domain of its own (conftest.py); tests marked xdist_group share one worker (loadgroup).
+RD_TEST_WORKERS="${RD_TEST_WORKERS:-logical}"
+pytest_args=()
+if [ "$RD_TEST_WORKERS" != 0 ]; then
+  if "$PYTHON" -c 'import xdist' 2>/dev/null; then
+    pytest_args+=(-n "$RD_TEST_WORKERS" --dist loadgroup)
+  else
+    warn "pytest-xdist is not installed: the tests run in one process"
+  fi
+fi
+pytest_args+=("$@")
 PYTEST_ARGS=()
-if [ "$#" -gt 0 ]; then
+if [ "${#pytest_args[@]}" -gt 0 ]; then
   PYTEST_ARGS+=(--pytest-args)
-  for a in "$@"; do
+  for a in "${pytest_args[@]}"; do
     PYTEST_ARGS+=(" $a")
   done
 fi

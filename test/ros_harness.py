@@ -30,8 +30,9 @@ import struct
 import threading
 import time
 
-#: A ROS domain of this test process's own, so parallel runs on one machine do not mix.
-DOMAIN_ID = str(1 + os.getpid() % 100)
+#: A ROS domain of this test process's own, so parallel runs on one machine do not mix
+#: (a pytest-xdist worker's is given by conftest.py: distinct from the other workers').
+DOMAIN_ID = os.environ.get('RD_TEST_DOMAIN_ID') or str(1 + os.getpid() % 100)
 os.environ['ROS_DOMAIN_ID'] = DOMAIN_ID
 
 import rclpy  # noqa: E402

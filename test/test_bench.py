@@ -18,6 +18,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 
 from reduced_dynamics import bench
 from reduced_dynamics.cli import build_parser
@@ -30,7 +31,7 @@ def _tiny() -> bench.Settings:
                           memory_short_seconds=0.2, memory_long_seconds=0.4,
                           scaling_samples=40, scaling_evaluations=3,
                           shape_joints=(6, 12), planned_bag_seconds=2.0, payload_seconds=4.0,
-                          quick=True)
+                          step_test_samples=2200, quick=True)
 
 
 def test_statistics_helpers():
@@ -46,11 +47,24 @@ def test_statistics_helpers():
     assert figure.ratio == 3.0 and figure.met is True and figure.baseline_median == 1.0
 
 
-def test_bench_sections_tiny(tmp_path):
-    # The node section (real DDS, processes) has its own test: test_bench_node.py; the
-    # fleet section (process pools, Ray) its own in test_fleet.py.
-    sections = [s for s in bench.SECTIONS if s not in ('node', 'fleet')]
-    report = bench.run_bench(_tiny(), sections)
+#: The node section (real DDS, processes) has its own test: test_bench_node.py; the fleet
+#: section (process pools, Ray) its own in test_fleet.py.
+TINY_SECTIONS = [s for s in bench.SECTIONS if s not in ('node', 'fleet')]
+
+
+@pytest.fixture(scope='module')
+def tiny_report() -> bench.Report:
+    """Run every section but node and fleet once at tiny sizes; the tests below read it."""
+    return bench.run_bench(_tiny(), TINY_SECTIONS)
+
+
+#: The tests reading tiny_report run in one pytest-xdist worker, so it is made once.
+ONE_WORKER = pytest.mark.xdist_group('bench_tiny_report')
+
+
+@ONE_WORKER
+def test_bench_sections_tiny(tiny_report, tmp_path):
+    sections, report = TINY_SECTIONS, tiny_report
     assert {f.section for f in report.figures} == set(sections)
     for figure in report.figures:
         assert figure.low <= figure.median <= figure.high or figure.low == figure.high
@@ -89,9 +103,9 @@ def test_cli_registers_bench():
     assert args.func is bench._run
 
 
-def test_update_section_times_fixed_lag_smoothing_against_crba_and_without():
-    report = bench.run_bench(_tiny(), ['update'])
-    figures = {f.name: f for f in report.figures}
+@ONE_WORKER
+def test_update_section_times_fixed_lag_smoothing_against_crba_and_without(tiny_report):
+    figures = {f.name: f for f in tiny_report.figures if f.section == 'update'}
     lagged = figures['estimator update, fixed-lag smoothing 0.5 s (paper robot)']
     assert lagged.baseline == 'crba' and lagged.ratio > 0.0
     share = figures['fixed-lag smoothing: update with it / without (paper robot)']
@@ -99,11 +113,11 @@ def test_update_section_times_fixed_lag_smoothing_against_crba_and_without():
     assert math.isfinite(share.ratio) and share.ratio > 0.0
 
 
-def test_replay_rows_against_rosbags():
+@ONE_WORKER
+def test_replay_rows_against_rosbags(tiny_report):
     # Issue 19's two replay targets: --no-smooth (>= 0.5) and smoothed (>= 0.4) replay,
     # each against rosbags read+deserialize of the same bag, in the same repeats.
-    report = bench.run_bench(_tiny(), ['replay'])
-    figures = {f.name: f for f in report.figures}
+    figures = {f.name: f for f in tiny_report.figures if f.section == 'replay'}
     causal = figures['replay --no-smooth, against rosbags decoding']
     smoothed = figures['replay throughput, against rosbags decoding']
     generic = figures['read+decode only (rosbags)']

@@ -35,3 +35,18 @@ def test_floor_times_the_steady_state_calls_and_adds_them_up() -> None:
     assert math.isclose(floor['floor_batched'], floor['mechanics_batched'] + compiled)
     # One row's mechanics include at least one crba.
     assert floor['mechanics_streaming'] > floor['crba']
+
+
+def test_the_capture_leaves_the_multi_scale_test_out(monkeypatch) -> None:
+    """The floor has no event test: its capture does not locate the bench motion's wrench."""
+    from reduced_dynamics.estimator.multiscale import MomentumBlocks, MultiScaleTest
+    calls = []
+    for cls, name in ((MultiScaleTest, '_filtered'), (MomentumBlocks, 'locate')):
+        original = getattr(cls, name)
+
+        def counted(self, *args, original=original, name=name, **kwargs):
+            calls.append(name)
+            return original(self, *args, **kwargs)
+        monkeypatch.setattr(cls, name, counted)
+    captured = bench_floor._capture(load_robot())
+    assert calls == [] and captured['evaluate'][5] >= 10

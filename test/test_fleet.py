@@ -321,6 +321,11 @@ def test_local_pool_and_dask_give_identical_outputs_whatever_the_workers(tmp_pat
     _compare(reference, _fleet(tmp_path, manifest, 'dask', 2), 'dask 2')
 
 
+#: The tests that start a local Ray cluster run in one pytest-xdist worker, one at a time.
+ONE_RAY_CLUSTER = pytest.mark.xdist_group('ray_cluster')
+
+
+@ONE_RAY_CLUSTER
 def test_ray_local_cluster_replays_three_shipped_bags_identically(tmp_path):
     """
     A local Ray cluster (``ray.init()`` on this machine) replays three shipped bags.
@@ -341,6 +346,7 @@ def test_ray_local_cluster_replays_three_shipped_bags_identically(tmp_path):
         ray.shutdown()
 
 
+@ONE_RAY_CLUSTER
 def test_bench_fleet_section_tiny():
     """The bench's fleet figures: ratios of the same run's 1-worker, 2-worker and Ray runs."""
     from reduced_dynamics import bench

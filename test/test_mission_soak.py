@@ -16,7 +16,7 @@
 """
 One simulated mission of an hour with faults, through the Estimator (issue 27).
 
-An hour of joint states (20 Hz) and odometry (10 Hz) of a smooth motion, fed
+An hour of joint states and odometry (10 Hz each) of a smooth motion, fed
 in one-minute batches, with: both topics lost for 60 s, a backwards and a
 forward clock jump, a ten-minute coast without base measurements, and
 persistent bad input (non-finite joint states, odometry with a zero
@@ -36,7 +36,7 @@ from reduced_dynamics.messages.samples import BaseStateSample, JointStateSample
 from reduced_dynamics.robot.model import load_robot
 
 NS = 1_000_000_000
-JOINT_HZ, BASE_HZ, MINUTES = 20, 20, 60
+JOINT_HZ, BASE_HZ, MINUTES = 10, 10, 60
 #: Faults, in mission seconds [start, end).
 JOINTS_LOST, BASE_LOST = (600, 660), (900, 960)
 BACK_JUMP_AT, BACK_JUMP_S = 1500, 300      # stamps jump 300 s back at 1500 s

@@ -344,16 +344,19 @@ def _stream_joint_states(node, executor, seconds, rate=1000.0):
 
 
 @pytest.mark.slow
-def test_twenty_sigints_under_a_1khz_stream_all_exit_0(install, client):
-    """Issue 14.5: 20 SIGINTs while 1 kHz joint states flow: 20 exits 0, no error line."""
+def test_ten_sigints_under_a_1khz_stream_all_exit_0(install, client):
+    """Issue 14.5: 10 SIGINTs while 1 kHz joint states flow: 10 exits 0, no error line."""
+    # Each run is a node start-up (most of its time); issue 14 ran 20. The exit 1 one
+    # time in four it fixed is missed by 10 runs with probability 0.75 ** 10 = 6 %.
     node, executor = client
     results = []
-    for run in range(20):
+    for run in range(10):
         proc = start_node(install, '-p', f'urdf_path:={paper_robot_urdf()}')
         try:
             wait_until_up(client)
-            # The signal lands while the stream flows, at a phase varied over the runs.
-            timer = threading.Timer(0.2 + 0.02 * run, proc.send_signal, (signal.SIGINT,))
+            # The signal lands while the stream flows, at a phase varied over the runs
+            # (0.2 s to 0.56 s into it, as the 20 runs had).
+            timer = threading.Timer(0.2 + 0.04 * run, proc.send_signal, (signal.SIGINT,))
             timer.start()
             _stream_joint_states(node, executor, 0.8)
             timer.join()
@@ -363,7 +366,7 @@ def test_twenty_sigints_under_a_1khz_stream_all_exit_0(install, client):
             if proc.poll() is None:
                 proc.kill()
         results.append((code, error_lines(output)))
-    assert results == [(0, [])] * 20
+    assert results == [(0, [])] * 10
 
 
 def test_sigterm_while_messages_flow_exits_0(install, client):
