@@ -234,11 +234,16 @@ def test_bag_played_into_the_node_gives_replays_outputs(install, tmp_path):  # n
     output bit for bit, the estimator's diagnostics but for the counts that depend on
     how two topics interleaved on arrival; the node's own status is left out.
     """
+    from reduced_dynamics.params import defaults
     from reduced_dynamics.replay import replay, ReplayOptions
     from reduced_dynamics.robot.model import load_robot
     bag = DATA / 'paper_constant'
     urdf = str(paper_robot_urdf())
-    replay(str(bag), str(tmp_path / 'out'), load_robot(urdf), ReplayOptions(smooth=False))
+    # Receive times are the machine's: tolerated alike in the node and the replay
+    # (test_node_dds.STAMP_PARAMETERS).
+    params = dict(defaults(), **dds.STAMP_PARAMETERS)
+    replay(str(bag), str(tmp_path / 'out'), load_robot(urdf),
+           ReplayOptions(params=params, smooth=False))
     expected = {}
     with open_bag(tmp_path / 'out') as reader:
         for topic in active_topics(False):
@@ -259,6 +264,8 @@ def test_bag_played_into_the_node_gives_replays_outputs(install, tmp_path):  # n
         # transient-local reader never matches a volatile writer).
         node = dds.start_node(install, f'-p urdf_path:={shlex.quote(urdf)}',
                               '-p use_sim_time:=true', '-p prediction_max_wall_time:=0.0',
+                              *(f'-p {name}:={value}'
+                                for name, value in dds.STAMP_PARAMETERS.items()),
                               *(f'-p {arg}' for arg in dds.RELIABLE_INPUTS
                                 if '.durability:=' not in arg), *keep_outputs)
         wait_for_line(recorder, 'ready')  # the node's outputs are matched
