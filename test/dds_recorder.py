@@ -18,7 +18,8 @@ A recorder process of the DDS tests: raw CDR of some topics, to a JSON file.
 ``python test/dds_recorder.py OUT.json TOPIC:TYPE[:COUNT] ... [--exclude TEXT]``
 
 Subscribes (reliable, keep all, volatile) to each topic with ``raw=True``, prints
-``ready`` once every subscription is matched by a publisher, and writes
+``ready`` once every subscription is matched by a publisher, ``recorded N on TOPIC``
+every PROGRESS_EVERY messages of a topic, and writes
 ``{topic: [hex of each message]}`` to OUT.json when each topic with a COUNT has at
 least that many messages, or at SIGINT/SIGTERM (the test's failure guard).
 Messages containing ``--exclude`` bytes (e.g. the node's own status name) are
@@ -36,6 +37,10 @@ import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
+
+#: A line ``recorded N on TOPIC`` every this many messages of a topic: the test's guard
+#: waits while the recorder makes progress (a loaded machine is slow, a lost message stops).
+PROGRESS_EVERY = 256
 
 
 def _class(msgtype: str) -> type:
@@ -71,6 +76,8 @@ def main() -> int:
         def keep(data: bytes, topic: str = topic) -> None:
             if not exclude or exclude not in data:
                 got[topic].append(data.hex())
+                if len(got[topic]) % PROGRESS_EVERY == 0:
+                    print(f'recorded {len(got[topic])} on {topic}', flush=True)
         subscriptions.append(node.create_subscription(_class(msgtype), topic, keep, qos,
                                                       raw=True))
     executor = SingleThreadedExecutor()
