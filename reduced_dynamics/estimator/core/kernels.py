@@ -26,7 +26,13 @@ noise are packed once per filter into :class:`Model`-like tuples by the caller:
 (``ad(eta) = (eta ad_rows).reshape(n, n)``, ``W(pi) = (form_rows pi).reshape(n, n)``).
 
 Covariances are symmetrised after every operation that could make them drift
-apart (propagation, Joseph-form update, a step's compensation).
+apart (propagation, update, a step's compensation).
+
+The step is structured (docs/structured_step.md): of the transition only the
+pose block row and the mu-w chain are formed, Phi P Phi^T + Q by blocks; H enters
+by its blocks (pose rows select, w columns zero), one Cholesky factor of S gives
+the gain, the NIS and log det S, and P is updated as P - K S K^T. The dense step
+it replaced is ``core/reference.py``, equal to 1e-9 (test/test_structured_step.py).
 """
 
 import math
@@ -43,7 +49,12 @@ from reduced_dynamics.estimator.core.lie import adjoint, compose, group_exp, gro
 warnings.filterwarnings('ignore', message=".*'@' is faster on contiguous arrays",
                         category=NumbaPerformanceWarning)
 
-#: Re-linearisations of an update with a twist (iterated EKF).
+#: Re-linearisations of an update with a twist (iterated EKF). The twist is bilinear in
+#: (delta_g, delta_mu), so each re-linearisation moves the estimate by a second-order term:
+#: replaying the shipped Odometry bags with 1 instead of 2 moved the published wrench by
+#: up to 2.7e-5 of its range (1 mN of 40 N, paper_spacecraft; 4e-7 on paper_realistic),
+#: far above the 1e-9 the structured step holds against the dense one, so both stay
+#: (one costs ~4 x crba). A pose alone is not iterated.
 ITERATIONS = 2
 #: 3-point Gauss-Legendre nodes and weights on [-1, 1] (exact to degree 5).
 _GAUSS_NODES = np.array([-np.sqrt(0.6), 0.0, np.sqrt(0.6)])
