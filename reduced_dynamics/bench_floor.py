@@ -23,9 +23,10 @@ step test's bank full), each as a multiple of one ``crba``:
 * ``mechanics``: the kernel's per-row inputs of the filter (``crba`` and the
   chunk algebra: I^-1, A qbar_dot, A Sigma A^T, pbar), one row at a time (the
   streaming path) and per row of a 1 000-row chunk (batched);
-* ``filter step``: ``kernels.propagate_update`` (propagation + iterated Joseph
-  update of the 18-state filter) run in a compiled loop, i.e. without the
-  interpreter, and the same called from Python;
+* ``filter step``: ``kernels.propagate_update`` (propagation + iterated update of
+  the 18-state filter, structured: docs/structured_step.md) run in a compiled loop,
+  i.e. without the interpreter, the same called from Python, and the dense step it
+  replaced (``core/reference.py``) on the same arguments, side by side;
 * ``step test``: the wrench-step test's compiled kernels (``absorb`` +
   ``evaluate`` over a full bank of onsets), in a compiled loop.
 
@@ -127,12 +128,13 @@ def measure_floor(robot, calls: int = 2000) -> dict:
     Return seconds per sample of each floor part (see the module docstring), and crba's.
 
     Keys: ``crba``, ``mechanics_streaming``, ``mechanics_batched``,
-    ``filter_step_compiled``, ``filter_step_called``, ``step_test_compiled``,
+    ``filter_step_compiled``, ``filter_step_called``, ``filter_step_reference``,
+    ``step_test_compiled``,
     ``floor_streaming`` and ``floor_batched`` (the sums with the compiled parts).
     """
     from reduced_dynamics.bench import time_crba
     from reduced_dynamics.estimator import step_kernels
-    from reduced_dynamics.estimator.core import kernels
+    from reduced_dynamics.estimator.core import kernels, reference
     captured = _capture(robot)
     kernel, variance = captured['kernel'], captured['variance']
     qbar, qbar_dot, bases = captured['qbar'], captured['qbar_dot'], captured['bases']
@@ -146,6 +148,7 @@ def measure_floor(robot, calls: int = 2000) -> dict:
     out['filter_step_compiled'] = _looped(kernels.propagate_update, step, calls)
     out['filter_step_called'] = _seconds_per_call(lambda: kernels.propagate_update(*step),
                                                   calls)
+    out['filter_step_reference'] = _looped(reference.propagate_update, step, calls)
     absorb, evaluate = captured['absorb'], captured['evaluate']
     out['step_test_compiled'] = _looped(step_kernels.absorb, absorb, calls) \
         + _looped(step_kernels.evaluate, evaluate, calls)
@@ -163,7 +166,9 @@ FLOOR_ROWS = (
     ('floor_batched', 'update floor, batched: the same, mechanics per row of 1 000',
      'as above, filter_inputs over a 1 000-row chunk'),
     ('filter_step_compiled', 'update floor: compiled filter step alone',
-     'kernels.propagate_update (propagation + iterated Joseph update), compiled loop'),
+     'kernels.propagate_update (propagation + iterated update, structured), compiled loop'),
+    ('filter_step_reference', 'update floor: the dense filter step it replaced',
+     'core/reference.py (main 6a526f4\'s algebra) on the same arguments, compiled loop'),
     ('filter_step_called', 'update floor: compiled filter step called from Python',
      'the same call with numba dispatch (arguments in, 18 results out)'),
     ('step_test_compiled', 'update floor: step-test kernels (absorb + evaluate)',

@@ -73,7 +73,8 @@ stream delivers in a burst after a stall carry no timing and are left out
 
 The arithmetic runs compiled (:mod:`~reduced_dynamics.estimator.core.kernels`,
 docs/estimator_core.md). The covariance cannot break down: the process noise is a
-sum of ``v Qc v^T`` terms and the update is in Joseph form, both symmetrised. A
+sum of ``v Qc v^T`` terms and the update is P - K S K^T from a Cholesky factor of S
+(docs/structured_step.md), both symmetric. A
 covariance still not finite or with a negative variance (a corrupted input)
 restarts the filter from the measurement, logged as a warning and counted by cause.
 
@@ -693,9 +694,10 @@ class MomentumFilter:
                 cause = 'covariance not finite' if not np.isfinite(self.p).all() \
                     else f'singular matrix ({error})'
             if cause is not None:
-                # Last resort: the Joseph form keeps P positive semi-definite for any
-                # gain, so this takes a covariance corrupted before the update (a
-                # non-finite input, an overflow). Start again from the measurement.
+                # Last resort: the update keeps P positive semi-definite (measured over
+                # long runs, docs/structured_step.md), so this takes a covariance corrupted
+                # before the update (a non-finite input, an overflow), or an S that is
+                # not positive definite. Start again from the measurement.
                 self.diverged += 1
                 self.restart_causes[cause] += 1
                 LOG.warning('momentum filter restarted at %d ns: %s (restart %d)',

@@ -37,6 +37,16 @@ def _skew(w: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
+def _mul3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Return a b of 3 x 3 matrices by loops (a BLAS call costs more than the product)."""
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+    return out
+
+
+@njit(cache=True)
 def exp6_coefficients(t2: float) -> tuple:
     """
     Return exp6's coefficients (a, b, c) at ``t2 = |omega|^2``.
@@ -64,7 +74,7 @@ def exp6(twist: np.ndarray) -> np.ndarray:
     v, w = twist[:3], twist[3:]
     a, b, c = exp6_coefficients(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
     k = _skew(w)
-    k2 = k @ k
+    k2 = _mul3(k, k)
     out = np.zeros((4, 4))
     for i in range(3):
         for j in range(3):
@@ -116,7 +126,7 @@ def log6(g: np.ndarray) -> np.ndarray:
     else:
         c = (1.0 - 0.5 * t * math.sin(t) / (1.0 - math.cos(t))) / t2
     k = _skew(w)
-    k2 = k @ k
+    k2 = _mul3(k, k)
     out = np.empty(6)
     for i in range(3):
         # V^-1 p = p - w x p / 2 + c w x (w x p)
@@ -154,11 +164,13 @@ def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def action(g: np.ndarray) -> np.ndarray:
     """Return Ad_g (6 x 6, ``pin.SE3.action``): [[R, [p] R], [0, R]]."""
     out = np.zeros((6, 6))
-    r = np.ascontiguousarray(g[:3, :3])
-    pr = _skew(np.ascontiguousarray(g[:3, 3])) @ r
-    out[:3, :3] = r
-    out[3:, 3:] = r
-    out[:3, 3:] = pr
+    r = g[:3, :3]
+    pr = _mul3(_skew(g[:3, 3]), r)
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = r[i, j]
+            out[3 + i, 3 + j] = r[i, j]
+            out[i, 3 + j] = pr[i, j]
     return out
 
 
