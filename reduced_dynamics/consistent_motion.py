@@ -31,6 +31,7 @@ from typing import Sequence
 import numpy as np
 import pinocchio as pin
 
+from reduced_dynamics.geometry.quaternion import matrix_to_xyzw
 from reduced_dynamics.robot.momentum import base_twist, body_momentum, \
     body_momentum_from_spatial, momentum_map
 
@@ -82,7 +83,7 @@ class ConsistentMotion:
 
     def orientation_xyzw(self) -> np.ndarray:
         """Return the base orientation as a unit quaternion (x, y, z, w), ROS order."""
-        return np.array(pin.Quaternion(self.pose.rotation).coeffs())
+        return matrix_to_xyzw(self.pose.rotation)
 
     def advance(self, dt: float) -> None:
         """One exponential midpoint step of g_dot = g xi: second-order accurate."""

@@ -306,8 +306,8 @@ def soak_publish(args: argparse.Namespace) -> int:
     from nav_msgs.msg import Odometry
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import JointState
-    import pinocchio as pin
     from reduced_dynamics.consistent_motion import ConsistentMotion
+    from reduced_dynamics.geometry.quaternion import matrix_to_xyzw
     from reduced_dynamics.robot.model import load_robot
     robot = load_robot()
     rclpy.init()
@@ -356,7 +356,7 @@ def soak_publish(args: argparse.Namespace) -> int:
                 base = odom_msg.pose.pose
                 base.position.x, base.position.y, base.position.z = pose.translation.tolist()
                 (base.orientation.x, base.orientation.y, base.orientation.z,
-                 base.orientation.w) = pin.Quaternion(pose.rotation).coeffs().tolist()
+                 base.orientation.w) = matrix_to_xyzw(pose.rotation).tolist()
                 velocity = odom_msg.twist.twist
                 velocity.linear.x, velocity.linear.y, velocity.linear.z = twist[:3].tolist()
                 velocity.angular.x, velocity.angular.y, velocity.angular.z = twist[3:].tolist()

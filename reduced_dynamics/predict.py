@@ -34,6 +34,7 @@ import numpy as np
 import pinocchio as pin
 
 from reduced_dynamics.estimator.base_motion import BaseMotionAnswer, predict_base_motion
+from reduced_dynamics.geometry.quaternion import matrix_to_xyzw
 from reduced_dynamics.trajectory_file import load_trajectory
 
 NS = 1_000_000_000
@@ -71,7 +72,7 @@ def format_answer(answer: BaseMotionAnswer) -> str:
     if answer.failure is not None:
         return f'no prediction: {answer.failure}'
     final = answer.final_pose
-    quat = pin.Quaternion(final.rotation).coeffs()
+    quat = matrix_to_xyzw(final.rotation)
     duration = (answer.path.stamps_ns[-1] - answer.path.stamps_ns[0]) / NS
     return '\n'.join([
         f'predicted base motion over {duration:g} s ({len(answer.path.stamps_ns)} poses, '

@@ -51,6 +51,7 @@ from reduced_dynamics.estimator.config import EstimatorConfig
 from reduced_dynamics.estimator.plausibility import JointBounds
 from reduced_dynamics.full_dynamics import FullDynamics, FullTrajectory, PrescribedShapeDynamics
 from reduced_dynamics.geometry.isotropy import MomentumClass
+from reduced_dynamics.geometry.quaternion import matrix_to_unit_xyzw
 from reduced_dynamics.messages.convert import (
     base_state_to_odometry,
     base_state_to_pose_stamped,
@@ -774,7 +775,7 @@ def _wrench(mu: np.ndarray, robot: RobotModel, stamp: int) -> WrenchSample:
 
 
 def _quaternion_xyzw(rotation: np.ndarray) -> np.ndarray:
-    return pin.Quaternion(rotation).normalized().coeffs().copy()
+    return matrix_to_unit_xyzw(rotation)
 
 
 def command_times(options: SimulationOptions) -> list[float]:

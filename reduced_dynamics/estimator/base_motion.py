@@ -31,6 +31,7 @@ import numpy as np
 import pinocchio as pin
 
 from reduced_dynamics.estimator.prediction import pose_path, Plan
+from reduced_dynamics.geometry.quaternion import matrix_to_xyzw
 from reduced_dynamics.integrators import Budget, BudgetExceeded
 from reduced_dynamics.messages.samples import (DIAG_ERROR, DIAG_OK, Diagnostics,
                                                DiagnosticStatusSample, JointTrajectorySample,
@@ -172,7 +173,7 @@ def answer_messages(answer: Optional[BaseMotionAnswer], stamp_ns: int, request_i
                                         {'request_id': request_id})
         return None, Diagnostics(stamp_ns, (status,))
     final = answer.final_pose
-    quat = pin.Quaternion(final.rotation).coeffs()
+    quat = matrix_to_xyzw(final.rotation)
     values = {'request_id': request_id,
               'final_position': ' '.join(f'{v:.9g}' for v in final.translation),
               'final_orientation_xyzw': ' '.join(f'{v:.9g}' for v in quat),

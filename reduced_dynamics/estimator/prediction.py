@@ -56,6 +56,7 @@ import pinocchio as pin
 
 from reduced_dynamics.estimator.observations import ObservationBuffer
 from reduced_dynamics.estimator.prediction_statistics import PredictionStatistics
+from reduced_dynamics.geometry.quaternion import matrices_to_xyzw
 from reduced_dynamics.integrators import Budget, BudgetExceeded
 from reduced_dynamics.messages.samples import PosePath, ShapePrediction
 from reduced_dynamics.reduction.prescribed import (attitude_angles, PrescribedReconstruction,
@@ -304,7 +305,7 @@ class PredictionJob:
 
 
 def pose_path(start_ns: int, frame: str, offsets: np.ndarray, poses: np.ndarray) -> PosePath:
-    quats = np.array([pin.Quaternion(pose[:3, :3]).coeffs() for pose in poses])
+    quats = matrices_to_xyzw(poses[:, :3, :3])
     return PosePath(start_ns, frame, start_ns + offsets, poses[:, :3, 3], quats)
 
 

@@ -55,6 +55,7 @@ from typing import Any, Callable, Optional
 import numpy as np
 import pinocchio as pin
 
+from reduced_dynamics.geometry.quaternion import matrix_to_unit_xyzw
 from reduced_dynamics.robot.model import RobotModel
 
 NS = 1_000_000_000
@@ -428,7 +429,7 @@ def with_uncertainty(job: Any, result: Any, messages: Any) -> Any:
     result.covariance = covariance
     offsets = np.round(covariance.times * NS).astype(np.int64)
     end = covariance.poses[-1]
-    quat = pin.Quaternion(end[:3, :3]).normalized().coeffs().copy()
+    quat = matrix_to_unit_xyzw(end[:3, :3])
     base = BaseStateSample(job.end_ns, settings.world_frame, robot.base_link, end[:3, 3],
                            quat, covariance.twist[:3], covariance.twist[3:])
     horizon = PredictedOdometry(base, covariance.pose_cov[-1], covariance.twist_cov)

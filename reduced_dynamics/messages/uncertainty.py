@@ -32,9 +32,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import pinocchio as pin
 
 from reduced_dynamics.chi_square import chi2
+from reduced_dynamics.geometry.quaternion import matrix_to_unit_xyzw
 from reduced_dynamics.messages.convert import (base_state_to_odometry, header_to_ros,
                                                pose_to_ros)
 from reduced_dynamics.messages.samples import BaseStateSample
@@ -85,7 +85,7 @@ def ellipsoid_axes(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     values, vectors = np.linalg.eigh(0.5 * (cov + cov.T))
     if np.linalg.det(vectors) < 0.0:
         vectors[:, 0] = -vectors[:, 0]
-    quat = pin.Quaternion(vectors).normalized().coeffs().copy()
+    quat = matrix_to_unit_xyzw(vectors)
     return quat, 2.0 * np.sqrt(RADIUS2_95 * np.clip(values, 0.0, None))
 
 
