@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from filter_helpers import linearisation_problem
 from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.estimator.core import kernels, reference
 from reduced_dynamics.estimator.filter import Linearisation, MomentumFilter, NoiseModel
@@ -43,12 +44,7 @@ def _close(got, want, tolerance: float = TOLERANCE) -> bool:
 def _problem(name: str, command: bool, seed: int) -> tuple:
     group = SUBGROUPS[name]
     n = group.dim
-    rng = np.random.default_rng(seed)
-    root = rng.normal(size=(n, n))
-    locked = root @ root.T + n * np.eye(n)
-    joint = rng.normal(size=(n, 2)) * 0.1
-    lin = Linearisation(locked, np.linalg.inv(locked), rng.normal(size=n) * 0.3,
-                        joint @ joint.T)
+    rng, lin = linearisation_problem(n, seed)
     flt = MomentumFilter(group, NoiseModel(), 1e-6, command=command)
     dim = flt.dim
     g = group.exp(rng.normal(size=n) * 0.3).homogeneous
