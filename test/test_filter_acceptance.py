@@ -217,7 +217,8 @@ def test_nees_on_the_simulated_bags_within_the_chi_square_bound(bag):
     momentum rate and its covariance) stays within the chi2_n 95 % quantile on at
     least 95 % of the samples after the first 1.5 s (the prior being forgotten).
     """
-    from test_estimator_batch import _bag_stream, _streaming
+    from sim_samples import feed_stream
+    from test_estimator_batch import _bag_stream
     from reduced_dynamics.estimator import Estimator, EstimatorConfig
     robot = load_robot(str(config_path('robots/freeflyer.urdf'))) \
         if bag.startswith('freeflyer') else load_robot()
@@ -226,7 +227,7 @@ def test_nees_on_the_simulated_bags_within_the_chi_square_bound(bag):
     stream, is_odom, base_driven = _bag_stream(bag, robot)
     estimator = Estimator(robot, EstimatorConfig.from_mapping(params), use_odometry=is_odom,
                           base_driven=base_driven)
-    outputs = _streaming(estimator, stream)
+    outputs = feed_stream(estimator, stream)
     mu_stamps, mu_truth = _ground_truth(bag, '/ground_truth/momentum')
     w_stamps, w_truth = _ground_truth(bag, '/ground_truth/external_wrench')
     axes = [0, 1, 5] if robot.n == 3 else list(range(6))
