@@ -61,3 +61,24 @@ def linearisation_problem(n: int, seed: int):
     lin = Linearisation(locked, np.linalg.inv(locked), rng.normal(size=n) * 0.3,
                         joint @ joint.T)
     return rng, lin
+
+
+def filter_problem(name: str, command: bool, seed: int):
+    """
+    Return (rng, lin, flt, g, x, P): a random filter and state on subgroup ``name``.
+
+    The linearisation of :func:`linearisation_problem`, then the pose g (~0.3 rad), x
+    and an SPD covariance P, drawn in that order (the compiled-kernel tests' fixture).
+    """
+    from reduced_dynamics.estimator.filter import MomentumFilter, NoiseModel
+    from reduced_dynamics.geometry.lie_group import SUBGROUPS
+    group = SUBGROUPS[name]
+    n = group.dim
+    rng, lin = linearisation_problem(n, seed)
+    flt = MomentumFilter(group, NoiseModel(), 1e-6, command=command)
+    dim = flt.dim
+    g = group.exp(rng.normal(size=n) * 0.3).homogeneous
+    x = rng.normal(size=dim - n)
+    root = rng.normal(size=(dim, dim))
+    p = root @ root.T * 1e-2 + np.eye(dim) * 1e-3
+    return rng, lin, flt, g, x, p

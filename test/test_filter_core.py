@@ -20,7 +20,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from filter_helpers import linearisation_problem
+from filter_helpers import filter_problem, linearisation_problem
 from reduced_dynamics.estimator import Estimator, EstimatorConfig
 from reduced_dynamics.estimator.core import kernels, lie
 from reduced_dynamics.estimator.filter import Linearisation, MomentumFilter, NoiseModel
@@ -48,15 +48,8 @@ def test_group_maps_match_pinocchio() -> None:
 @pytest.mark.parametrize('name,command', [('SE(3)', False), ('SE(2)', False), ('SE(2)', True)])
 def test_compiled_kernels_equal_their_interpreted_source(name: str, command: bool) -> None:
     """The reference path is the kernels' own source run by the interpreter (py_func)."""
-    group = SUBGROUPS[name]
-    n = group.dim
-    rng, lin = linearisation_problem(n, 1)
-    flt = MomentumFilter(group, NoiseModel(), 1e-6, command=command)
-    dim = flt.dim
-    g = group.exp(rng.normal(size=n) * 0.3).homogeneous
-    x = rng.normal(size=dim - n)
-    root = rng.normal(size=(dim, dim))
-    p = root @ root.T * 1e-2 + np.eye(dim) * 1e-3
+    rng, lin, flt, g, x, p = filter_problem(name, command, 1)
+    group, n = SUBGROUPS[name], flt.n
     u = rng.normal(size=n) if command else np.zeros(0)
     args = (g, x, p, lin.locked, lin.locked_inverse, lin.connection_qd, lin.joint_cov, 0.01,
             u, command, flt._jerk_var, flt._densities(lin), flt._basis, flt._pinv, flt._whole,

@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from filter_helpers import linearisation_problem
+from filter_helpers import filter_problem
 from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.estimator.core import kernels, reference
-from reduced_dynamics.estimator.filter import Linearisation, MomentumFilter, NoiseModel
+from reduced_dynamics.estimator.filter import Linearisation
 from reduced_dynamics.geometry.lie_group import SUBGROUPS
 from reduced_dynamics.replay import replay, ReplayOptions
 from reduced_dynamics.robot.model import load_robot
@@ -42,15 +42,8 @@ def _close(got, want, tolerance: float = TOLERANCE) -> bool:
 
 
 def _problem(name: str, command: bool, seed: int) -> tuple:
-    group = SUBGROUPS[name]
-    n = group.dim
-    rng, lin = linearisation_problem(n, seed)
-    flt = MomentumFilter(group, NoiseModel(), 1e-6, command=command)
-    dim = flt.dim
-    g = group.exp(rng.normal(size=n) * 0.3).homogeneous
-    x = rng.normal(size=dim - n)
-    root = rng.normal(size=(dim, dim))
-    p = root @ root.T * 1e-2 + np.eye(dim) * 1e-3
+    rng, lin, flt, g, x, p = filter_problem(name, command, seed)
+    group, n = SUBGROUPS[name], flt.n
     pose = np.ascontiguousarray(group.exp(rng.normal(size=n) * 1e-3).homogeneous @ g)
     return rng, lin, flt, g, x, p, pose
 
