@@ -115,7 +115,7 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'reduced-dynamics = reduced_dynamics.cli:main',
+            'reduced-dynamics = reduced_dynamics.cli:program',
             # node_main: SIGINT/SIGTERM handled before the heavy imports (issue 24.2)
             'reduced_dynamics_node = reduced_dynamics.node_main:main',
             'reduced_dynamics_lifecycle_node = reduced_dynamics.node_main:lifecycle_main',

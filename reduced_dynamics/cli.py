@@ -177,13 +177,36 @@ def _stopped_line(signum: int) -> str:
     return f'reduced-dynamics: stopped by {signal.Signals(signum).name}'
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    """Entry point of ``reduced-dynamics``."""
+def main(argv: Optional[Sequence[str]] = None, *, program: bool = False) -> int:
+    """
+    Entry point of ``reduced-dynamics``; in-process callers get their handlers back.
+
+    ``program``: this is the executable (:func:`program`): once the command is done a
+    late signal no longer changes its exit code (:func:`stop_signals.finish`).
+    """
     # A signal in the subcommand's imports (pinocchio, numba: seconds): one line, exit
     # 128 + its number, the shell's convention (an interrupted run is no success).
     previous = stop_signals.current_handlers()  # main() is also called in-process
     stop_signals.exit_at_once(_stopped_line, lambda signum: 128 + signum)
     _INTERRUPTS.received = None
+    code: Optional[int] = None
+    try:
+        code = _main_handled(argv)
+        return code
+    finally:
+        if program and code is not None:
+            stop_signals.finish(code)
+        else:
+            stop_signals.restore(previous)
+
+
+def program() -> int:
+    """Be the process's program: the ``reduced-dynamics`` console script."""
+    return main(program=True)
+
+
+def _main_handled(argv: Optional[Sequence[str]]) -> int:
+    """Run :func:`_main`; a stop signal and a closed stdout become exit codes."""
     try:
         code = _main(argv)
         sys.stdout.flush()  # inside the try: a closed pipe must surface here
@@ -202,8 +225,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             raise
         print(_stopped_line(_INTERRUPTS.received), file=sys.stderr)
         return 128 + _INTERRUPTS.received
-    finally:
-        stop_signals.restore(previous)
 
 
 def _main(argv: Optional[Sequence[str]]) -> int:
@@ -221,4 +242,4 @@ def _main(argv: Optional[Sequence[str]]) -> int:
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    sys.exit(program())

@@ -25,7 +25,8 @@ process at once with exit 0 and one line on stderr. ``node.main()`` installs the
 node's own handling (:class:`reduced_dynamics.node._StopOnSignal`: the signal
 asks the spin loop to end, the node is destroyed, rclpy shut down) before
 ``rclpy.init``; from then on that takes over. A signal while the process
-tears down after ``node.main()`` returned ends it at once with main's code.
+tears down after ``node.main()`` returned ends it at once with main's code, or
+is ignored once the interpreter finalises (:func:`stop_signals.finish`).
 
 Not covered: the interpreter's own start before this module's first line runs
 (0.1-0.2 s of CPU here, most of it the environment's ``.pth`` files).
@@ -35,7 +36,7 @@ import signal
 import sys
 from typing import Optional, Sequence
 
-from reduced_dynamics.stop_signals import exit_at_once
+from reduced_dynamics.stop_signals import exit_at_once, finish
 
 
 def start_up_message(program: str, signum: int) -> str:
@@ -54,8 +55,7 @@ def run(program: str, lifecycle: bool, args: Optional[Sequence[str]] = None) -> 
     from reduced_dynamics import node  # the heavy imports, signals handled
     code = node.main(args, lifecycle=lifecycle)
     # Tearing down (rclpy, numba and the executor's threads): a signal ends it quietly.
-    exit_at_once(None, lambda signum: code)
-    return code
+    return finish(code)
 
 
 def main(args: Optional[Sequence[str]] = None) -> int:

@@ -147,3 +147,83 @@ def test_the_cli_stopped_in_its_imports_prints_one_line(tmp_path, sig, point):
         return
     assert proc.returncode == 128 + sig, err
     assert err.splitlines() == [f'reduced-dynamics: stopped by {sig.name}'], err
+
+
+#: A program's end, as ``python -m end_probe CODE FINISH``: an exit handler that waits
+#: (the window of a late signal), a module global finalised in the module teardown,
+#: and a KeyboardInterrupt that went through C code running Python and was caught.
+END_PROBE = '''
+import atexit, ctypes, os, sys, time
+from reduced_dynamics import stop_signals
+
+
+class Finalised:
+    def __del__(self):
+        os.write(1, b'module teardown\\n')
+
+
+def exit_handler():
+    os.write(1, b'exit handler\\n')
+    if os.environ.get('PROBE_WAIT') == '1':
+        time.sleep(3)
+        os.write(1, b'waited\\n')
+
+
+keep = Finalised()
+atexit.register(exit_handler)
+run = ctypes.pythonapi.PyRun_String
+run.argtypes = [ctypes.c_char_p, ctypes.c_int, ctypes.py_object, ctypes.py_object]
+run.restype = ctypes.py_object
+try:
+    run(b'raise KeyboardInterrupt', 257, {}, {})  # 257: Py_file_input
+except KeyboardInterrupt:
+    pass
+code, finish = int(sys.argv[1]), sys.argv[2] == 'True'
+if finish:
+    stop_signals.finish(code)
+sys.exit(code)
+'''
+
+
+def run_end_probe(tmp_path, code, finish, sig=None):
+    """Run END_PROBE; with ``sig``, send it while its exit handler waits."""
+    (tmp_path / 'end_probe.py').write_text(END_PROBE)
+    env = dict(os.environ, PROBE_WAIT='1' if sig else '0', PYTHONPATH=os.pathsep.join(
+        [str(REPO)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p]))
+    proc = subprocess.Popen([sys.executable, '-m', 'end_probe', str(code), str(finish)],
+                            cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        if sig is not None:
+            assert proc.stdout.readline() == 'exit handler\n', proc.communicate()
+            proc.send_signal(sig)
+        out, err = proc.communicate(timeout=HANG)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, out, err
+
+
+@pytest.mark.parametrize('code', [0, 130])
+def test_a_finished_program_exits_with_its_code_after_a_caught_interrupt(tmp_path, code):
+    """The interpreter kills itself with SIGINT at exit once a KeyboardInterrupt left C code."""
+    assert run_end_probe(tmp_path, code, finish=False)[0] == -signal.SIGINT
+    returned, out, err = run_end_probe(tmp_path, code, finish=True)
+    assert (returned, err) == (code, '')
+    assert out == 'exit handler\n'  # exit handlers ran; the module teardown did not
+
+
+@pytest.mark.skipif(not Path('/proc/self/status').exists(), reason='needs Linux /proc')
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+@pytest.mark.parametrize('code', [0, 130])
+def test_a_signal_while_a_finished_program_exits_leaves_its_code(tmp_path, sig, code):
+    """After ``finish`` a signal ends the exit at once, with the program's own code."""
+    returned, out, err = run_end_probe(tmp_path, code, finish=True, sig=sig)
+    assert (returned, out, err) == (code, '', '')  # the waiting handler did not go on
+    before = run_end_probe(tmp_path, code, finish=False, sig=sig)
+    assert before[0] != code or before[2] != ''  # killed, or a traceback
+
+
+def test_the_console_script_is_the_program_entry():
+    setup = (REPO / 'setup.py').read_text()
+    assert "'reduced-dynamics = reduced_dynamics.cli:program'" in setup
