@@ -25,7 +25,7 @@ import pytest
 from reduced_dynamics.bench import register_command, Settings
 from reduced_dynamics.soak import (classify_smaps, kind_slopes, MIB, node_soak_figures,
                                    proc_sample, rss_by_kind, RSS_KINDS, rss_slope, run_node_soak,
-                                   tenth_figures)
+                                   soak_warmup, tenth_figures)
 
 NS = 1_000_000_000
 
@@ -39,6 +39,21 @@ def test_rss_slope_fits_after_the_warm_up_only():
     assert rss_slope(t, rss, 0.0) > 10.0
     with pytest.raises(ValueError, match='fewer than two'):
         rss_slope(t, rss, 1e6)
+
+
+def test_the_warm_up_covers_the_stores_filling_in_a_long_soak():
+    # The one-hour soak's RSS (65325c5): steps while the stores fill (the last at
+    # 710 s, within the 600 s calibration memory plus its updates), flat after.
+    t = np.arange(0.0, 3600.0, 10.0)
+    steps = [(10.0, 37.0), (20.0, 2.0), (90.0, 2.25), (140.0, 2.25), (320.0, 0.16),
+             (340.0, 0.16), (710.0, 3.95)]
+    rss = (784.45 + sum(size * (t >= at) for at, size in steps)) * MIB
+    assert rss_slope(t, rss, 60.0) > 1.0  # the old 60 s warm-up: the filling as a slope
+    assert soak_warmup(3600.0) == 900.0
+    assert rss_slope(t, rss, soak_warmup(3600.0)) == pytest.approx(0.0, abs=1e-9)
+    # Short runs keep three quarters of their window; never under 60 s when it allows.
+    assert soak_warmup(600.0) == 150.0 and soak_warmup(240.0) == 60.0
+    assert soak_warmup(30.0) == 7.5
 
 
 def test_tenths_compare_cpu_and_latency_at_both_ends():
