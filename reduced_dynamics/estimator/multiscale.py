@@ -54,7 +54,7 @@ from typing import Any, NamedTuple, Optional
 import numpy as np
 from reduced_dynamics.chi_square import chi2
 from scipy.special import chdtri
-from reduced_dynamics.estimator.core import blocks
+from reduced_dynamics.estimator.core import blocks, impulse
 
 #: Shortest and longest window [s] and the ratio between successive windows.
 SHORTEST = 0.05
@@ -234,25 +234,20 @@ class MultiScaleTest:
             # chi2.isf is ~50 us: recomputed only when the update rate changes.
             self._threshold_period = self._period
             self.threshold = float(chi2.isf(self.significance(self._period), self.n))
-        stamps = self._stamps[self._start:self._end]
-        targets = stamp_ns - self._lags_ns
-        # The newest sample at or before t - L: the window is at least L long.
-        index = np.searchsorted(stamps, targets, 'right') - 1
         floor = self.floor_ns
-        covered = (index >= 0) & (stamps[np.maximum(index, 0)] >= (
-            stamps[0] if floor is None else max(floor, int(stamps[0]))))
         self.statistics[:] = 0.0
-        if not covered.any():
-            return None
-        rows = index[covered] + self._start
-        d = mu - self._mu[rows]
-        v = cov + self._cov[rows]
         try:
-            solved = np.linalg.solve(v, d[..., None])[..., 0]
+            # One compiled call: each window's ring row, d_L and V_L^-1 d_L (core/impulse.py).
+            rows, d, solved = impulse.window_changes(
+                self._stamps, self._mu, self._cov, self._start, self._end, self._lags_ns,
+                stamp_ns, 0 if floor is None else floor, floor is not None, mu, cov)
         except np.linalg.LinAlgError:
             return None
-        values = np.einsum('ij,ij->i', d, solved)
-        self.statistics[covered] = values
+        if not len(d):
+            return None
+        covered = rows >= 0
+        rows = rows[covered]
+        self.statistics[covered] = np.einsum('ij,ij->i', d, solved)
         self.statistics[:] = self._calibrate(0, self.statistics)
         values = self.statistics[covered]
         best = int(np.argmax(values))
@@ -280,12 +275,10 @@ class MultiScaleTest:
         comes from the test's own median (robust: a push is a small part of the
         time), learnt over ``calibration_memory`` s while no event is open.
         """
-        if self.quiet and self._period is not None:
-            covered = raw > 0.0
-            rate = min(1.0, self._period / self.calibration_memory)
-            above = self._above[test]
-            above[covered] += rate * ((raw[covered] > self._median) - above[covered])
-        return raw / self.inflation[test]
+        learn = self.quiet and self._period is not None
+        rate = min(1.0, self._period / self.calibration_memory) if learn else 0.0
+        return impulse.calibrate(raw, self._above[test], self.inflation[test], self._median,
+                                 rate, learn)
 
     def still_moving(self, window: float) -> bool:
         """

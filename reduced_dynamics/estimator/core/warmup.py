@@ -83,6 +83,12 @@ def warm_up() -> None:
             blocks.add(k * 10_000_000, np.full(n, 1e-3 * k), np.eye(n), None, position)
         blocks.update(15 * 10_000_000, None)
         blocks.mean(0, 15 * 10_000_000)
+    # The multi-scale test's window statistics (core/impulse.py): through its update.
+    from reduced_dynamics.estimator.multiscale import MultiScaleTest
+    for n in (6, 3):
+        multiscale = MultiScaleTest(n, 1.0)
+        for k in range(4):
+            multiscale.update(k * 100_000_000, np.full(n, 1e-3 * k), np.eye(n))
     # The re-timer's window fit (core/envelope.py): the strided columns it is given (a
     # window of one point is contiguous: another signature).
     from reduced_dynamics.estimator.core import envelope
