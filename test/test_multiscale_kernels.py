@@ -18,7 +18,9 @@ from typing import Optional
 
 import numpy as np
 
-from reduced_dynamics.estimator.multiscale import MultiScaleTest
+from reduced_dynamics.estimator.core import blocks
+from reduced_dynamics.estimator.multiscale import (EXCESS_MINIMUM, EXCESS_SAMPLES,
+                                                   MomentumBlocks, MultiScaleTest)
 
 
 def _numpy_statistics(test: MultiScaleTest, stamp_ns: int, mu: np.ndarray,
@@ -88,3 +90,106 @@ def test_window_changes_marks_the_windows_the_floor_leaves_uncovered() -> None:
     rows, d, _ = impulse.window_changes(stamps, mu_ring, cov_ring, 0, len(stamps), lags,
                                         now, now - 100_000_000, True, mu_ring[-1], np.eye(3))
     assert rows.tolist() == [94, -1, -1] and d.shape == (1, 3)
+
+
+class NumpyBlocks(MomentumBlocks):
+    """The block test's per-sample code as it was in numpy (main 3a3a89e)."""
+
+    def _learn_excess(self, mu: np.ndarray, cov: np.ndarray) -> None:
+        last, self._last = self._last, (mu, cov)
+        if last is None:
+            return
+        d = mu - last[0]
+        sample = 0.5 * (np.outer(d, d) - cov - last[1])
+        self._differences += 1
+        self._excess_raw += (sample - self._excess_raw) / min(self._differences,
+                                                              EXCESS_SAMPLES)
+        if self._differences % 16 == 1 or self._differences == EXCESS_MINIMUM:
+            values, vectors = np.linalg.eigh(self._excess_raw)
+            self.excess = (vectors * np.maximum(values, 0.0)) @ vectors.T
+
+    def add(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
+            common: Optional[np.ndarray] = None,
+            position: Optional[tuple] = None) -> None:
+        if self._end and stamp_ns <= self._stamps[self._end - 1]:
+            return
+        self._learn_excess(mu, cov)
+        try:
+            info = np.linalg.inv(cov + self.excess)
+            lam = None if position is None else np.linalg.inv(position[1])
+        except np.linalg.LinAlgError:
+            return
+        if lam is not None and not len(self.linear):
+            self.linear = np.asarray(position[3], dtype=np.int64)
+            self.mass = float(position[2])
+            self._positions = self._position_arrays(self._capacity, len(self.linear))
+        if self._end == self._capacity:
+            self._compact(stamp_ns)
+        k = self._end
+        if not k:
+            self._origin_ns = stamp_ns
+        self._stamps[k] = stamp_ns
+        self._common[k] = 0.0 if common is None else common
+        blocks.accumulate(self._info, self._score, k, info, mu)
+        if len(self.linear):
+            present = lam is not None and len(position[0]) == len(self.linear)
+            d = len(self.linear)
+            blocks.accumulate_position(
+                *self._positions, k, lam if present else np.zeros((d, d)),
+                (stamp_ns - self._origin_ns) * 1e-9,
+                np.asarray(position[0], float) if present else np.zeros(d), present)
+        self._end += 1
+        self.active = True
+
+    def update(self, stamp_ns: int, floor_ns: Optional[int]) -> int:
+        self.statistics[:] = 0.0
+        if self._end < 4 or not self.ready:
+            return -1
+        stamps = self._stamps[:self._end]
+        first = int(stamps[0]) if floor_ns is None else max(floor_ns, int(stamps[0]))
+        bounds = stamp_ns - np.outer(self._lags_ns, np.arange(3, -1, -1))
+        index = np.searchsorted(stamps, bounds, 'right') - 1
+        # Both blocks hold samples, and the before block starts within the data.
+        covered = (bounds[:, 0] >= first) & (index[:, 1] > index[:, 0]) & \
+            (index[:, 3] > index[:, 2])
+        if not covered.any():
+            return -1
+        rows = np.ascontiguousarray(index[covered])
+        try:
+            values = blocks.window_statistics(*self._arrays(), self._common, rows,
+                                              self.mass, self.linear)
+        except np.linalg.LinAlgError:
+            return -1
+        self.statistics[covered] = values
+        return int(np.argmax(self.statistics))
+
+
+def test_the_compiled_block_test_equals_the_numpy_one_bit_for_bit() -> None:
+    """Random measured momenta with and without positions: prefix sums, excess, statistics."""
+    rng = np.random.default_rng(11)
+    for n, d in ((6, 3), (3, 2), (6, 0)):
+        windows = np.array([0.02, 0.05, 0.1, 0.3])
+        mine, reference = MomentumBlocks(n, windows), NumpyBlocks(n, windows)
+        stamp = 0
+        compared = 0
+        for k in range(EXCESS_MINIMUM + 400):
+            stamp += int(rng.choice([1_000_000, 4_000_000, 10_000_000]))
+            root = rng.standard_normal((n, n)) * 1e-2
+            cov = root @ root.T + 1e-6 * np.eye(n)
+            mu = rng.standard_normal(n) * 1e-2
+            common = np.eye(n) * 1e-8 * k
+            position = None
+            if d and k % 3:
+                proot = rng.standard_normal((d, d)) * 1e-3
+                position = (rng.standard_normal(d), proot @ proot.T + 1e-9 * np.eye(d), 7.0,
+                            tuple(range(d)))
+            for bank in (mine, reference):
+                bank.add(stamp, mu, cov, common, position)
+            floor = None if k < 450 else stamp - 150_000_000
+            assert mine.update(stamp, floor) == reference.update(stamp, floor)
+            np.testing.assert_array_equal(mine.statistics, reference.statistics)
+            compared += int(np.count_nonzero(mine.statistics))
+        np.testing.assert_array_equal(mine.excess, reference.excess)
+        for a, b in zip(mine._arrays(), reference._arrays()):
+            np.testing.assert_array_equal(a, b)
+        assert compared > 500

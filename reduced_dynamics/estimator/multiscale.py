@@ -466,6 +466,7 @@ class MomentumBlocks:
         self._excess_raw = np.zeros((n, n))
         self._differences = 0
         self._last: Optional[tuple[np.ndarray, np.ndarray]] = None
+        self._no_position = np.zeros((0, 0))
 
     @staticmethod
     def _position_arrays(capacity: int, d: int) -> list[np.ndarray]:
@@ -495,11 +496,9 @@ class MomentumBlocks:
         last, self._last = self._last, (mu, cov)
         if last is None:
             return
-        d = mu - last[0]
-        sample = 0.5 * (np.outer(d, d) - cov - last[1])
         self._differences += 1
-        self._excess_raw += (sample - self._excess_raw) / min(self._differences,
-                                                              EXCESS_SAMPLES)
+        blocks.learn_excess(self._excess_raw, mu, cov, last[0], last[1],
+                            float(min(self._differences, EXCESS_SAMPLES)))
         if self._differences % 16 == 1 or self._differences == EXCESS_MINIMUM:
             values, vectors = np.linalg.eigh(self._excess_raw)
             self.excess = (vectors * np.maximum(values, 0.0)) @ vectors.T
@@ -519,10 +518,12 @@ class MomentumBlocks:
             return
         self._learn_excess(mu, cov)
         try:
-            info = np.linalg.inv(cov + self.excess)
-            lam = None if position is None else np.linalg.inv(position[1])
+            info, lam = blocks.sample_information(
+                cov, self.excess, self._no_position if position is None else position[1])
         except np.linalg.LinAlgError:
             return
+        if position is None:
+            lam = None
         if lam is not None and not len(self.linear):
             self.linear = np.asarray(position[3], dtype=np.int64)
             self.mass = float(position[2])
@@ -582,22 +583,18 @@ class MomentumBlocks:
         self.statistics[:] = 0.0
         if self._end < 4 or not self.ready:
             return -1
-        stamps = self._stamps[:self._end]
-        first = int(stamps[0]) if floor_ns is None else max(floor_ns, int(stamps[0]))
-        bounds = stamp_ns - np.outer(self._lags_ns, np.arange(3, -1, -1))
-        index = np.searchsorted(stamps, bounds, 'right') - 1
-        # Both blocks hold samples, and the before block starts within the data.
-        covered = (bounds[:, 0] >= first) & (index[:, 1] > index[:, 0]) & \
-            (index[:, 3] > index[:, 2])
-        if not covered.any():
-            return -1
-        rows = np.ascontiguousarray(index[covered])
+        first = int(self._stamps[0])
+        first = first if floor_ns is None else max(floor_ns, first)
         try:
-            values = blocks.window_statistics(*self._arrays(), self._common, rows,
-                                              self.mass, self.linear)
+            # Both blocks hold samples, and the before block starts within the data.
+            found, values = blocks.bank_statistics(
+                *self._arrays(), self._common, self._stamps, self._end, self._lags_ns,
+                stamp_ns, first, self.mass, self.linear)
         except np.linalg.LinAlgError:
             return -1
-        self.statistics[covered] = values
+        if not found:
+            return -1
+        self.statistics[:] = values
         return int(np.argmax(self.statistics))
 
     def locate(self, stamp_ns: int, window: int, floor_ns: Optional[int],

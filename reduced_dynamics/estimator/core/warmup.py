@@ -82,6 +82,7 @@ def warm_up() -> None:
         for k in range(16):
             blocks.add(k * 10_000_000, np.full(n, 1e-3 * k), np.eye(n), None, position)
         blocks.update(15 * 10_000_000, None)
+        blocks.update(15 * 10_000_000, 0)
         blocks.mean(0, 15 * 10_000_000)
     # The multi-scale test's window statistics (core/impulse.py): through its update.
     from reduced_dynamics.estimator.multiscale import MultiScaleTest
