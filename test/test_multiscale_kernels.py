@@ -193,3 +193,75 @@ def test_the_compiled_block_test_equals_the_numpy_one_bit_for_bit() -> None:
         for a, b in zip(mine._arrays(), reference._arrays()):
             np.testing.assert_array_equal(a, b)
         assert compared > 500
+
+
+def _numpy_twist_momentum(ad_inverse, locked, connection_qd, twist, twist_cov, joint_cov,
+                          pose_cov, kirillov):
+    """multiscale.twist_momentum as it was in numpy (main 3a3a89e)."""
+    pi = locked @ (twist + connection_qd)
+    to_world = ad_inverse.T
+    white = to_world @ locked @ (twist_cov + joint_cov) @ locked.T @ to_world.T
+    w = to_world @ kirillov(pi)
+    return to_world @ pi, white, w @ pose_cov @ w.T
+
+
+def _numpy_centre_of_mass_se3(pose, locked, pose_cov):
+    """multiscale.centre_of_mass's SE(3) branch as it was in numpy (main 3a3a89e)."""
+    mass = float(locked[0, 0])
+    c = np.array([locked[1, 5], locked[2, 3], locked[0, 4]]) / mass
+    rotation = pose.rotation
+    jacobian = np.zeros((3, 6))
+    jacobian[:, :3] = rotation
+    jacobian[:, 3:] = -rotation @ np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]],
+                                            [-c[1], c[0], 0.0]])
+    world = pose.translation + rotation @ c
+    return world, jacobian @ pose_cov @ jacobian.T, mass
+
+
+def test_measured_momenta_and_centre_of_mass_equal_the_numpy_ones_bit_for_bit() -> None:
+    """Poses from Pinocchio, the filter covariance's block as a strided view (as the filter)."""
+    import pinocchio as pin
+    from reduced_dynamics.estimator.multiscale import centre_of_mass, twist_momentum
+    from reduced_dynamics.geometry.lie_group import SUBGROUPS
+    rng = np.random.default_rng(5)
+    group = SUBGROUPS['SE(3)']
+    for _ in range(500):
+        g = pin.SE3.Random()
+        root = rng.standard_normal((6, 6))
+        locked = root @ root.T + 6.0 * np.eye(6)
+        p = rng.standard_normal((18, 18))
+        p = p @ p.T
+        args = (g.actionInverse, locked, rng.standard_normal(6), rng.standard_normal(6),
+                np.diag(rng.uniform(0.1, 1.0, 6)), np.diag(rng.uniform(0.1, 1.0, 6)),
+                p[:6, :6], group.coadjoint_form)
+        for mine, expected in zip(twist_momentum(*args), _numpy_twist_momentum(*args)):
+            np.testing.assert_array_equal(mine, expected)
+        mine = centre_of_mass('SE(3)', g, locked, p[:6, :6])
+        expected = _numpy_centre_of_mass_se3(g, locked, p[:6, :6])
+        for a, b in zip(mine[:3], expected):
+            np.testing.assert_array_equal(a, b)
+        assert mine[3] == (0, 1, 2)
+
+
+def test_warm_up_loads_the_impulse_kernels_with_the_estimators_argument_types() -> None:
+    """A fresh process: after warm_up, an estimator's run compiles no new signature."""
+    import os
+    import subprocess
+    import sys
+    code = ('from reduced_dynamics.estimator.core.warmup import warm_up; warm_up(); '
+            'from reduced_dynamics.estimator.core import impulse as i; '
+            'from reduced_dynamics.robot.model import load_robot; '
+            'from reduced_dynamics.bench import update_samples; '
+            'from reduced_dynamics.estimator.pipeline import Estimator; '
+            'kernels = (i.window_changes, i.calibrate, i.twist_momentum, '
+            'i.centre_of_mass_se3); '
+            'before = [len(k.signatures) for k in kernels]; '
+            'robot = load_robot(); joints, bases = update_samples(robot, 300); '
+            'e = Estimator(robot); '
+            'e.add_samples([m for pair in zip(joints, bases) for m in pair]); '
+            'print(min(before) > 0, before == [len(k.signatures) for k in kernels])')
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True,
+                         check=True, timeout=600).stdout.split()
+    assert out == ['True', 'True']

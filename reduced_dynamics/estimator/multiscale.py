@@ -318,10 +318,9 @@ def twist_momentum(ad_inverse: np.ndarray, locked: np.ndarray, connection_qd: np
     not reduce it.
     """
     pi = locked @ (twist + connection_qd)
-    to_world = ad_inverse.T
-    white = to_world @ locked @ (twist_cov + joint_cov) @ locked.T @ to_world.T
-    w = to_world @ kirillov(pi)
-    return to_world @ pi, white, w @ pose_cov @ w.T
+    # The products in one compiled call, in numpy's order (core/impulse.py).
+    return impulse.twist_momentum(ad_inverse, locked, pi, twist_cov, joint_cov, pose_cov,
+                                  kirillov(pi))
 
 
 def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stamp_ns: int,
@@ -385,22 +384,18 @@ def centre_of_mass(group: str, pose: Any, locked: np.ndarray, pose_cov: np.ndarr
     axes = LINEAR.get(group)
     if axes is None:
         return None
-    mass = float(locked[0, 0])
     if group == 'SE(3)':
-        c = np.array([locked[1, 5], locked[2, 3], locked[0, 4]]) / mass
-        rotation = pose.rotation
-        jacobian = np.zeros((3, 6))
-        jacobian[:, :3] = rotation
-        jacobian[:, 3:] = -rotation @ np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]],
-                                                [-c[1], c[0], 0.0]])
-        world = pose.translation + rotation @ c
-    else:
-        c = np.array([locked[1, 2], -locked[0, 2]]) / mass
-        rotation = pose.rotation[:2, :2]
-        jacobian = np.zeros((2, 3))
-        jacobian[:, :2] = rotation
-        jacobian[:, 2] = rotation @ np.array([-c[1], c[0]])
-        world = pose.translation[:2] + rotation @ c
+        # Compiled (core/impulse.py); SE(2) below.
+        world, cov, mass = impulse.centre_of_mass_se3(locked, pose.rotation, pose.translation,
+                                                      pose_cov)
+        return world, cov, mass, axes
+    mass = float(locked[0, 0])
+    c = np.array([locked[1, 2], -locked[0, 2]]) / mass
+    rotation = pose.rotation[:2, :2]
+    jacobian = np.zeros((2, 3))
+    jacobian[:, :2] = rotation
+    jacobian[:, 2] = rotation @ np.array([-c[1], c[0]])
+    world = pose.translation[:2] + rotation @ c
     return world, jacobian @ pose_cov @ jacobian.T, mass, axes
 
 

@@ -79,3 +79,28 @@ def calibrate(raw: np.ndarray, above: np.ndarray, inflation: np.ndarray, median:
             above[w] += rate * ((1.0 if raw[w] > median else 0.0) - above[w])
         out[w] = raw[w] / inflation[w]
     return out
+
+
+@njit(cache=True)
+def twist_momentum(ad_inverse: np.ndarray, locked: np.ndarray, pi: np.ndarray,
+                   twist_cov: np.ndarray, joint_cov: np.ndarray, pose_cov: np.ndarray,
+                   kirillov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return mu = Ad_{g^-1}^T pi, its white covariance and its pose-error one (multiscale)."""
+    to_world = ad_inverse.T
+    white = to_world @ locked @ (twist_cov + joint_cov) @ locked.T @ to_world.T
+    w = to_world @ kirillov
+    return to_world @ pi, white, w @ np.ascontiguousarray(pose_cov) @ w.T
+
+
+@njit(cache=True)
+def centre_of_mass_se3(locked: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                       pose_cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Return the measured centre of mass in the world, its covariance, the mass (SE(3))."""
+    mass = locked[0, 0]
+    c = np.array([locked[1, 5], locked[2, 3], locked[0, 4]]) / mass
+    skew = np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]])
+    jacobian = np.zeros((3, 6))
+    jacobian[:, :3] = rotation
+    jacobian[:, 3:] = -rotation @ skew
+    world = translation + rotation @ c
+    return world, jacobian @ np.ascontiguousarray(pose_cov) @ jacobian.T, mass
