@@ -35,6 +35,7 @@ from typing import Callable, NamedTuple
 import numpy as np
 import pinocchio as pin
 
+from reduced_dynamics.estimator.core import inputs
 from reduced_dynamics.robot.model import RobotModel
 
 
@@ -250,13 +251,11 @@ class UpdateKernel:
         """
         n = self.n
         mass = self.mass_matrices(qbar)
-        # Copies: the stack of mass matrices is reused by the next chunk.
-        locked = mass[:, :n, :n].copy()
+        # I (a copy: the stack of mass matrices is reused by the next chunk), I^-1,
+        # A qbar_dot and A Sigma A^T in one compiled call (core/inputs.py).
+        locked, inverse, connection_qd, joint_cov = inputs.connection_terms(
+            mass, n, qbar_dot, joint_variance)
         coupling = mass[:, :n, n:]
-        inverse = np.linalg.inv(locked)
-        connection = np.matmul(inverse, coupling)
-        connection_qd = np.matmul(connection, qbar_dot[:, :, None])[:, :, 0]
-        joint_cov = joint_variance * np.matmul(connection, np.swapaxes(connection, 1, 2))
         shape_qd = np.matmul(mass[:, n:, n:], qbar_dot[:, :, None])[:, :, 0]
         pbar = shape_qd - np.matmul(connection_qd[:, None, :], coupling)[:, 0]
         return FilterInputs(locked, inverse, connection_qd, joint_cov, pbar,

@@ -54,7 +54,7 @@ from typing import Any, NamedTuple, Optional
 import numpy as np
 from reduced_dynamics.chi_square import chi2
 from scipy.special import chdtri
-from reduced_dynamics.estimator.core import blocks
+from reduced_dynamics.estimator.core import blocks, impulse
 
 #: Shortest and longest window [s] and the ratio between successive windows.
 SHORTEST = 0.05
@@ -234,25 +234,20 @@ class MultiScaleTest:
             # chi2.isf is ~50 us: recomputed only when the update rate changes.
             self._threshold_period = self._period
             self.threshold = float(chi2.isf(self.significance(self._period), self.n))
-        stamps = self._stamps[self._start:self._end]
-        targets = stamp_ns - self._lags_ns
-        # The newest sample at or before t - L: the window is at least L long.
-        index = np.searchsorted(stamps, targets, 'right') - 1
         floor = self.floor_ns
-        covered = (index >= 0) & (stamps[np.maximum(index, 0)] >= (
-            stamps[0] if floor is None else max(floor, int(stamps[0]))))
         self.statistics[:] = 0.0
-        if not covered.any():
-            return None
-        rows = index[covered] + self._start
-        d = mu - self._mu[rows]
-        v = cov + self._cov[rows]
         try:
-            solved = np.linalg.solve(v, d[..., None])[..., 0]
+            # One compiled call: each window's ring row, d_L and V_L^-1 d_L (core/impulse.py).
+            rows, d, solved = impulse.window_changes(
+                self._stamps, self._mu, self._cov, self._start, self._end, self._lags_ns,
+                stamp_ns, 0 if floor is None else floor, floor is not None, mu, cov)
         except np.linalg.LinAlgError:
             return None
-        values = np.einsum('ij,ij->i', d, solved)
-        self.statistics[covered] = values
+        if not len(d):
+            return None
+        covered = rows >= 0
+        rows = rows[covered]
+        self.statistics[covered] = np.einsum('ij,ij->i', d, solved)
         self.statistics[:] = self._calibrate(0, self.statistics)
         values = self.statistics[covered]
         best = int(np.argmax(values))
@@ -280,12 +275,10 @@ class MultiScaleTest:
         comes from the test's own median (robust: a push is a small part of the
         time), learnt over ``calibration_memory`` s while no event is open.
         """
-        if self.quiet and self._period is not None:
-            covered = raw > 0.0
-            rate = min(1.0, self._period / self.calibration_memory)
-            above = self._above[test]
-            above[covered] += rate * ((raw[covered] > self._median) - above[covered])
-        return raw / self.inflation[test]
+        learn = self.quiet and self._period is not None
+        rate = min(1.0, self._period / self.calibration_memory) if learn else 0.0
+        return impulse.calibrate(raw, self._above[test], self.inflation[test], self._median,
+                                 rate, learn)
 
     def still_moving(self, window: float) -> bool:
         """
@@ -325,10 +318,9 @@ def twist_momentum(ad_inverse: np.ndarray, locked: np.ndarray, connection_qd: np
     not reduce it.
     """
     pi = locked @ (twist + connection_qd)
-    to_world = ad_inverse.T
-    white = to_world @ locked @ (twist_cov + joint_cov) @ locked.T @ to_world.T
-    w = to_world @ kirillov(pi)
-    return to_world @ pi, white, w @ pose_cov @ w.T
+    # The products in one compiled call, in numpy's order (core/impulse.py).
+    return impulse.twist_momentum(ad_inverse, locked, pi, twist_cov, joint_cov, pose_cov,
+                                  kirillov(pi))
 
 
 def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stamp_ns: int,
@@ -392,22 +384,18 @@ def centre_of_mass(group: str, pose: Any, locked: np.ndarray, pose_cov: np.ndarr
     axes = LINEAR.get(group)
     if axes is None:
         return None
-    mass = float(locked[0, 0])
     if group == 'SE(3)':
-        c = np.array([locked[1, 5], locked[2, 3], locked[0, 4]]) / mass
-        rotation = pose.rotation
-        jacobian = np.zeros((3, 6))
-        jacobian[:, :3] = rotation
-        jacobian[:, 3:] = -rotation @ np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]],
-                                                [-c[1], c[0], 0.0]])
-        world = pose.translation + rotation @ c
-    else:
-        c = np.array([locked[1, 2], -locked[0, 2]]) / mass
-        rotation = pose.rotation[:2, :2]
-        jacobian = np.zeros((2, 3))
-        jacobian[:, :2] = rotation
-        jacobian[:, 2] = rotation @ np.array([-c[1], c[0]])
-        world = pose.translation[:2] + rotation @ c
+        # Compiled (core/impulse.py); SE(2) below.
+        world, cov, mass = impulse.centre_of_mass_se3(locked, pose.rotation, pose.translation,
+                                                      pose_cov)
+        return world, cov, mass, axes
+    mass = float(locked[0, 0])
+    c = np.array([locked[1, 2], -locked[0, 2]]) / mass
+    rotation = pose.rotation[:2, :2]
+    jacobian = np.zeros((2, 3))
+    jacobian[:, :2] = rotation
+    jacobian[:, 2] = rotation @ np.array([-c[1], c[0]])
+    world = pose.translation[:2] + rotation @ c
     return world, jacobian @ pose_cov @ jacobian.T, mass, axes
 
 
@@ -473,6 +461,7 @@ class MomentumBlocks:
         self._excess_raw = np.zeros((n, n))
         self._differences = 0
         self._last: Optional[tuple[np.ndarray, np.ndarray]] = None
+        self._no_position = np.zeros((0, 0))
 
     @staticmethod
     def _position_arrays(capacity: int, d: int) -> list[np.ndarray]:
@@ -502,11 +491,9 @@ class MomentumBlocks:
         last, self._last = self._last, (mu, cov)
         if last is None:
             return
-        d = mu - last[0]
-        sample = 0.5 * (np.outer(d, d) - cov - last[1])
         self._differences += 1
-        self._excess_raw += (sample - self._excess_raw) / min(self._differences,
-                                                              EXCESS_SAMPLES)
+        blocks.learn_excess(self._excess_raw, mu, cov, last[0], last[1],
+                            float(min(self._differences, EXCESS_SAMPLES)))
         if self._differences % 16 == 1 or self._differences == EXCESS_MINIMUM:
             values, vectors = np.linalg.eigh(self._excess_raw)
             self.excess = (vectors * np.maximum(values, 0.0)) @ vectors.T
@@ -526,10 +513,12 @@ class MomentumBlocks:
             return
         self._learn_excess(mu, cov)
         try:
-            info = np.linalg.inv(cov + self.excess)
-            lam = None if position is None else np.linalg.inv(position[1])
+            info, lam = blocks.sample_information(
+                cov, self.excess, self._no_position if position is None else position[1])
         except np.linalg.LinAlgError:
             return
+        if position is None:
+            lam = None
         if lam is not None and not len(self.linear):
             self.linear = np.asarray(position[3], dtype=np.int64)
             self.mass = float(position[2])
@@ -589,22 +578,18 @@ class MomentumBlocks:
         self.statistics[:] = 0.0
         if self._end < 4 or not self.ready:
             return -1
-        stamps = self._stamps[:self._end]
-        first = int(stamps[0]) if floor_ns is None else max(floor_ns, int(stamps[0]))
-        bounds = stamp_ns - np.outer(self._lags_ns, np.arange(3, -1, -1))
-        index = np.searchsorted(stamps, bounds, 'right') - 1
-        # Both blocks hold samples, and the before block starts within the data.
-        covered = (bounds[:, 0] >= first) & (index[:, 1] > index[:, 0]) & \
-            (index[:, 3] > index[:, 2])
-        if not covered.any():
-            return -1
-        rows = np.ascontiguousarray(index[covered])
+        first = int(self._stamps[0])
+        first = first if floor_ns is None else max(floor_ns, first)
         try:
-            values = blocks.window_statistics(*self._arrays(), self._common, rows,
-                                              self.mass, self.linear)
+            # Both blocks hold samples, and the before block starts within the data.
+            found, values = blocks.bank_statistics(
+                *self._arrays(), self._common, self._stamps, self._end, self._lags_ns,
+                stamp_ns, first, self.mass, self.linear)
         except np.linalg.LinAlgError:
             return -1
-        self.statistics[covered] = values
+        if not found:
+            return -1
+        self.statistics[:] = values
         return int(np.argmax(self.statistics))
 
     def locate(self, stamp_ns: int, window: int, floor_ns: Optional[int],

@@ -149,3 +149,72 @@ def accumulate_position(s0: np.ndarray, s1: np.ndarray, s2: np.ndarray, y0: np.n
         y0[k] += weighted
         t1[k] += weighted * t
         counts[k] += 1
+
+
+@njit(cache=True)
+def bank_statistics(info: np.ndarray, score: np.ndarray, s0: np.ndarray, s1: np.ndarray,
+                    s2: np.ndarray, y0: np.ndarray, t1: np.ndarray, counts: np.ndarray,
+                    common: np.ndarray, stamps: np.ndarray, end: int, lags: np.ndarray,
+                    stamp_ns: int, first: int, mass: float,
+                    linear: np.ndarray) -> tuple[int, np.ndarray]:
+    """
+    Return how many windows are covered and T_L per window (0 where not covered).
+
+    Window L's blocks: before (t-3L, t-2L], after (t-L, t] (prefix rows from the
+    stamps up to ``end``); covered when both hold samples and the before block
+    starts at or after ``first`` (the data's start or the last event's end).
+    """
+    count = lags.shape[0]
+    index = np.empty((count, 4), dtype=np.int64)
+    covered = np.zeros(count, dtype=np.bool_)
+    found = 0
+    for w in range(count):
+        for j in range(4):
+            index[w, j] = np.searchsorted(stamps[:end], stamp_ns - lags[w] * (3 - j),
+                                          'right') - 1
+        covered[w] = stamp_ns - lags[w] * 3 >= first and index[w, 1] > index[w, 0] and \
+            index[w, 3] > index[w, 2]
+        found += covered[w]
+    out = np.zeros(count)
+    if not found:
+        return 0, out
+    rows = np.empty((found, 4), dtype=np.int64)
+    k = 0
+    for w in range(count):
+        if covered[w]:
+            rows[k] = index[w]
+            k += 1
+    values = window_statistics(info, score, s0, s1, s2, y0, t1, counts, common, rows, mass,
+                               linear)
+    k = 0
+    for w in range(count):
+        if covered[w]:
+            out[w] = values[k]
+            k += 1
+    return found, out
+
+
+@njit(cache=True)
+def learn_excess(raw: np.ndarray, mu: np.ndarray, cov: np.ndarray, last_mu: np.ndarray,
+                 last_cov: np.ndarray, divisor: float) -> None:
+    """Move ``raw`` towards 1/2 (d d^T - C_k - C_k-1), d = mu - last_mu (in place)."""
+    n = mu.shape[0]
+    for i in range(n):
+        di = mu[i] - last_mu[i]
+        for j in range(n):
+            sample = 0.5 * (di * (mu[j] - last_mu[j]) - cov[i, j] - last_cov[i, j])
+            raw[i, j] += (sample - raw[i, j]) / divisor
+
+
+@njit(cache=True)
+def sample_information(cov: np.ndarray, excess: np.ndarray,
+                       position_cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return (C + excess)^-1 and the position's information (an empty one: none)."""
+    n = cov.shape[0]
+    # solve(A, I): what numpy's inv computes (LAPACK gesv), bit for bit; in C order, as
+    # numpy returns it (a product with an F-ordered matrix sums in another order).
+    info = np.ascontiguousarray(np.linalg.solve(cov + excess, np.eye(n)))
+    d = position_cov.shape[0]
+    if d == 0:
+        return info, np.zeros((0, 0))
+    return info, np.ascontiguousarray(np.linalg.solve(position_cov, np.eye(d)))

@@ -82,7 +82,26 @@ def warm_up() -> None:
         for k in range(16):
             blocks.add(k * 10_000_000, np.full(n, 1e-3 * k), np.eye(n), None, position)
         blocks.update(15 * 10_000_000, None)
+        blocks.update(15 * 10_000_000, 0)
         blocks.mean(0, 15 * 10_000_000)
+    # The multi-scale test's window statistics (core/impulse.py): through its update.
+    from reduced_dynamics.estimator.multiscale import MultiScaleTest
+    for n in (6, 3):
+        multiscale = MultiScaleTest(n, 1.0)
+        for k in range(4):
+            multiscale.update(k * 100_000_000, np.full(n, 1e-3 * k), np.eye(n))
+    # Measured momenta and centre of mass (core/impulse.py); the pose covariance is a
+    # block of the filter's, a strided view.
+    from reduced_dynamics.estimator.core import impulse
+    for n in (6, 3):
+        eye, p = np.eye(n), np.eye(3 * n)
+        impulse.twist_momentum(eye, eye, np.ones(n), eye, eye, p[:n, :n], eye)
+    pose = pin.SE3.Identity()  # its rotation comes in Fortran order
+    for pose_cov in (np.eye(6), np.eye(18)[:6, :6]):
+        impulse.centre_of_mass_se3(np.eye(6), pose.rotation, pose.translation, pose_cov)
+    # The filter's inputs from a chunk's mass matrices (core/inputs.py).
+    from reduced_dynamics.estimator.core import inputs
+    inputs.connection_terms(np.tile(np.eye(8), (2, 1, 1)), 6, np.zeros((2, 2)), 1e-4)
     # The re-timer's window fit (core/envelope.py): the strided columns it is given (a
     # window of one point is contiguous: another signature).
     from reduced_dynamics.estimator.core import envelope

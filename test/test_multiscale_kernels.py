@@ -1,0 +1,267 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""The multi-scale test's compiled per-update arithmetic equals the numpy it replaced."""
+
+from typing import Optional
+
+import numpy as np
+
+from reduced_dynamics.estimator.core import blocks
+from reduced_dynamics.estimator.multiscale import (EXCESS_MINIMUM, EXCESS_SAMPLES,
+                                                   MomentumBlocks, MultiScaleTest)
+
+
+def _numpy_statistics(test: MultiScaleTest, stamp_ns: int, mu: np.ndarray,
+                      cov: np.ndarray, above: np.ndarray) -> Optional[np.ndarray]:
+    """Return the calibrated statistics as the numpy code computed them (main 3a3a89e)."""
+    stamps = test._stamps[test._start:test._end]
+    index = np.searchsorted(stamps, stamp_ns - test._lags_ns, 'right') - 1
+    floor = test.floor_ns
+    covered = (index >= 0) & (stamps[np.maximum(index, 0)] >= (
+        stamps[0] if floor is None else max(floor, int(stamps[0]))))
+    statistics = np.zeros(len(test.windows))
+    if not covered.any():
+        return statistics
+    rows = index[covered] + test._start
+    d = mu - test._mu[rows]
+    v = cov + test._cov[rows]
+    solved = np.linalg.solve(v, d[..., None])[..., 0]
+    statistics[covered] = np.einsum('ij,ij->i', d, solved)
+    if test.quiet and test._period is not None:
+        learn = statistics > 0.0
+        rate = min(1.0, test._period / test.calibration_memory)
+        above[learn] += rate * ((statistics[learn] > test._median) - above[learn])
+    return statistics / test.inflation[0]
+
+
+def test_the_compiled_window_statistics_equal_the_numpy_ones_bit_for_bit() -> None:
+    """Random momenta and covariances, a floor, events (not quiet), rate changes, ring wraps."""
+    rng = np.random.default_rng(7)
+    for n in (6, 3):
+        test = MultiScaleTest(n, 1.0)
+        above = test._above[0].copy()
+        stamp = 0
+        compared = 0
+        for k in range(1500):
+            stamp += int(rng.choice([1_000_000, 5_000_000, 20_000_000]))
+            root = rng.standard_normal((n, n)) * 1e-2
+            cov = root @ root.T + 1e-6 * np.eye(n)
+            mu = rng.standard_normal(n) * 1e-2 + 0.02 * (k > 900)
+            if k == 600:
+                test.reset(stamp - 200_000_000)
+            test.quiet = not 700 <= k < 800
+            test.update(stamp, mu, cov)
+            if test._period is None:
+                continue
+            # The reference on the state the update computed with (this sample stored,
+            # the period and the inflation as the update left them).
+            expected = _numpy_statistics(test, stamp, mu, cov, above)
+            np.testing.assert_array_equal(test.statistics, expected)
+            np.testing.assert_array_equal(test._above[0], above)
+            compared += int(np.count_nonzero(expected))
+        assert compared > 1000
+
+
+def test_window_changes_marks_the_windows_the_floor_leaves_uncovered() -> None:
+    """Rows of the windows reaching back before the floor, or before the data, are -1."""
+    from reduced_dynamics.estimator.core import impulse
+    stamps = np.arange(0, 1_000_000_000, 10_000_000, dtype=np.int64)
+    mu_ring = np.arange(len(stamps), dtype=float)[:, None] * np.ones(3)
+    cov_ring = np.tile(np.eye(3), (len(stamps), 1, 1))
+    lags = np.array([50_000_000, 300_000_000, 2_000_000_000])
+    now = int(stamps[-1])
+    rows, d, solved = impulse.window_changes(stamps, mu_ring, cov_ring, 0, len(stamps), lags,
+                                             now, 0, False, mu_ring[-1], np.eye(3))
+    assert rows.tolist() == [94, 69, -1]
+    np.testing.assert_array_equal(d, [[5.0] * 3, [30.0] * 3])
+    np.testing.assert_array_equal(solved, d / 2.0)
+    rows, d, _ = impulse.window_changes(stamps, mu_ring, cov_ring, 0, len(stamps), lags,
+                                        now, now - 100_000_000, True, mu_ring[-1], np.eye(3))
+    assert rows.tolist() == [94, -1, -1] and d.shape == (1, 3)
+
+
+class NumpyBlocks(MomentumBlocks):
+    """The block test's per-sample code as it was in numpy (main 3a3a89e)."""
+
+    def _learn_excess(self, mu: np.ndarray, cov: np.ndarray) -> None:
+        last, self._last = self._last, (mu, cov)
+        if last is None:
+            return
+        d = mu - last[0]
+        sample = 0.5 * (np.outer(d, d) - cov - last[1])
+        self._differences += 1
+        self._excess_raw += (sample - self._excess_raw) / min(self._differences,
+                                                              EXCESS_SAMPLES)
+        if self._differences % 16 == 1 or self._differences == EXCESS_MINIMUM:
+            values, vectors = np.linalg.eigh(self._excess_raw)
+            self.excess = (vectors * np.maximum(values, 0.0)) @ vectors.T
+
+    def add(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
+            common: Optional[np.ndarray] = None,
+            position: Optional[tuple] = None) -> None:
+        if self._end and stamp_ns <= self._stamps[self._end - 1]:
+            return
+        self._learn_excess(mu, cov)
+        try:
+            info = np.linalg.inv(cov + self.excess)
+            lam = None if position is None else np.linalg.inv(position[1])
+        except np.linalg.LinAlgError:
+            return
+        if lam is not None and not len(self.linear):
+            self.linear = np.asarray(position[3], dtype=np.int64)
+            self.mass = float(position[2])
+            self._positions = self._position_arrays(self._capacity, len(self.linear))
+        if self._end == self._capacity:
+            self._compact(stamp_ns)
+        k = self._end
+        if not k:
+            self._origin_ns = stamp_ns
+        self._stamps[k] = stamp_ns
+        self._common[k] = 0.0 if common is None else common
+        blocks.accumulate(self._info, self._score, k, info, mu)
+        if len(self.linear):
+            present = lam is not None and len(position[0]) == len(self.linear)
+            d = len(self.linear)
+            blocks.accumulate_position(
+                *self._positions, k, lam if present else np.zeros((d, d)),
+                (stamp_ns - self._origin_ns) * 1e-9,
+                np.asarray(position[0], float) if present else np.zeros(d), present)
+        self._end += 1
+        self.active = True
+
+    def update(self, stamp_ns: int, floor_ns: Optional[int]) -> int:
+        self.statistics[:] = 0.0
+        if self._end < 4 or not self.ready:
+            return -1
+        stamps = self._stamps[:self._end]
+        first = int(stamps[0]) if floor_ns is None else max(floor_ns, int(stamps[0]))
+        bounds = stamp_ns - np.outer(self._lags_ns, np.arange(3, -1, -1))
+        index = np.searchsorted(stamps, bounds, 'right') - 1
+        # Both blocks hold samples, and the before block starts within the data.
+        covered = (bounds[:, 0] >= first) & (index[:, 1] > index[:, 0]) & \
+            (index[:, 3] > index[:, 2])
+        if not covered.any():
+            return -1
+        rows = np.ascontiguousarray(index[covered])
+        try:
+            values = blocks.window_statistics(*self._arrays(), self._common, rows,
+                                              self.mass, self.linear)
+        except np.linalg.LinAlgError:
+            return -1
+        self.statistics[covered] = values
+        return int(np.argmax(self.statistics))
+
+
+def test_the_compiled_block_test_equals_the_numpy_one_bit_for_bit() -> None:
+    """Random measured momenta with and without positions: prefix sums, excess, statistics."""
+    rng = np.random.default_rng(11)
+    for n, d in ((6, 3), (3, 2), (6, 0)):
+        windows = np.array([0.02, 0.05, 0.1, 0.3])
+        mine, reference = MomentumBlocks(n, windows), NumpyBlocks(n, windows)
+        stamp = 0
+        compared = 0
+        for k in range(EXCESS_MINIMUM + 400):
+            stamp += int(rng.choice([1_000_000, 4_000_000, 10_000_000]))
+            root = rng.standard_normal((n, n)) * 1e-2
+            cov = root @ root.T + 1e-6 * np.eye(n)
+            mu = rng.standard_normal(n) * 1e-2
+            common = np.eye(n) * 1e-8 * k
+            position = None
+            if d and k % 3:
+                proot = rng.standard_normal((d, d)) * 1e-3
+                position = (rng.standard_normal(d), proot @ proot.T + 1e-9 * np.eye(d), 7.0,
+                            tuple(range(d)))
+            for bank in (mine, reference):
+                bank.add(stamp, mu, cov, common, position)
+            floor = None if k < 450 else stamp - 150_000_000
+            assert mine.update(stamp, floor) == reference.update(stamp, floor)
+            np.testing.assert_array_equal(mine.statistics, reference.statistics)
+            compared += int(np.count_nonzero(mine.statistics))
+        np.testing.assert_array_equal(mine.excess, reference.excess)
+        for a, b in zip(mine._arrays(), reference._arrays()):
+            np.testing.assert_array_equal(a, b)
+        assert compared > 500
+
+
+def _numpy_twist_momentum(ad_inverse, locked, connection_qd, twist, twist_cov, joint_cov,
+                          pose_cov, kirillov):
+    """multiscale.twist_momentum as it was in numpy (main 3a3a89e)."""
+    pi = locked @ (twist + connection_qd)
+    to_world = ad_inverse.T
+    white = to_world @ locked @ (twist_cov + joint_cov) @ locked.T @ to_world.T
+    w = to_world @ kirillov(pi)
+    return to_world @ pi, white, w @ pose_cov @ w.T
+
+
+def _numpy_centre_of_mass_se3(pose, locked, pose_cov):
+    """multiscale.centre_of_mass's SE(3) branch as it was in numpy (main 3a3a89e)."""
+    mass = float(locked[0, 0])
+    c = np.array([locked[1, 5], locked[2, 3], locked[0, 4]]) / mass
+    rotation = pose.rotation
+    jacobian = np.zeros((3, 6))
+    jacobian[:, :3] = rotation
+    jacobian[:, 3:] = -rotation @ np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]],
+                                            [-c[1], c[0], 0.0]])
+    world = pose.translation + rotation @ c
+    return world, jacobian @ pose_cov @ jacobian.T, mass
+
+
+def test_measured_momenta_and_centre_of_mass_equal_the_numpy_ones_bit_for_bit() -> None:
+    """Poses from Pinocchio, the filter covariance's block as a strided view (as the filter)."""
+    import pinocchio as pin
+    from reduced_dynamics.estimator.multiscale import centre_of_mass, twist_momentum
+    from reduced_dynamics.geometry.lie_group import SUBGROUPS
+    rng = np.random.default_rng(5)
+    group = SUBGROUPS['SE(3)']
+    for _ in range(500):
+        g = pin.SE3.Random()
+        root = rng.standard_normal((6, 6))
+        locked = root @ root.T + 6.0 * np.eye(6)
+        p = rng.standard_normal((18, 18))
+        p = p @ p.T
+        args = (g.actionInverse, locked, rng.standard_normal(6), rng.standard_normal(6),
+                np.diag(rng.uniform(0.1, 1.0, 6)), np.diag(rng.uniform(0.1, 1.0, 6)),
+                p[:6, :6], group.coadjoint_form)
+        for mine, expected in zip(twist_momentum(*args), _numpy_twist_momentum(*args)):
+            np.testing.assert_array_equal(mine, expected)
+        mine = centre_of_mass('SE(3)', g, locked, p[:6, :6])
+        expected = _numpy_centre_of_mass_se3(g, locked, p[:6, :6])
+        for a, b in zip(mine[:3], expected):
+            np.testing.assert_array_equal(a, b)
+        assert mine[3] == (0, 1, 2)
+
+
+def test_warm_up_loads_the_impulse_kernels_with_the_estimators_argument_types() -> None:
+    """A fresh process: after warm_up, an estimator's run compiles no new signature."""
+    import os
+    import subprocess
+    import sys
+    code = ('from reduced_dynamics.estimator.core.warmup import warm_up; warm_up(); '
+            'from reduced_dynamics.estimator.core import impulse as i; '
+            'from reduced_dynamics.robot.model import load_robot; '
+            'from reduced_dynamics.bench import update_samples; '
+            'from reduced_dynamics.estimator.pipeline import Estimator; '
+            'kernels = (i.window_changes, i.calibrate, i.twist_momentum, '
+            'i.centre_of_mass_se3); '
+            'before = [len(k.signatures) for k in kernels]; '
+            'robot = load_robot(); joints, bases = update_samples(robot, 300); '
+            'e = Estimator(robot); '
+            'e.add_samples([m for pair in zip(joints, bases) for m in pair]); '
+            'print(min(before) > 0, before == [len(k.signatures) for k in kernels])')
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True,
+                         check=True, timeout=600).stdout.split()
+    assert out == ['True', 'True']
