@@ -182,9 +182,9 @@ def test_a_light_push_on_a_small_free_flyer_with_a_moving_arm(tmp_path):
     impulse = np.array(event['impulse'])
     true = np.array(pulse['world_impulse'])[[0, 1, 5]]
     sigma = np.sqrt(np.diag(event['impulse_cov']))
-    # Measured error 0.004 / 0.011 / 0.003 against sigma 0.011 / 0.010 / 0.008: 3.2 % of
-    # the linear impulse (both ends from the measured twists' momenta; before, from the
-    # filtered momentum: 14-17 %).
+    # Measured (3a3a89e) error 0.003 / 0.011 / 0.001 against sigma 0.008 / 0.008 / 0.006:
+    # 3.1 % of the linear impulse (both ends from the measured twists' momenta; before,
+    # from the filtered momentum: 14-17 %).
     assert np.all(np.abs(impulse - true) <= 3.0 * sigma)
     assert np.linalg.norm(impulse[:2] - true[:2]) <= 0.10 * np.linalg.norm(true[:2])
     assert event['window_s'] is not None
@@ -215,11 +215,11 @@ def test_a_short_pulse_on_a_humanoid_on_a_bus(tmp_path):
     The issue's second case: a 20 N, 0.3 s pulse at 5 s on a 500 kg bus with a humanoid.
 
     The humanoid: 29 joints, 70 kg (robot/humanoid_bus.py), under PD tracking. 500 Hz,
-    pose 1 mm / 1 mrad, velocities 0.01. Measured: one event, dated 5.048 s, detected
-    at 5.302 s (the filtered momentum's 3 s window); its linear impulse 7.8 % off
-    (0.89 / -4.96 / -2.97 N s against 0.59 / -5.27 / -2.80; both ends of the impulse
-    from the measured twists' momenta). Before the measured momenta (a 29-joint random
-    tree stood in): 1.8 N s off in z, 21 %.
+    pose 1 mm / 1 mrad, velocities 0.01. Measured (3a3a89e): one event, dated 4.958 s,
+    detected at 5.264 s (the block test's 0.57 s window); its linear impulse 2.6 % off
+    (0.70 / -5.17 / -2.83 N s against 0.59 / -5.27 / -2.80; both ends of the impulse
+    from the measured momenta; 7.8 % before the centre of mass joined the blocks).
+    Before the measured momenta (a 29-joint random tree stood in): 21 %.
     """
     from reduced_dynamics.robot.humanoid_bus import humanoid_on_bus_urdf
     urdf = tmp_path / 'humanoid_on_bus.urdf'
