@@ -78,8 +78,15 @@ def _start(args):
 
 
 def start_player(bag, *options):
-    """Start ``reduced-dynamics play BAG OPTIONS`` (this checkout's package)."""
-    return _start([sys.executable, '-m', 'reduced_dynamics.cli', 'play', str(bag), *options])
+    """
+    Start ``reduced-dynamics play BAG OPTIONS`` (this checkout's package).
+
+    The player waits for every acknowledgement however long it takes (``--ack-timeout 0``;
+    GUARD bounds a hang): at a load of 15-18 the recorder of 6 569 messages had not
+    acknowledged them 30 s after the last was played, and waited in vain for the rest.
+    """
+    return _start([sys.executable, '-m', 'reduced_dynamics.cli', 'play', str(bag),
+                   '--ack-timeout', '0', *options])
 
 
 def start_recorder(output, specs, exclude=''):

@@ -108,9 +108,19 @@ def test_a_waiter_paused_before_its_message_plays_it_after_resume():
 def test_options_problems_are_named():
     assert PlayOptions('b').problems() == []
     problems = PlayOptions('b', rate=0.0, clock_hz=-1, qos_depth=-2,
-                           wait_timeout=float('nan')).problems()
+                           wait_timeout=float('nan'), ack_timeout=-1.0).problems()
     assert [p.split()[0] for p in problems] == ['--rate', '--clock', '--qos-depth',
-                                                '--wait-timeout']
+                                                '--wait-timeout', '--ack-timeout']
+
+
+def test_play_waits_for_acknowledgements_as_long_as_asked():
+    import argparse
+    from reduced_dynamics.player_node import ACK_TIMEOUT, options_from_args, register_command
+    parser = argparse.ArgumentParser()
+    register_command(parser.add_subparsers())
+    assert options_from_args(parser.parse_args(['play', 'b'])).ack_timeout == ACK_TIMEOUT
+    options = options_from_args(parser.parse_args(['play', 'b', '--ack-timeout', '0']))
+    assert options.ack_timeout == 0.0 and options.problems() == []  # 0: for ever
 
 
 # ------------------------------------------------------------------ playing

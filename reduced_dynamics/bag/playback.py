@@ -57,6 +57,7 @@ class PlayOptions:
     wait_for_subscribers: tuple[str, ...] = ()
     qos_depth: int = DEFAULT_QOS_DEPTH  # 0: keep all
     wait_timeout: float = 0.0  # seconds waiting for subscribers, 0: for ever
+    ack_timeout: float = 30.0  # seconds waiting at the end for acknowledgements, 0: for ever
     remap: tuple[tuple[str, str], ...] = ()  # (bag topic, published topic)
 
     def problems(self) -> list[str]:
@@ -70,6 +71,8 @@ class PlayOptions:
             out.append(f'--qos-depth must be >= 0 (0: keep all), got {self.qos_depth}')
         if not (math.isfinite(self.wait_timeout) and self.wait_timeout >= 0):
             out.append(f'--wait-timeout must be >= 0 s, got {self.wait_timeout}')
+        if not (math.isfinite(self.ack_timeout) and self.ack_timeout >= 0):
+            out.append(f'--ack-timeout must be >= 0 s, got {self.ack_timeout}')
         for source, target in self.remap:
             if not source or not target:
                 out.append(f'--remap takes FROM:=TO, got {source}:={target}')
