@@ -127,7 +127,8 @@ class Settings:
     soak_seconds: float = 60.0
     # The finished-prediction store (64 at 1 Hz) fills in ~66 s: warm up beyond it.
     soak_retained_warmup: int = 80_000
-    soak_retained_samples: int = 20_000
+    # Checkpoints every 1000 samples; the growth is fitted over the second half (21 of them).
+    soak_retained_samples: int = 40_000
     soak_short_bag_seconds: float = 60.0
     soak_bag_seconds: float = 300.0
     quick: bool = False

@@ -28,7 +28,8 @@ Three measurements, each reported as figures of the bench report:
   window, outputs per input and log lines per hour;
 * **retained bytes per sample**: tracemalloc around an in-process
   :class:`~reduced_dynamics.estimator.pipeline.Estimator` with the node's
-  defaults fed the bench's 1 kHz samples (200 Hz odometry), after a warm-up;
+  defaults fed the bench's 1 kHz samples (200 Hz odometry), after a warm-up:
+  the growth rate of traced memory (:func:`growth_figures`), not a one-off step;
 * **replay**: ``replay --no-smooth`` (default parameters, predictions on) of a
   short and a long simulated 1 kHz bag in fresh interpreters: peak RSS ratio.
 
@@ -304,14 +305,46 @@ def soak_messages(robot: Any, count: int) -> list:
     return messages
 
 
-def retained_per_sample(warmup: int, samples: int) -> dict:
+#: Joint states between two checkpoints of the retained-memory series: one period of the
+#: default 1 Hz predictions at 1 kHz, so every checkpoint sees the same phase of the
+#: prediction cycle (the same number of open predictions and live results).
+RETAINED_EVERY = 1000
+
+
+def growth_figures(samples: Sequence[int], traced: Sequence[int]) -> dict:
+    """
+    Retained bytes per sample from checkpoints (samples processed, traced bytes) of a window.
+
+    ``bytes_per_sample`` is the Theil-Sen slope (median of the pairwise slopes) over
+    the window's second half: a store growing per sample moves every pairwise slope,
+    a one-off step (a ring reallocated once, a bounded store's last fill) moves less
+    than half of them, so the figure measures growth, not a step. The naive
+    end-minus-start figures of the whole window and of its second half are reported
+    beside it (they include any step: divided by the window, they fall as 1/length).
+    """
+    from scipy.stats import theilslopes
+    n = np.asarray(samples, float)
+    memory = np.asarray(traced, float)
+    if len(n) < 5 or np.any(np.diff(n) <= 0):
+        raise ValueError('need >= 5 checkpoints at increasing sample counts')
+    half = len(n) // 2
+    late_n, late_memory = n[half:], memory[half:]
+    return {'bytes_per_sample': float(theilslopes(late_memory, late_n)[0]),
+            'window_bytes_per_sample': float((memory[-1] - memory[0]) / (n[-1] - n[0])),
+            'second_half_bytes_per_sample': float((late_memory[-1] - late_memory[0])
+                                                  / (late_n[-1] - late_n[0])),
+            'checkpoints': len(n), 'fitted_checkpoints': len(late_n)}
+
+
+def retained_per_sample(warmup: int, samples: int, every: int = RETAINED_EVERY) -> dict:
     """
     Bytes tracemalloc finds retained per processed sample after ``warmup`` samples.
 
     The estimator has the node's defaults (odometry input, deferred predictions,
     each job run as the node's worker would); the messages are built before
-    tracing starts. The measured samples are counted in two halves: the second
-    half shows whether growth goes on once the bounded stores are full.
+    tracing starts. Traced memory is read (after a full collection) every
+    ``every`` joint states of the window; :func:`growth_figures` turns the
+    series into the figure.
     """
     import gc
     import tracemalloc
@@ -328,26 +361,25 @@ def retained_per_sample(warmup: int, samples: int) -> dict:
                 if output.prediction_job is not None:
                     output.prediction_job.run()
     origin = messages[0][0]
+    ends = list(range(warmup, warmup + samples + 1, every))
     cuts = [next((i for i, m in enumerate(messages) if m[0] >= origin + n * 1_000_000),
-                 len(messages)) for n in (warmup, warmup + samples // 2)]
+                 len(messages)) for n in ends]
     # Traced from the start: a ring reallocated after the warm-up frees memory allocated
     # before it, which a trace started later would not see (and count the new as retained).
     tracemalloc.start()
-    feed(messages[:cuts[0]])
-    gc.collect()
-    traced = [tracemalloc.get_traced_memory()[0]]
-    counts = [estimator.processed]
-    for part in (messages[cuts[0]:cuts[1]], messages[cuts[1]:]):
-        feed(part)
+    counts, traced = [], []
+    done = 0
+    for cut in cuts:
+        feed(messages[done:cut])
+        done = cut
         gc.collect()
         traced.append(tracemalloc.get_traced_memory()[0])
         counts.append(estimator.processed)
     tracemalloc.stop()
-    processed = counts[-1] - counts[0]
-    return {'warmup': warmup, 'samples': processed,
+    return {'warmup': warmup, 'samples': counts[-1] - counts[0], 'every': every,
             'retained_bytes': traced[-1] - traced[0],
-            'bytes_per_sample': (traced[-1] - traced[0]) / processed,
-            'second_half_bytes_per_sample': (traced[2] - traced[1]) / (counts[2] - counts[1])}
+            **growth_figures(counts, traced),
+            'series': [[int(c), int(t)] for c, t in zip(counts, traced)]}
 
 
 _REPLAY_SCRIPT = """
@@ -446,8 +478,10 @@ def bench_soak(report: Any, robot: Any, settings: Any, workdir: str) -> None:
         'soak', 'retained bytes per sample (tracemalloc)', 'B', [retained['bytes_per_sample']],
         target=f'<= {RETAINED_TARGET_B:g} B', check=lambda v: v <= RETAINED_TARGET_B,
         note=f'Estimator with the node defaults, {retained["samples"]} samples after '
-             f'{retained["warmup"]}; second half {retained["second_half_bytes_per_sample"]:.2f}'
-             ' B/sample'))
+             f'{retained["warmup"]}: Theil-Sen slope of traced memory over the second half '
+             f'(checkpoints every {retained["every"]}); end minus start over the window '
+             f'{retained["window_bytes_per_sample"]:.2f}, over the second half '
+             f'{retained["second_half_bytes_per_sample"]:.2f} B/sample'))
     topics = (TOPIC_JOINT_STATES, TOPIC_ODOM)
     source, out = os.path.join(workdir, 'source'), os.path.join(workdir, 'out')
     # 5 s tiled: the simulated arm reaches its joint limits later (rejected samples).

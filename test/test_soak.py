@@ -23,7 +23,8 @@ import numpy as np
 import pytest
 
 from reduced_dynamics.bench import register_command, Settings
-from reduced_dynamics.soak import (classify_smaps, kind_slopes, MIB, node_soak_figures,
+from reduced_dynamics.soak import (classify_smaps, growth_figures, kind_slopes, MIB,
+                                   node_soak_figures, retained_per_sample,
                                    proc_sample, rss_by_kind, RSS_KINDS, rss_slope, run_node_soak,
                                    soak_warmup, tenth_figures)
 
@@ -160,3 +161,36 @@ def test_the_growing_kind_has_the_slope():
     assert slopes['thread_arenas'] == pytest.approx(36.0)
     assert slopes['heap'] == pytest.approx(0.0) and set(slopes) == set(RSS_KINDS)
     assert kind_slopes(kinds[:3], 0, 50.0) == {}
+
+
+def test_retained_growth_is_a_slope_not_a_step():
+    # Checkpoints every 1000 samples over a 40 000-sample window.
+    samples = np.arange(80_000, 120_001, 1000)
+    # A bounded store: flat, but a ring reallocated once (+600 kB) late in the window.
+    step = np.where(samples >= 108_000, 600_000, 0) + 50_000_000
+    figures = growth_figures(samples, step)
+    assert figures['bytes_per_sample'] == 0.0
+    assert figures['window_bytes_per_sample'] == pytest.approx(15.0)  # what it used to say
+    assert figures['second_half_bytes_per_sample'] == pytest.approx(30.0)
+    assert figures['checkpoints'] == 41 and figures['fitted_checkpoints'] == 21
+    # A store growing 3 B per sample is measured as such, with or without the step.
+    growing = 50_000_000 + 3 * (samples - samples[0])
+    assert growth_figures(samples, growing)['bytes_per_sample'] == pytest.approx(3.0)
+    assert growth_figures(samples, growing + step - step[0])['bytes_per_sample'] \
+        == pytest.approx(3.0)
+    # A store growing in steps of 16 kB every 4000 samples (4 B per sample) is growth too
+    # (steps at most a fifth of the fitted half apart; one step per half is a step).
+    stairs = 50_000_000 + 16_000 * ((samples - samples[0]) // 4000)
+    assert growth_figures(samples, stairs)['bytes_per_sample'] == pytest.approx(4.0, rel=0.3)
+    with pytest.raises(ValueError, match='checkpoints'):
+        growth_figures(samples[:4], step[:4])
+
+
+def test_retained_per_sample_reads_checkpoints_every_prediction_period():
+    # A short window: the structure of the measurement, not its figure.
+    retained = retained_per_sample(1000, 4000, every=1000)
+    counts = [count for count, _ in retained['series']]
+    assert len(counts) == 5 and retained['checkpoints'] == 5
+    assert np.all(np.diff(counts) > 900) and retained['samples'] == counts[-1] - counts[0]
+    assert np.isfinite(retained['bytes_per_sample'])
+    assert json.dumps(retained)

@@ -76,6 +76,16 @@ class ObservationBuffer:
         self._translation, self._rotation = translation, rotation
         self._start, self._end = 0, count
 
+    def _compact(self) -> None:
+        # In place, no new arrays: a reallocation at every wrap (every ~2 s at 1 kHz) churns
+        # the C heap. The live rows are at most half and end at the last slot, so they
+        # start at or after slot ``count``: source and destination do not overlap.
+        start, end = self._start, self._end
+        count = end - start
+        for array in (self._stamps, self._qbar, self._translation, self._rotation):
+            array[:count] = array[start:end]
+        self._start, self._end = 0, count
+
     def append(self, stamp_ns: int, qbar: np.ndarray, translation: np.ndarray,
                rotation: np.ndarray) -> None:
         """Copy one measured state in (the arguments may be views: none is kept)."""
@@ -86,9 +96,12 @@ class ObservationBuffer:
             m = len(qbar)
             if self._qbar is not None and self._qbar.shape[1] != m:
                 self._start = self._end = count = 0  # another robot: a new history
-            # Compact when at most half is live (amortised O(1) a row), else grow.
-            self._allocate(max(INITIAL_ROWS, capacity if 2 * count <= capacity
-                               else 2 * capacity), m)
+            if self._qbar is not None and self._qbar.shape[1] == m and 2 * count <= capacity:
+                self._compact()
+            else:
+                # Grow when more than half is live (amortised O(1) a row).
+                self._allocate(max(INITIAL_ROWS, capacity if 2 * count <= capacity
+                                   else 2 * capacity), m)
             end = self._end
         self._stamps[end] = stamp_ns
         self._qbar[end] = qbar
