@@ -21,15 +21,16 @@ The Rauch-Tung-Striebel smoother's backward pass (error-state form), compiled, s
 A step without a transition (a restart) does not depend on the one before: the
 pass starts afresh from its filtered state.
 
-The step is structured (docs/structured_step.md, "The smoother"): P Phi^T skips
-Phi's zeros (the transitions of core/kernels.py are the identity but for their pose
-rows and the mu-w chain: 3n, the mu rows [0 1 dt]; 5n, the mu rows), C comes from
-one Cholesky factor of P^- (two triangular solves; LU, then a pseudo-inverse, only
-if P^- is not positive definite), and P^s is one triangle of P + (C D) C^T,
-mirrored. Every work array is allocated once per block of steps
-(:func:`backward_block`), which runs a whole block of the disk-backed store
-(estimator/smoother.py) per call. The dense step it replaced is
-core/smoother_reference.py, equal to 1e-9 (test/test_structured_smoother.py).
+The step is structured (docs/structured_step.md, "The smoother's backward step"):
+(P Phi^T)^T skips Phi's zeros (the transitions of core/kernels.py are the identity
+but for their pose rows and the mu-w chain: 3n, the mu rows [0 1 dt]; 5n, the mu
+rows), G = C^T comes from one Cholesky factor of P^- (two triangular solves; LU,
+then a pseudo-inverse, only if P^- is not positive definite), and P^s is the
+symmetric part of P + G^T (D G). Every product is written as row updates (axpy) on
+contiguous work arrays, allocated once per block of steps (:func:`backward_block`),
+which runs a whole block of the disk-backed store (estimator/smoother.py) per call.
+The dense step it replaced is core/smoother_reference.py, equal to 1e-9
+(test/test_structured_smoother.py).
 
 :func:`smooth_arrays` takes the steps as stacked arrays and writes the smoothed
 states into output arrays of the same shapes; :func:`smooth` is the
@@ -55,16 +56,21 @@ from reduced_dynamics.geometry.lie_group import BaseGroup
 @njit(cache=True)
 def workspace(dim: int) -> tuple:
     """Return the work arrays of :func:`step` for a filter of error dimension ``dim``."""
-    return (np.empty((dim, dim), np.int64), np.empty(dim, np.int64), np.empty((dim, dim)),
-            np.zeros((dim, dim)), np.empty((dim, dim)), np.empty(dim), np.empty(dim),
-            np.empty((dim, dim)))
+    return (np.empty((dim, dim)), np.empty((dim, dim)), np.empty((dim, dim)),
+            np.empty((dim, dim)), np.empty((dim, dim)), np.empty(dim), np.empty(dim),
+            np.empty((dim, dim), np.int64), np.empty(dim, np.int64))
 
 
+# The loops below run along rows (an axpy per row, contiguous): the compiler vectorises
+# those; the dot-product form (a sum per element) would be a chain of dependent adds.
 @njit(cache=True)
-def _cross(p: np.ndarray, phi: np.ndarray, index: np.ndarray, count: np.ndarray,
-           out: np.ndarray) -> None:
-    """Write P Phi^T into ``out``, over Phi's non-zero entries only (found per row)."""
+def _cross_t(p: np.ndarray, phi: np.ndarray, pt: np.ndarray, index: np.ndarray,
+             count: np.ndarray, out: np.ndarray) -> None:
+    """Write (P Phi^T)^T = Phi P^T into ``out`` over Phi's non-zero entries (found per row)."""
     dim = p.shape[0]
+    for i in range(dim):
+        for k in range(dim):
+            pt[k, i] = p[i, k]
     for j in range(dim):
         c = 0
         for k in range(dim):
@@ -72,73 +78,85 @@ def _cross(p: np.ndarray, phi: np.ndarray, index: np.ndarray, count: np.ndarray,
                 index[j, c] = k
                 c += 1
         count[j] = c
-    for i in range(dim):
-        for j in range(dim):
-            acc = 0.0
-            for t in range(count[j]):
-                k = index[j, t]
-                acc += p[i, k] * phi[j, k]
-            out[i, j] = acc
+    for j in range(dim):
+        for i in range(dim):
+            out[j, i] = 0.0
+        for t in range(count[j]):
+            k = index[j, t]
+            v = phi[j, k]
+            for i in range(dim):
+                out[j, i] += v * pt[k, i]
 
 
 @njit(cache=True)
-def _cholesky(a: np.ndarray, low: np.ndarray) -> bool:
-    """Write the lower Cholesky factor of A (its lower triangle) into ``low``; False if not PD."""
+def _cholesky_upper(a: np.ndarray, u: np.ndarray) -> bool:
+    """Write U = L^T of A = L L^T into ``u``'s upper triangle (A's read); False if not PD."""
     m = a.shape[0]
+    for i in range(m):
+        for j in range(i, m):
+            u[i, j] = a[i, j]
     for j in range(m):
-        d = a[j, j]
-        for k in range(j):
-            d -= low[j, k] * low[j, k]
+        d = u[j, j]
         if not d > 0.0:
             return False
         root = math.sqrt(d)
-        low[j, j] = root
+        u[j, j] = root
+        for k in range(j + 1, m):
+            u[j, k] /= root
         for i in range(j + 1, m):
-            acc = a[i, j]
-            for k in range(j):
-                acc -= low[i, k] * low[j, k]
-            low[i, j] = acc / root
+            v = u[j, i]
+            for k in range(i, m):
+                u[i, k] -= v * u[j, k]
     return True
 
 
 @njit(cache=True)
-def _solve_rows(low: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    """Write B A^-1 into ``out`` (A = L L^T symmetric): per row, L z = b, L^T c = z."""
-    m = low.shape[0]
-    for r in range(b.shape[0]):
-        for i in range(m):
-            acc = b[r, i]
-            for k in range(i):
-                acc -= low[i, k] * out[r, k]
-            out[r, i] = acc / low[i, i]
-        for i in range(m - 1, -1, -1):
-            acc = out[r, i]
-            for k in range(i + 1, m):
-                acc -= low[k, i] * out[r, k]
-            out[r, i] = acc / low[i, i]
+def _solve_in_place(u: np.ndarray, b: np.ndarray) -> None:
+    """Overwrite B by A^-1 B (A = U^T U): U^T Y = B, then U X = Y, a row at a time."""
+    m, cols = b.shape
+    for i in range(m):
+        for k in range(i):
+            v = u[k, i]
+            for c in range(cols):
+                b[i, c] -= v * b[k, c]
+        d = u[i, i]
+        for c in range(cols):
+            b[i, c] /= d
+    for i in range(m - 1, -1, -1):
+        for k in range(i + 1, m):
+            v = u[i, k]
+            for c in range(cols):
+                b[i, c] -= v * b[k, c]
+        d = u[i, i]
+        for c in range(cols):
+            b[i, c] /= d
 
 
 @njit(cache=True)
-def _fallback_gain(cross: np.ndarray, p_pred: np.ndarray) -> np.ndarray:
-    """Return cross (P^-)^-1 for a P^- that is not positive definite (LU, else pinv)."""
+def _fallback_gain_t(cross_t: np.ndarray, p_pred: np.ndarray) -> np.ndarray:
+    """Return (P^-)^-1 cross^T for a P^- that is not positive definite (LU, else pinv)."""
+    a = np.ascontiguousarray(p_pred)
     try:
-        return np.linalg.solve(np.ascontiguousarray(p_pred),
-                               np.ascontiguousarray(cross.T)).T.copy()
+        return np.linalg.solve(a, cross_t)
     except Exception:  # exactly singular (numba raises a plain exception type)
-        return np.ascontiguousarray(cross) @ np.linalg.pinv(np.ascontiguousarray(p_pred))
+        return np.linalg.pinv(a).T @ cross_t
 
 
 @njit(cache=True)
-def gain_into(p: np.ndarray, transition: np.ndarray, p_pred: np.ndarray,
-              work: tuple) -> np.ndarray:
-    """Write C = P Phi^T (P^-)^-1 into the workspace's gain array and return it."""
-    index, count, cross, low, gain = work[0], work[1], work[2], work[3], work[4]
-    _cross(p, transition, index, count, cross)
-    if _cholesky(p_pred, low):
-        _solve_rows(low, cross, gain)
+def gain_t_into(p: np.ndarray, transition: np.ndarray, p_pred: np.ndarray,
+                work: tuple) -> np.ndarray:
+    """
+    Write G = C^T = (P^-)^-1 Phi P^T into the workspace and return it (C = P Phi^T (P^-)^-1).
+
+    P^- is symmetric (the filter symmetrises it), so C^T solves P^- G = (P Phi^T)^T.
+    """
+    pt, gain_t, upper = work[0], work[1], work[2]
+    _cross_t(p, transition, pt, work[7], work[8], gain_t)
+    if _cholesky_upper(p_pred, upper):
+        _solve_in_place(upper, gain_t)
     else:
-        gain[:, :] = _fallback_gain(cross, p_pred)
-    return gain
+        gain_t[:, :] = _fallback_gain_t(gain_t.copy(), p_pred)
+    return gain_t
 
 
 @njit(cache=True)
@@ -154,22 +172,24 @@ def step(g_k: np.ndarray, x_k: np.ndarray, p_k: np.ndarray, transition: np.ndarr
     """
     dim = p_k.shape[0]
     n = dim - x_k.shape[0]
-    gain = gain_into(p_k, transition, p_pred, work)
-    diff, dx, delta, product = work[5], work[6], work[2], work[7]
+    gain_t = gain_t_into(p_k, transition, p_pred, work)
+    # The transpose's and the factor's arrays are free again.
+    delta, product, outer, diff, dx = work[0], work[2], work[3], work[5], work[6]
     log = group_log(compose(inverse(pose_pred), g_s), pinv, whole)
     for i in range(n):
         diff[i] = log[i]
     for i in range(dim - n):
         diff[n + i] = x_s[i] - x_pred[i]
     for i in range(dim):
-        acc = 0.0
-        for k in range(dim):
-            acc += gain[i, k] * diff[k]
-        dx[i] = acc
+        dx[i] = 0.0
+    for k in range(dim):
+        v = diff[k]
+        for i in range(dim):
+            dx[i] += v * gain_t[k, i]
     g_s[:, :] = compose(g_k, group_exp(dx[:n], basis, whole))
     for i in range(dim - n):
         x_s[i] = x_k[i] + dx[n + i]
-    # P^s = P + (C D) C^T, D = P^s_{k+1} - P^-_{k+1} (the cross product's array is free).
+    # P^s = P + C D C^T = P + G^T (D G), D = P^s_{k+1} - P^-_{k+1}.
     for i in range(dim):
         for j in range(dim):
             delta[i, j] = p_s[i, j] - p_pred[i, j]
@@ -177,15 +197,19 @@ def step(g_k: np.ndarray, x_k: np.ndarray, p_k: np.ndarray, transition: np.ndarr
         for j in range(dim):
             product[i, j] = 0.0
         for k in range(dim):
-            c = gain[i, k]
+            v = delta[i, k]
             for j in range(dim):
-                product[i, j] += c * delta[k, j]
+                product[i, j] += v * gain_t[k, j]
+    for i in range(dim):
+        for j in range(dim):
+            outer[i, j] = 0.0
+        for k in range(dim):
+            v = gain_t[k, i]
+            for j in range(dim):
+                outer[i, j] += v * product[k, j]
     for i in range(dim):
         for j in range(i, dim):
-            acc = 0.0
-            for k in range(dim):
-                acc += product[i, k] * gain[j, k]
-            v = 0.5 * (p_k[i, j] + p_k[j, i]) + acc
+            v = 0.5 * (p_k[i, j] + p_k[j, i]) + 0.5 * (outer[i, j] + outer[j, i])
             p_s[i, j] = v
             p_s[j, i] = v
 
@@ -243,7 +267,7 @@ def backward_block(restart: np.ndarray, transitions: np.ndarray, pose_pred: np.n
 @njit(cache=True)
 def smoother_gain(p: np.ndarray, transition: np.ndarray, p_pred: np.ndarray) -> np.ndarray:
     """Return the gain C_k of :func:`step` (step k's P, step k + 1's Phi and P^-)."""
-    return gain_into(p, transition, p_pred, workspace(p.shape[0])).copy()
+    return np.ascontiguousarray(gain_t_into(p, transition, p_pred, workspace(p.shape[0])).T)
 
 
 @njit(cache=True)
