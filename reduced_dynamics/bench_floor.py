@@ -28,7 +28,11 @@ step test's bank full), each as a multiple of one ``crba``:
   i.e. without the interpreter, the same called from Python, and the dense step it
   replaced (``core/reference.py``) on the same arguments, side by side;
 * ``step test``: the wrench-step test's compiled kernels (``absorb`` +
-  ``evaluate`` over a full bank of onsets), in a compiled loop.
+  ``evaluate`` over a full bank of onsets), in a compiled loop;
+* ``smoother step``: one step of the smoother's backward pass
+  (``core/smoother.backward_step``, structured) and the dense step it replaced
+  (``core/smoother_reference.py``), on two recorded steps, in compiled loops (a
+  smoothed replay pays it once per filter step, after the bag is read).
 
 Their sum is the floor of a sample of the current algorithm; with the rosbags
 decode of the same two messages it bounds the replay ratio.
@@ -89,6 +93,25 @@ def _capture(robot) -> dict:
     return captured
 
 
+def _smoother_args(robot) -> tuple:
+    """Return the arguments of a backward step: two recorded steps after 0.5 s at 1 kHz."""
+    from reduced_dynamics.bench import update_samples
+    from reduced_dynamics.estimator.config import EstimatorConfig
+    from reduced_dynamics.estimator.pipeline import Estimator
+    joints, bases = update_samples(robot, 500)
+    estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0, smoothing_lag=0.0,
+                                                 event_false_alarm_rate=0.0))
+    estimator.enable_smoothing()
+    estimator.add_samples([m for pair in zip(joints, bases) for m in pair])
+    store, group = estimator.step_store, robot.group
+    before, after = store[len(store) - 2], store[len(store) - 1]
+    estimator.smoother_files.close()
+    return (before.pose, before.x, before.p, after.transition, after.pose_pred, after.x_pred,
+            after.p_pred, after.pose, after.x, after.p,
+            np.ascontiguousarray(group.algebra_basis), np.ascontiguousarray(group.algebra_pinv),
+            group.is_whole)
+
+
 _LOOPS: dict = {}
 
 
@@ -129,12 +152,13 @@ def measure_floor(robot, calls: int = 2000) -> dict:
 
     Keys: ``crba``, ``mechanics_streaming``, ``mechanics_batched``,
     ``filter_step_compiled``, ``filter_step_called``, ``filter_step_reference``,
-    ``step_test_compiled``,
+    ``step_test_compiled``, ``smoother_step`` and ``smoother_step_reference``,
     ``floor_streaming`` and ``floor_batched`` (the sums with the compiled parts).
     """
     from reduced_dynamics.bench import time_crba
     from reduced_dynamics.estimator import step_kernels
-    from reduced_dynamics.estimator.core import kernels, reference
+    from reduced_dynamics.estimator.core import kernels, reference, smoother
+    from reduced_dynamics.estimator.core import smoother_reference
     captured = _capture(robot)
     kernel, variance = captured['kernel'], captured['variance']
     qbar, qbar_dot, bases = captured['qbar'], captured['qbar_dot'], captured['bases']
@@ -152,6 +176,9 @@ def measure_floor(robot, calls: int = 2000) -> dict:
     absorb, evaluate = captured['absorb'], captured['evaluate']
     out['step_test_compiled'] = _looped(step_kernels.absorb, absorb, calls) \
         + _looped(step_kernels.evaluate, evaluate, calls)
+    backward = _smoother_args(robot)
+    out['smoother_step'] = _looped(smoother.backward_step, backward, calls)
+    out['smoother_step_reference'] = _looped(smoother_reference.backward_step, backward, calls)
     compiled = out['filter_step_compiled'] + out['step_test_compiled']
     out['floor_streaming'] = out['mechanics_streaming'] + compiled
     out['floor_batched'] = out['mechanics_batched'] + compiled
@@ -176,7 +203,11 @@ FLOOR_ROWS = (
     ('mechanics_streaming', 'update floor: mechanics of one row (crba + chunk algebra)',
      'UpdateKernel.filter_inputs, one row'),
     ('mechanics_batched', 'update floor: mechanics per row of a 1 000-row chunk',
-     'UpdateKernel.filter_inputs, 1 000 rows'))
+     'UpdateKernel.filter_inputs, 1 000 rows'),
+    ('smoother_step', 'smoother backward step (structured), per filter step',
+     'core/smoother.backward_step on two recorded steps, compiled loop (not in the floor)'),
+    ('smoother_step_reference', 'smoother backward step: the dense step it replaced',
+     'core/smoother_reference.py (main 3a3a89e\'s algebra), same arguments, compiled loop'))
 
 
 def bench_floor(report: Any, robot, settings: Any) -> None:

@@ -50,3 +50,18 @@ def test_the_capture_leaves_the_multi_scale_test_out(monkeypatch) -> None:
         monkeypatch.setattr(cls, name, counted)
     captured = bench_floor._capture(load_robot())
     assert calls == [] and captured['evaluate'][5] >= 10
+
+
+def test_the_smoother_rows_time_a_recorded_step_both_ways() -> None:
+    """Two recorded steps (a transition between them); the two steps agree on them."""
+    import numpy as np
+    from reduced_dynamics.estimator.core import smoother, smoother_reference
+    robot = load_robot()
+    args = bench_floor._smoother_args(robot)
+    dim = 3 * robot.n
+    assert args[3] is not None and args[3].shape == (dim, dim)
+    got, want = smoother.backward_step(*args), smoother_reference.backward_step(*args)
+    for a, b in zip(got, want):
+        assert np.allclose(a, b, rtol=0.0, atol=1e-9 * np.abs(b).max())
+    assert {'smoother_step', 'smoother_step_reference'} <= {key for key, *_ in
+                                                           bench_floor.FLOOR_ROWS}

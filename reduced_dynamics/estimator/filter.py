@@ -117,7 +117,7 @@ from reduced_dynamics.chi_square import chi2
 
 from reduced_dynamics.estimator import command_gain
 from reduced_dynamics.estimator.core import kernels
-from reduced_dynamics.estimator.core.smoother import smooth, smooth_backward
+from reduced_dynamics.estimator.core.smoother import smooth
 from reduced_dynamics.estimator.core.stalls import StallDetector
 from reduced_dynamics.estimator.core.state import (Command, FilterState, FilterStep,
                                                    Linearisation, Measurement, NoiseModel,
@@ -126,7 +126,7 @@ from reduced_dynamics.estimator.events import StepDetection, WrenchStepTest
 from reduced_dynamics.geometry.lie_group import BaseGroup
 
 __all__ = ['Command', 'FilterState', 'FilterStep', 'Linearisation', 'Measurement',
-           'MomentumFilter', 'NoiseModel', 'between', 'smooth', 'smooth_backward']
+           'MomentumFilter', 'NoiseModel', 'between', 'smooth']
 
 LOG = logging.getLogger(__name__)
 

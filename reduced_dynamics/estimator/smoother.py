@@ -21,11 +21,12 @@ plus 200 Hz odometry is ~35 GB, so the steps go to files, not lists:
 
 * :class:`StepStore` takes :class:`~.filter.FilterStep` s in time order (the
   filter's ``steps``), writes them a block at a time and reads them back by
-  index, holding two blocks (:func:`~.filter.smooth_backward` reads k and k + 1,
-  backwards);
-* :func:`smooth_rows` runs the backward pass over it and writes, per output row,
-  what replaces the causal estimate (:class:`RowStore`), which is then read
-  forwards a block at a time.
+  index or a block at a time, last first (:meth:`StepStore.blocks_backward`);
+* :func:`smooth_rows` runs the backward pass over it, one compiled call per block
+  (:func:`~.core.smoother.backward_block`, the row fields by
+  :func:`~.core.smoother.row_fields`), and writes, per output row, what replaces
+  the causal estimate (:class:`RowStore`), which is then read forwards a block at
+  a time.
 
 Memory stays a few blocks whatever the length; the files live in a directory
 (beside the output bag in replay) removed by :meth:`SmootherFiles.close`. Values
@@ -37,12 +38,13 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-from typing import Any, Callable, Iterator, Optional, Sequence
+from typing import Any, Iterator, Optional, Sequence
 import weakref
 
 import numpy as np
 
-from reduced_dynamics.estimator.filter import FilterState, FilterStep, smooth_backward
+from reduced_dynamics.estimator.core import smoother as kernels
+from reduced_dynamics.estimator.filter import FilterStep
 from reduced_dynamics.estimator.outputs import EstimatorOutput, smoothed_fields
 from reduced_dynamics.geometry.lie_group import BaseGroup
 
@@ -70,7 +72,11 @@ class SmootherFiles:
 
 
 def _step_dtype(n: int, dim: int, command: bool) -> np.dtype:
-    """Return the record of one step: stamp, flags, matrices and vectors (float64)."""
+    """
+    Return the record of one step: stamp, flags, matrices and vectors (float64).
+
+    Aligned (the flags padded): the compiled backward pass reads the fields in place.
+    """
     fields = [('stamp_ns', '<i8'), ('has_transition', '?'), ('output', '?'),
               ('transition', '<f8', (dim, dim)),
               ('pose_pred', '<f8', (4, 4)),
@@ -80,16 +86,16 @@ def _step_dtype(n: int, dim: int, command: bool) -> np.dtype:
               ('locked_inverse', '<f8', (n, n))]
     if command:
         fields.append(('command', '<f8', (n,)))
-    return np.dtype(fields)
+    return np.dtype(fields, align=True)
 
 
 class StepStore:
     """
     Filter steps on disk: ``append`` in time order, ``len`` and ``store[k]`` to read.
 
-    The list interface :class:`~.filter.MomentumFilter` records into and
-    :func:`~.filter.smooth_backward` reads from; ``outputs`` counts the steps
-    that are rows (``FilterStep.output``).
+    The list interface :class:`~.filter.MomentumFilter` records into;
+    :func:`smooth_rows` reads it a block at a time (:meth:`blocks_backward`);
+    ``outputs`` counts the steps that are rows (``FilterStep.output``).
     """
 
     def __init__(self, files: SmootherFiles, n: int, dim: int, command: bool,
@@ -97,7 +103,8 @@ class StepStore:
         """Open an empty store for steps of a filter of algebra dimension n, error dim."""
         self.n, self.dim, self.command = n, dim, command
         self.dtype = _step_dtype(n, dim, command)
-        self._block = block = block or BLOCK_STEPS
+        #: steps per block (of the file, of :meth:`blocks_backward`)
+        self.block = self._block = block = block or BLOCK_STEPS
         self._path = files.file(name)
         self._file = open(self._path, 'w+b')
         self._buffer = np.zeros(block, self.dtype)
@@ -153,6 +160,17 @@ class StepStore:
             self._cache[block] = records
         return records
 
+    def blocks_backward(self) -> Iterator[np.ndarray]:
+        """Yield the steps as blocks of records, the last block first (one in memory)."""
+        if self._filled:
+            yield self._buffer[:self._filled]
+        self._cache.clear()
+        self._file.flush()
+        for block in range((self._written - 1) // self._block, -1, -1):
+            self._file.seek(block * self._block * self.dtype.itemsize)
+            yield np.fromfile(self._file, self.dtype,
+                              min(self._block, self._written - block * self._block))
+
     def record(self, index: int) -> np.void:
         """Return the raw record of step ``index`` (negative: from the end)."""
         if index < 0:
@@ -188,12 +206,6 @@ def _row_dtype(n: int) -> np.dtype:
                      ('w_cov', '<f8', (n, n))])
 
 
-#: (smoothed state, the command held at its step or None) -> the row's total wrench,
-#: its covariance, and the disturbance beyond the command (None without a command)
-RowWrench = Callable[[FilterState, Optional[np.ndarray]],
-                     tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]]
-
-
 class RowStore:
     """Smoothed output rows on disk: written backwards by index, read forwards in blocks."""
 
@@ -224,41 +236,56 @@ class RowStore:
 
 
 def smooth_rows(group: BaseGroup, steps: StepStore, files: SmootherFiles,
-                wrench: RowWrench, block: Optional[int] = None) -> RowStore:
+                form_rows: np.ndarray) -> RowStore:
     """
     Run the backward pass over ``steps``; return the smoothed rows (one per output step).
 
-    Per row: mu, pi = Ad_g^T mu, the drift twist I^-1 pi, the wrench (``wrench``:
-    total, covariance, disturbance) and the covariance of mu, as
-    :meth:`Estimator.smooth_outputs` reports them.
+    One compiled call per block of the store (:func:`~.core.smoother.backward_block`,
+    the smoothed state carried from block to block), then one for the block's rows
+    (:func:`~.core.smoother.row_fields`): mu, pi = Ad_g^T mu, the drift twist I^-1 pi,
+    the wrench (the disturbance and the total with a commanded wrench) and the
+    covariances, as :meth:`Estimator.smooth_outputs` reports them. ``form_rows``: the
+    filter's structure constants (the commanded wrench's Jacobian).
     """
-    n = group.dim
-    block = block or BLOCK_ROWS
-    rows = RowStore(files, n, steps.outputs, block=block)
-    buffer = np.zeros(block, rows.dtype)
-    row = steps.outputs  # rows still to fill: row - 1 is the next, going backwards
-    end = row  # rows [row, end) are in buffer[row - start:]
-    start = max(end - block, 0)
-    for k, state in smooth_backward(group, steps):
-        step = steps.record(k)
-        if not step['output']:
+    n, dim = steps.n, steps.dim
+    basis = np.ascontiguousarray(group.algebra_basis)
+    pinv = np.ascontiguousarray(group.algebra_pinv)
+    whole = group.is_whole
+    rows = RowStore(files, n, steps.outputs)
+    carry = (np.zeros((4, 4)), np.zeros(dim - n), np.zeros((dim, dim)))
+    size = steps.block
+    out = (np.empty((size, 4, 4)), np.empty((size, dim - n)), np.empty((size, dim, dim)))
+    no_command = np.zeros((1, n))
+    after: Optional[np.ndarray] = None  # the first step of the block after (a copy)
+    row = steps.outputs  # rows [row, outputs) are written
+    for records in steps.blocks_backward():
+        count = len(records)
+        restart = ~records['has_transition']
+        if after is None:
+            following = (False, restart[:1], records['transition'][:1],
+                         records['pose_pred'][:1], records['x_pred'][:1], records['p_pred'][:1])
+        else:
+            following = (True, ~after['has_transition'], after['transition'],
+                         after['pose_pred'], after['x_pred'], after['p_pred'])
+        pose_out, x_out, p_out = (o[:count] for o in out)
+        kernels.backward_block(restart, records['transition'], records['pose_pred'],
+                               records['x_pred'], records['p_pred'], records['pose'],
+                               records['x'], records['p'], *following, *carry, basis, pinv,
+                               whole, pose_out, x_out, p_out)
+        after = records[:1].copy()
+        output = records['output']
+        chosen = int(np.count_nonzero(output))
+        if not chosen:
             continue
-        row -= 1
-        if row < start:
-            rows.write(start, buffer[:end - start])
-            end, start = row + 1, max(row + 1 - block, 0)
-        record = buffer[row - start]
-        mu = state.x[:n]
-        pi = group.Ad(state.g).T @ mu
-        total, total_cov, disturbance = wrench(
-            state, step['command'] if steps.command else None)
-        record['stamp_ns'] = step['stamp_ns']
-        record['mu'], record['pi'], record['rate'] = mu, pi, total
-        record['drift'] = step['locked_inverse'] @ pi
-        record['mu_cov'], record['w_cov'] = state.p[n:2 * n, n:2 * n], total_cov
-        if disturbance is not None:
-            record['disturbance'] = disturbance
-    rows.write(start, buffer[:end - start])
+        block = np.zeros(chosen, rows.dtype)
+        block['stamp_ns'] = records['stamp_ns'][output]
+        kernels.row_fields(pose_out, x_out, p_out, records['locked_inverse'],
+                           records['command'] if steps.command else no_command, output,
+                           steps.command, basis, pinv, whole, form_rows, block['mu'],
+                           block['pi'], block['rate'], block['drift'], block['disturbance'],
+                           block['mu_cov'], block['w_cov'])
+        row -= chosen
+        rows.write(row, block)
     return rows
 
 
@@ -290,19 +317,11 @@ class Smoothing:
         predictions, diagnostics and events stay those of the causal run.
         Memory stays a block of rows whatever the length.
         """
-        flt, n, group = self.filter, self.robot.n, self.robot.group
-        command = self.commanded_wrench
-
-        def wrench(state: FilterState, held: Optional[np.ndarray]) -> tuple:
-            if command:
-                total, cov = flt._total(state.g, state.x, state.p, held)
-                return total, cov, state.x[n:2 * n]
-            return state.x[n:], state.p[2 * n:, 2 * n:], None
-
-        rows = smooth_rows(group, self.step_store, self.smoother_files, wrench)
+        rows = smooth_rows(self.robot.group, self.step_store, self.smoother_files,
+                           self.filter._form_rows)
         try:
             yield from smoothed_fields(self.kernel, rows.blocks(), self.config.world_frame,
-                                       self.robot.base_link, command)
+                                       self.robot.base_link, self.commanded_wrench)
         finally:
             rows.close()
 
