@@ -33,8 +33,18 @@ def test_floor_times_the_steady_state_calls_and_adds_them_up() -> None:
     compiled = floor['filter_step_compiled'] + floor['step_test_compiled']
     assert math.isclose(floor['floor_streaming'], floor['mechanics_streaming'] + compiled)
     assert math.isclose(floor['floor_batched'], floor['mechanics_batched'] + compiled)
-    # One row's mechanics include at least one crba.
-    assert floor['mechanics_streaming'] > floor['crba']
+    # One row's mechanics include at least one crba: counted, not timed (a loaded run
+    # measured the row below a lone crba once: timings are the bench's, not a test's).
+    import pinocchio as pin
+    calls = []
+    real = pin.crba
+    try:
+        pin.crba = lambda *args: calls.append(1) or real(*args)
+        captured['kernel'].filter_inputs(captured['qbar'][:1], captured['qbar_dot'][:1],
+                                         captured['bases'][:1], captured['variance'])
+    finally:
+        pin.crba = real
+    assert len(calls) >= 1
 
 
 def test_the_capture_leaves_the_multi_scale_test_out(monkeypatch) -> None:
