@@ -24,6 +24,30 @@ from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.estimator.filter import Linearisation
 
 
+#: Relative tolerance of a structured compiled kernel against its dense reference:
+#: rounding (other summation orders, a Cholesky factor instead of LU), amplified by the
+#: filter's conditioning.
+STRUCTURED_TOLERANCE = 1e-9
+
+
+def close_relative(got, want, tolerance: float = STRUCTURED_TOLERANCE) -> bool:
+    """Return whether ``got`` equals ``want`` to ``tolerance`` of ``want``'s largest entry."""
+    got, want = np.asarray(got, float), np.asarray(want, float)
+    scale = np.abs(want).max() if want.size else 0.0
+    return got.shape == want.shape and bool(np.all(np.abs(got - want) <= tolerance * scale))
+
+
+def fresh_process_words(code: str) -> list[str]:
+    """Run ``code`` in a fresh interpreter with this checkout first; return its stdout words."""
+    import os
+    import subprocess
+    import sys
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    return subprocess.run([sys.executable, '-c', code], env=env, capture_output=True,
+                          text=True, check=True, timeout=600).stdout.split()
+
+
 def wrench_series(path, topic: str) -> np.ndarray:
     """Return rows (stamp_ns, fx, fy, fz, tx, ty, tz) of a WrenchStamped topic."""
     rows = []

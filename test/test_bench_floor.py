@@ -73,5 +73,5 @@ def test_the_smoother_rows_time_a_recorded_step_both_ways() -> None:
     got, want = smoother.backward_step(*args), smoother_reference.backward_step(*args)
     for a, b in zip(got, want):
         assert np.allclose(a, b, rtol=0.0, atol=1e-9 * np.abs(b).max())
-    assert {'smoother_step', 'smoother_step_reference'} <= {key for key, *_ in
-                                                           bench_floor.FLOOR_ROWS}
+    rows = {key for key, *_ in bench_floor.FLOOR_ROWS}
+    assert {'smoother_step', 'smoother_step_reference'} <= rows

@@ -363,9 +363,7 @@ def test_a_slow_push_on_a_heavy_base_is_found_by_the_measured_positions():
 def test_warm_up_loads_the_block_kernels():
     # The block test is compiled (estimator/core/blocks.py) and the node's warm-up
     # loads it with the argument types replay passes (a fresh process: nothing loaded).
-    import os
-    import subprocess
-    import sys
+    from filter_helpers import fresh_process_words
     code = ('from reduced_dynamics.estimator.core.warmup import warm_up; warm_up(); '
             'from reduced_dynamics.estimator.core import blocks as b; '
             'import numpy as np; '
@@ -378,11 +376,7 @@ def test_warm_up_loads_the_block_kernels():
             '(np.zeros(2), np.eye(2), 5.0, (0, 1))) for k in range(400)]; '
             'm.update(399 * 10 ** 7, None); '
             'print(min(before) > 0, before == [len(k.signatures) for k in kernels])')
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get('PYTHONPATH', ''))
-    out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True,
-                         check=True, timeout=600).stdout.split()
-    assert out == ['True', 'True']
+    assert fresh_process_words(code) == ['True', 'True']
 
 
 def test_a_long_push_is_one_event_with_its_whole_impulse(tmp_path):

@@ -245,9 +245,7 @@ def test_measured_momenta_and_centre_of_mass_equal_the_numpy_ones_bit_for_bit() 
 
 def test_warm_up_loads_the_impulse_kernels_with_the_estimators_argument_types() -> None:
     """A fresh process: after warm_up, an estimator's run compiles no new signature."""
-    import os
-    import subprocess
-    import sys
+    from filter_helpers import fresh_process_words
     code = ('from reduced_dynamics.estimator.core.warmup import warm_up; warm_up(); '
             'from reduced_dynamics.estimator.core import impulse as i; '
             'from reduced_dynamics.robot.model import load_robot; '
@@ -260,8 +258,4 @@ def test_warm_up_loads_the_impulse_kernels_with_the_estimators_argument_types() 
             'e = Estimator(robot); '
             'e.add_samples([m for pair in zip(joints, bases) for m in pair]); '
             'print(min(before) > 0, before == [len(k.signatures) for k in kernels])')
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get('PYTHONPATH', ''))
-    out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True,
-                         check=True, timeout=600).stdout.split()
-    assert out == ['True', 'True']
+    assert fresh_process_words(code) == ['True', 'True']

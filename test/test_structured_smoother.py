@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from filter_helpers import filter_problem
+from filter_helpers import close_relative, filter_problem, STRUCTURED_TOLERANCE
 from reduced_dynamics.estimator import smoother
 from reduced_dynamics.estimator.core import smoother as structured
 from reduced_dynamics.estimator.core import smoother_reference as dense
@@ -29,15 +29,9 @@ from reduced_dynamics.resources import config_path
 from reduced_dynamics.robot.model import load_robot
 
 DATA = Path(__file__).parent / 'data'
-#: Relative tolerance against the dense reference: rounding (a Cholesky factor of P^-
-#: instead of LU, other summation orders), amplified by the filter's conditioning.
-TOLERANCE = 1e-9
-
-
-def _close(got, want, tolerance: float = TOLERANCE) -> bool:
-    got, want = np.asarray(got, float), np.asarray(want, float)
-    scale = np.abs(want).max() if want.size else 0.0
-    return got.shape == want.shape and bool(np.all(np.abs(got - want) <= tolerance * scale))
+#: Relative tolerance against the dense reference (filter_helpers).
+TOLERANCE = STRUCTURED_TOLERANCE
+_close = close_relative
 
 
 def _close_rows(got, want, filtered, tolerance: float = TOLERANCE) -> bool:

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from filter_helpers import filter_problem
+from filter_helpers import close_relative, filter_problem, STRUCTURED_TOLERANCE
 from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.estimator.core import kernels, reference
 from reduced_dynamics.estimator.filter import Linearisation
@@ -29,16 +29,9 @@ from reduced_dynamics.replay import replay, ReplayOptions
 from reduced_dynamics.robot.model import load_robot
 
 DATA = Path(__file__).parent / 'data'
-#: Relative tolerance of the structured kernels against the dense reference: rounding
-#: (other summation orders, a Cholesky factor instead of LU, P - K S K^T instead of the
-#: Joseph form, equal for the optimal gain), amplified by the filter's conditioning.
-TOLERANCE = 1e-9
-
-
-def _close(got, want, tolerance: float = TOLERANCE) -> bool:
-    got, want = np.asarray(got, float), np.asarray(want, float)
-    scale = np.abs(want).max() if want.size else 0.0
-    return got.shape == want.shape and bool(np.all(np.abs(got - want) <= tolerance * scale))
+#: Relative tolerance against the dense reference (filter_helpers).
+TOLERANCE = STRUCTURED_TOLERANCE
+_close = close_relative
 
 
 def _problem(name: str, command: bool, seed: int) -> tuple:
