@@ -147,20 +147,12 @@ def test_a_long_weak_push_is_found_by_the_measured_momenta():
     assert np.all(np.abs(detection.mu_before) <= 3 * np.sqrt(np.diag(detection.cov_before)))
 
 
-def test_a_light_push_on_a_small_free_flyer_with_a_moving_arm(tmp_path):
-    """
-    The issue's case: a 0.37 N, 1 s push on a free-flyer (16 kg) whose arm moves.
-
-    Base pose 1 mm / 1 mrad and twist 3 mm/s at 62.5 Hz. Before the multi-scale test
-    no event was flagged (the per-sample chi-square and the step test weigh a step
-    against the random walk). Now one event, starting within 0.5 s of the push, its
-    impulse within 10 % and within 3 sigma of its reported covariance; none while only
-    the arm moves.
-    """
+def _free_flyer_push(tmp_path, duration: float, seed: int, thruster: str) -> tuple:
+    """Simulate the arm-carrying free-flyer with a push, replay it causally; (summary, truth)."""
     bag, truth = tmp_path / 'bag', tmp_path / 'truth.json'
     assert cli_main(['simulate', '-o', str(bag), '--summary', str(truth), '--urdf', URDF,
-                     '--duration', '12', '--rate', '62.5', '--seed', '3', '--torque', 'pd',
-                     '--momentum-class', 'zero', '--thruster', '6,1,0.37,0,0,0,0,0',
+                     '--duration', str(duration), '--rate', '62.5', '--seed', str(seed),
+                     '--torque', 'pd', '--momentum-class', 'zero', '--thruster', thruster,
                      '--noise-position', '1e-3', '--noise-velocity', '0.005',
                      '--noise-pose', '0.001', '--noise-orientation', '0.001',
                      '--noise-twist', '0.003']) == 0
@@ -172,7 +164,20 @@ def test_a_light_push_on_a_small_free_flyer_with_a_moving_arm(tmp_path):
     assert cli_main(['replay', str(bag), '-o', str(tmp_path / 'out'), '--quiet',
                      '--no-smooth', '--params', str(params), '--summary-json',
                      str(summary_file), '--urdf', URDF]) == 0
-    summary = json.loads(summary_file.read_text())
+    return json.loads(summary_file.read_text()), truth
+
+
+def test_a_light_push_on_a_small_free_flyer_with_a_moving_arm(tmp_path):
+    """
+    The issue's case: a 0.37 N, 1 s push on a free-flyer (16 kg) whose arm moves.
+
+    Base pose 1 mm / 1 mrad and twist 3 mm/s at 62.5 Hz. Before the multi-scale test
+    no event was flagged (the per-sample chi-square and the step test weigh a step
+    against the random walk). Now one event, starting within 0.5 s of the push, its
+    impulse within 10 % and within 3 sigma of its reported covariance; none while only
+    the arm moves.
+    """
+    summary, truth = _free_flyer_push(tmp_path, 12, 3, '6,1,0.37,0,0,0,0,0')
     pulse = json.loads(truth.read_text())['pulses'][0]
     (event,) = summary['events']
     origin = json.loads(truth.read_text())['start_time_ns']
@@ -387,22 +392,7 @@ def test_a_long_push_is_one_event_with_its_whole_impulse(tmp_path):
     push went on: 40 % of the impulse missed (the detection table's 3 s, 30x row). Now
     it goes on while the measured momenta still move (multiscale.still_moving).
     """
-    bag, truth = tmp_path / 'bag', tmp_path / 'truth.json'
-    assert cli_main(['simulate', '-o', str(bag), '--summary', str(truth), '--urdf', URDF,
-                     '--duration', '16', '--rate', '62.5', '--seed', '100', '--torque', 'pd',
-                     '--momentum-class', 'zero', '--thruster', '5,3,0.113,0,0,0,0,0',
-                     '--noise-position', '1e-3', '--noise-velocity', '0.005',
-                     '--noise-pose', '0.001', '--noise-orientation', '0.001',
-                     '--noise-twist', '0.003']) == 0
-    params = tmp_path / 'params.yaml'
-    params.write_text(yaml.safe_dump({'/**/reduced_dynamics': {'ros__parameters': {
-        'pose_position_noise': 1e-3, 'pose_angle_noise': 1e-3, 'twist_linear_noise': 3e-3,
-        'twist_angular_noise': 3e-3, 'joint_velocity_noise': 5e-3}}}))
-    summary_file = tmp_path / 'summary.json'
-    assert cli_main(['replay', str(bag), '-o', str(tmp_path / 'out'), '--quiet',
-                     '--no-smooth', '--params', str(params), '--summary-json',
-                     str(summary_file), '--urdf', URDF]) == 0
-    summary = json.loads(summary_file.read_text())
+    summary, truth = _free_flyer_push(tmp_path, 16, 100, '5,3,0.113,0,0,0,0,0')
     truth = json.loads(truth.read_text())
     origin = truth['start_time_ns']
     (event,) = summary['events']
