@@ -126,6 +126,10 @@ class MultiScaleTest:
         #: the same bank on measured momenta (a twist measured: :class:`MomentumBlocks`)
         self.blocks = MomentumBlocks(n, self.windows)
         self._moving_thresholds: dict[int, float] = {}
+        # Per window length asked for: the bank windows it covers and their threshold
+        # (still_moving), the nearest bank window (window_statistic).
+        self._moving_windows: dict[float, tuple[np.ndarray, float]] = {}
+        self._nearest: dict[float, int] = {}
         #: per test (filtered momentum, blocks) and window: the running fraction of
         #: quiet updates above the chi2_n median, and the inflation of T it implies
         self._above = np.full((2, len(self.windows)), 0.5)
@@ -291,15 +295,23 @@ class MultiScaleTest:
         """
         if not self.blocks.active:
             return False
-        short = self.windows <= max(window, self.windows[0]) * (1 + 1e-9)
-        count = int(short.sum())
-        if count not in self._moving_thresholds:
-            self._moving_thresholds[count] = float(chi2.isf(0.01 / count, self.n))
-        return bool(np.any(self.blocks.statistics[short] > self._moving_thresholds[count]))
+        known = self._moving_windows.get(window)
+        if known is None:
+            # Called per sample while an event is open, with a few window lengths.
+            short = self.windows <= max(window, self.windows[0]) * (1 + 1e-9)
+            count = int(short.sum())
+            if count not in self._moving_thresholds:
+                self._moving_thresholds[count] = float(chi2.isf(0.01 / count, self.n))
+            known = self._moving_windows[window] = (short, self._moving_thresholds[count])
+        short, threshold = known
+        return bool(np.any(self.blocks.statistics[short] > threshold))
 
     def window_statistic(self, window: float) -> float:
         """Return the last statistic of the bank window nearest ``window`` s."""
-        return float(self.statistics[int(np.argmin(np.abs(self.windows - window)))])
+        index = self._nearest.get(window)
+        if index is None:
+            index = self._nearest[window] = int(np.argmin(np.abs(self.windows - window)))
+        return float(self.statistics[index])
 
 
 def twist_momentum(ad_inverse: np.ndarray, locked: np.ndarray, connection_qd: np.ndarray,
@@ -324,7 +336,7 @@ def twist_momentum(ad_inverse: np.ndarray, locked: np.ndarray, connection_qd: np
 
 
 def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stamp_ns: int,
-                  measurements: list, gated: list) -> list[tuple]:
+                  measurements: list, gated: list, g: Any = None) -> list[tuple]:
     """
     Return (stamp, mu, covariance) of a row's accepted twist measurements.
 
@@ -332,16 +344,19 @@ def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stam
     and of this one (at ``stamp_ns``); A qbar_dot is interpolated to each
     measurement's stamp, as the filter does (a moving arm's A qbar_dot changes within
     a row interval by more than a precise twist's noise). ``gated``: stamps the
-    filter refused. The filter's pose maps them to the world.
+    filter refused. The filter's pose maps them to the world (``g``: that pose as a
+    pin.SE3 when the caller has it; None: taken from the filter).
     """
-    if flt.g is None:
+    if flt._g is None:
         return []
     # To the world with the filter's pose, not each sample's: a measured pose's noise
     # would weigh the samples by their own error (C depends on it), biasing the means.
     n = lin.locked.shape[0]
-    ad_inverse, pose_cov = flt._adjoint_inverse(flt.g), flt.p[:n, :n]
+    ad_inverse = flt._adjoint_inverse(flt.g if g is None else g)
+    pose_cov = flt.p[:n, :n]
     out = []
     span = None if start_ns is None or before is None else stamp_ns - start_ns
+    se3 = flt.group.name == 'SE(3)'
     for measurement in measurements:
         if measurement is None or measurement.twist is None or \
                 measurement.stamp_ns in gated:
@@ -356,12 +371,23 @@ def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stam
         if span and measurement.stamp_ns < stamp_ns:
             locked = before.locked + fraction * (lin.locked - before.locked)
         own_pose = None if measurement.noise is None else measurement.noise[0]
+        twist_cov = flt._r_twist if own is None else own
+        com_cov = flt._r_pose if own_pose is None else own_pose
+        if se3:
+            # twist_momentum and centre_of_mass below, in one compiled call.
+            pose = measurement.pose
+            pi = lin.locked @ (measurement.twist + connection)
+            mu, white, common, world, cov, mass = impulse.measured_momentum_se3(
+                ad_inverse, lin.locked, pi, twist_cov, lin.joint_cov, pose_cov,
+                flt.group.coadjoint_form(pi), locked, pose.rotation, pose.translation,
+                com_cov)
+            out.append((measurement.stamp_ns, mu, white, common,
+                        (world, cov, mass, LINEAR['SE(3)'])))
+            continue
         out.append((measurement.stamp_ns, *twist_momentum(
-            ad_inverse, lin.locked, connection, measurement.twist,
-            flt._r_twist if own is None else own, lin.joint_cov, pose_cov,
-            flt.group.coadjoint_form), centre_of_mass(
-                flt.group.name, measurement.pose, locked,
-                flt._r_pose if own_pose is None else own_pose)))
+            ad_inverse, lin.locked, connection, measurement.twist, twist_cov,
+            lin.joint_cov, pose_cov, flt.group.coadjoint_form), centre_of_mass(
+                flt.group.name, measurement.pose, locked, com_cov)))
     return out
 
 

@@ -104,3 +104,20 @@ def centre_of_mass_se3(locked: np.ndarray, rotation: np.ndarray, translation: np
     jacobian[:, 3:] = -rotation @ skew
     world = translation + rotation @ c
     return world, jacobian @ np.ascontiguousarray(pose_cov) @ jacobian.T, mass
+
+
+@njit(cache=True)
+def measured_momentum_se3(ad_inverse: np.ndarray, locked: np.ndarray, pi: np.ndarray,
+                          twist_cov: np.ndarray, joint_cov: np.ndarray, pose_cov: np.ndarray,
+                          kirillov: np.ndarray, com_locked: np.ndarray, rotation: np.ndarray,
+                          translation: np.ndarray, com_pose_cov: np.ndarray) -> tuple:
+    """
+    Return :func:`twist_momentum`'s and :func:`centre_of_mass_se3`'s results in one call.
+
+    A measured twist of an SE(3) base gives both per row (multiscale.twist_momenta):
+    one dispatch instead of two, the same operations.
+    """
+    mu, white, common = twist_momentum(ad_inverse, locked, pi, twist_cov, joint_cov,
+                                       pose_cov, kirillov)
+    world, cov, mass = centre_of_mass_se3(com_locked, rotation, translation, com_pose_cov)
+    return mu, white, common, world, cov, mass
