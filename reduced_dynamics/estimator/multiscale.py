@@ -155,25 +155,29 @@ class MultiScaleTest:
 
     def _store(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray) -> None:
         if self._end == self._capacity:
-            oldest = stamp_ns - self._lags_ns[-1]
-            keep = max(self._start, int(np.searchsorted(
-                self._stamps[self._start:self._end], oldest, 'right')) + self._start - 1)
-            count = self._end - keep
-            if count > self._capacity // 2:
-                self._capacity *= 2
-                for name in ('_stamps', '_mu', '_cov'):
-                    old = getattr(self, name)
-                    new = np.zeros((self._capacity,) + old.shape[1:], old.dtype)
-                    new[:count] = old[keep:self._end]
-                    setattr(self, name, new)
-            else:
-                for array in (self._stamps, self._mu, self._cov):
-                    array[:count] = array[keep:self._end]
-            self._start, self._end = 0, count
+            self._make_room(stamp_ns)
         self._stamps[self._end] = stamp_ns
         self._mu[self._end] = mu
         self._cov[self._end] = cov
         self._end += 1
+
+    def _make_room(self, stamp_ns: int) -> None:
+        """Drop the samples no window reaches (or double the ring) before storing one."""
+        oldest = stamp_ns - self._lags_ns[-1]
+        keep = max(self._start, int(np.searchsorted(
+            self._stamps[self._start:self._end], oldest, 'right')) + self._start - 1)
+        count = self._end - keep
+        if count > self._capacity // 2:
+            self._capacity *= 2
+            for name in ('_stamps', '_mu', '_cov'):
+                old = getattr(self, name)
+                new = np.zeros((self._capacity,) + old.shape[1:], old.dtype)
+                new[:count] = old[keep:self._end]
+                setattr(self, name, new)
+        else:
+            for array in (self._stamps, self._mu, self._cov):
+                array[:count] = array[keep:self._end]
+        self._start, self._end = 0, count
 
     def update(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
                measured: Optional[list[tuple]] = None,
@@ -230,33 +234,40 @@ class MultiScaleTest:
             if dt > 0.0:
                 self._period = dt if self._period is None else \
                     self._period + 0.01 * (dt - self._period)
-        self._store(stamp_ns, mu, cov)
         if self._period is None:
+            self._store(stamp_ns, mu, cov)
             return None
+        if self._end == self._capacity:
+            self._make_room(stamp_ns)
         if abs(self._period - self._threshold_period) > \
                 PERIOD_TOLERANCE * self._threshold_period or not self._threshold_period:
             # chi2.isf is ~50 us: recomputed only when the update rate changes.
             self._threshold_period = self._period
             self.threshold = float(chi2.isf(self.significance(self._period), self.n))
         floor = self.floor_ns
-        self.statistics[:] = 0.0
         try:
-            # One compiled call: each window's ring row, d_L and V_L^-1 d_L (core/impulse.py).
-            rows, d, solved = impulse.window_changes(
+            # One compiled call: the sample stored, each window's ring row, d_L and
+            # V_L^-1 d_L (core/impulse.py).
+            rows, d, solved = impulse.store_window_changes(
                 self._stamps, self._mu, self._cov, self._start, self._end, self._lags_ns,
                 stamp_ns, 0 if floor is None else floor, floor is not None, mu, cov)
         except np.linalg.LinAlgError:
+            self._end += 1
+            self.statistics[:] = 0.0
             return None
+        self._end += 1
         if not len(d):
+            self.statistics[:] = 0.0
+            return None
+        rate, learn = self._calibration()
+        best, value = impulse.calibrated_best(
+            rows, np.einsum('ij,ij->i', d, solved), self.statistics, self._above[0],
+            self.inflation[0], self._median, rate, learn)
+        if not value > self.threshold:
             return None
         covered = rows >= 0
         rows = rows[covered]
-        self.statistics[covered] = np.einsum('ij,ij->i', d, solved)
-        self.statistics[:] = self._calibrate(0, self.statistics)
         values = self.statistics[covered]
-        best = int(np.argmax(values))
-        if not values[best] > self.threshold:
-            return None
         # A weak pulse is crossed first by a long window reaching back well before it.
         # A constant wrench since theta makes T_L grow as min(L, t - theta)^2: the
         # shortest window with half the largest statistic dates the start (the
@@ -269,6 +280,11 @@ class MultiScaleTest:
                                 float(values[best]), self._mu[rows[longest]].copy(),
                                 self._cov[rows[longest]].copy())
 
+    def _calibration(self) -> tuple[float, bool]:
+        """Return the null calibration's learning rate per update and whether it learns."""
+        learn = self.quiet and self._period is not None
+        return (min(1.0, self._period / self.calibration_memory) if learn else 0.0), learn
+
     def _calibrate(self, test: int, raw: np.ndarray) -> np.ndarray:
         """
         Learn test ``test``'s null from quiet updates; return ``raw`` / its inflation.
@@ -279,8 +295,7 @@ class MultiScaleTest:
         comes from the test's own median (robust: a push is a small part of the
         time), learnt over ``calibration_memory`` s while no event is open.
         """
-        learn = self.quiet and self._period is not None
-        rate = min(1.0, self._period / self.calibration_memory) if learn else 0.0
+        rate, learn = self._calibration()
         return impulse.calibrate(raw, self._above[test], self.inflation[test], self._median,
                                  rate, learn)
 
@@ -488,6 +503,8 @@ class MomentumBlocks:
         self._differences = 0
         self._last: Optional[tuple[np.ndarray, np.ndarray]] = None
         self._no_position = np.zeros((0, 0))
+        self._no_common = np.zeros((n, n))
+        self._no_centre = np.zeros(0)
 
     @staticmethod
     def _position_arrays(capacity: int, d: int) -> list[np.ndarray]:
@@ -537,6 +554,8 @@ class MomentumBlocks:
         """
         if self._end and stamp_ns <= self._stamps[self._end - 1]:
             return
+        if self._add_compiled(stamp_ns, mu, cov, common, position):
+            return
         self._learn_excess(mu, cov)
         try:
             info, lam = blocks.sample_information(
@@ -566,6 +585,39 @@ class MomentumBlocks:
                 np.asarray(position[0], float) if present else np.zeros(d), present)
         self._end += 1
         self.active = True
+
+    def _add_compiled(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
+                      common: Optional[np.ndarray], position: Optional[tuple]) -> bool:
+        """
+        Take the common sample in one compiled call (blocks.add_sample); False: not common.
+
+        Common: a sample after the first, with a last one to difference against, the
+        excess noise's eigen-decomposition not due, room in the ring, and a position
+        exactly when the test reads positions (all of :meth:`add` otherwise).
+        """
+        last, k, d = self._last, self._end, len(self.linear)
+        differences = self._differences + 1
+        if last is None or not k or k == self._capacity or differences % 16 == 1 \
+                or differences == EXCESS_MINIMUM or (position is None) != (not d) \
+                or (d and len(position[0]) != d):
+            return False
+        self._last = (mu, cov)
+        self._differences = differences
+        try:
+            blocks.add_sample(
+                self._excess_raw, mu, cov, last[0], last[1],
+                float(min(differences, EXCESS_SAMPLES)), self.excess,
+                self._no_position if position is None else position[1], self._info,
+                self._score, self._common, self._no_common if common is None else common,
+                self._stamps, stamp_ns, k, *self._positions,
+                (stamp_ns - self._origin_ns) * 1e-9,
+                self._no_centre if position is None else np.asarray(position[0], float),
+                position is not None)
+        except np.linalg.LinAlgError:
+            return True
+        self._end += 1
+        self.active = True
+        return True
 
     def _compact(self, stamp_ns: int) -> None:
         """Drop samples older than three longest windows (and re-base the prefix sums)."""

@@ -23,6 +23,8 @@ LAPACK solve per window and the same elementwise expressions in the same order:
 the statistics are those of the numpy code bit for bit (test_multiscale_kernels.py).
 """
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -62,6 +64,49 @@ def window_changes(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray
         solved[k] = np.linalg.solve(cov + cov_ring[row], d[k])
         k += 1
     return rows, d, solved
+
+
+@njit(cache=True)
+def store_window_changes(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray,
+                         start: int, end: int, lags: np.ndarray, stamp_ns: int,
+                         floor_ns: int, has_floor: bool, mu: np.ndarray,
+                         cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Store the sample at ring row ``end`` (room made), then :func:`window_changes`."""
+    stamps[end] = stamp_ns
+    mu_ring[end] = mu
+    cov_ring[end] = cov
+    return window_changes(stamps, mu_ring, cov_ring, start, end + 1, lags, stamp_ns,
+                          floor_ns, has_floor, mu, cov)
+
+
+@njit(cache=True)
+def calibrated_best(rows: np.ndarray, products: np.ndarray, statistics: np.ndarray,
+                    above: np.ndarray, inflation: np.ndarray, median: float, rate: float,
+                    learn: bool) -> tuple[int, float]:
+    """
+    Write the calibrated statistics (0 where not covered); return the best covered one.
+
+    ``products``: d_L^T V_L^-1 d_L of the covered windows (``rows`` >= 0) in order.
+    Returns (its index among the covered windows, its value) as ``np.argmax`` picks
+    it: the first largest, or the first NaN.
+    """
+    k = 0
+    for w in range(rows.shape[0]):
+        if rows[w] >= 0:
+            statistics[w] = products[k]
+            k += 1
+        else:
+            statistics[w] = 0.0
+    statistics[:] = calibrate(statistics, above, inflation, median, rate, learn)
+    best, value, k = -1, 0.0, 0
+    for w in range(rows.shape[0]):
+        if rows[w] < 0:
+            continue
+        v = statistics[w]
+        if best < 0 or (not math.isnan(value) and (v > value or math.isnan(v))):
+            best, value = k, v
+        k += 1
+    return best, value
 
 
 @njit(cache=True)

@@ -99,6 +99,8 @@ def warm_up() -> None:
     pose = pin.SE3.Identity()  # its rotation comes in Fortran order
     for pose_cov in (np.eye(6), np.eye(18)[:6, :6]):
         impulse.centre_of_mass_se3(np.eye(6), pose.rotation, pose.translation, pose_cov)
+    # The block test's statistics are calibrated from Python (multiscale._calibrate).
+    impulse.calibrate(np.zeros(2), np.full(2, 0.5), np.ones(2), 1.0, 0.0, False)
     eye, p = np.eye(6), np.eye(18)
     impulse.measured_momentum_se3(pose.actionInverse, eye, np.ones(6), eye, eye, p[:6, :6],
                                   eye, eye, pose.rotation, pose.translation, eye)
