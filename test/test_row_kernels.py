@@ -17,7 +17,7 @@
 The per-row Python around the compiled kernels, trimmed: the same numbers, fewer calls.
 
 Each compiled routine that fuses kernels equals the calls it replaces bit for bit, and
-the counts of per-row calls show what left the row (issue 19, docs/row_kernels.md).
+the counts of per-row calls show what left the row (issue 19, docs/performance.md).
 """
 
 from unittest import mock
@@ -68,14 +68,30 @@ def test_measured_momentum_se3_equals_the_two_kernels_it_fuses() -> None:
                                              twist_cov, joint_cov, p[:6, :6],
                                              group.coadjoint_form) \
             + multiscale.centre_of_mass('SE(3)', pose, interpolated, pose_noise)[:3]
-        pi = locked @ (twist + connection)
         fused = impulse.measured_momentum_se3(
-            g.actionInverse, locked, pi, twist_cov, joint_cov, p[:6, :6],
-            group.coadjoint_form(pi), interpolated, pose.rotation, pose.translation,
+            g.actionInverse, locked, twist, connection, twist_cov, joint_cov, p[:6, :6],
+            group.structure_constants, interpolated, pose.rotation, pose.translation,
             pose_noise)
         assert len(fused) == len(expected)
         for mine, want in zip(fused, expected):
             np.testing.assert_array_equal(mine, want)
+
+
+def test_the_compiled_kirillov_form_equals_the_einsum_bit_for_bit() -> None:
+    """Every base group, covectors of every scale and sign, zeros: the same bits."""
+    from reduced_dynamics.geometry.lie_group import SUBGROUPS
+    rng = np.random.default_rng(2)
+    for group in SUBGROUPS.values():
+        n = group.dim
+        for k in range(400):
+            covector = rng.standard_normal(n) * 10.0 ** rng.integers(-6, 6)
+            if k % 3 == 0:
+                covector = -np.abs(covector)
+            if k % 5 == 0:
+                covector[rng.integers(n)] = 0.0 if k % 2 else -0.0
+            expected = group.coadjoint_form(covector)
+            mine = impulse.kirillov_form(group.structure_constants, covector)
+            np.testing.assert_array_equal(mine.view(np.uint64), expected.view(np.uint64))
 
 
 def test_a_measured_twist_is_one_compiled_call_per_row(bench_run) -> None:

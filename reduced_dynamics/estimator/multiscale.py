@@ -391,11 +391,10 @@ def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stam
         if se3:
             # twist_momentum and centre_of_mass below, in one compiled call.
             pose = measurement.pose
-            pi = lin.locked @ (measurement.twist + connection)
             mu, white, common, world, cov, mass = impulse.measured_momentum_se3(
-                ad_inverse, lin.locked, pi, twist_cov, lin.joint_cov, pose_cov,
-                flt.group.coadjoint_form(pi), locked, pose.rotation, pose.translation,
-                com_cov)
+                ad_inverse, lin.locked, measurement.twist, connection, twist_cov,
+                lin.joint_cov, pose_cov, flt.group.structure_constants, locked,
+                pose.rotation, pose.translation, com_cov)
             out.append((measurement.stamp_ns, mu, white, common,
                         (world, cov, mass, LINEAR['SE(3)'])))
             continue

@@ -152,17 +152,40 @@ def centre_of_mass_se3(locked: np.ndarray, rotation: np.ndarray, translation: np
 
 
 @njit(cache=True)
-def measured_momentum_se3(ad_inverse: np.ndarray, locked: np.ndarray, pi: np.ndarray,
-                          twist_cov: np.ndarray, joint_cov: np.ndarray, pose_cov: np.ndarray,
-                          kirillov: np.ndarray, com_locked: np.ndarray, rotation: np.ndarray,
+def kirillov_form(structure: np.ndarray, covector: np.ndarray) -> np.ndarray:
+    """
+    Return W[a, b] = sum_c structure[a, c, b] covector[c] (BaseGroup.coadjoint_form).
+
+    Summed from +0.0 in the order of c, as numpy's einsum does: with the structure
+    constants of the base groups (0 and +-1, at most one non-zero term per entry)
+    every entry is exact, zero signs included (test_row_kernels.py).
+    """
+    n = covector.shape[0]
+    out = np.empty((n, n))
+    for a in range(n):
+        for b in range(n):
+            acc = 0.0
+            for c in range(n):
+                acc += structure[a, c, b] * covector[c]
+            out[a, b] = acc
+    return out
+
+
+@njit(cache=True)
+def measured_momentum_se3(ad_inverse: np.ndarray, locked: np.ndarray, twist: np.ndarray,
+                          connection_qd: np.ndarray, twist_cov: np.ndarray,
+                          joint_cov: np.ndarray, pose_cov: np.ndarray, structure: np.ndarray,
+                          com_locked: np.ndarray, rotation: np.ndarray,
                           translation: np.ndarray, com_pose_cov: np.ndarray) -> tuple:
     """
-    Return :func:`twist_momentum`'s and :func:`centre_of_mass_se3`'s results in one call.
+    Return multiscale.twist_momentum's and :func:`centre_of_mass_se3`'s results in one call.
 
     A measured twist of an SE(3) base gives both per row (multiscale.twist_momenta):
-    one dispatch instead of two, the same operations.
+    pi = I (xi + A qbar_dot), its Kirillov form and the two kernels in one dispatch,
+    the same operations.
     """
+    pi = locked @ (twist + connection_qd)
     mu, white, common = twist_momentum(ad_inverse, locked, pi, twist_cov, joint_cov,
-                                       pose_cov, kirillov)
+                                       pose_cov, kirillov_form(structure, pi))
     world, cov, mass = centre_of_mass_se3(com_locked, rotation, translation, com_pose_cov)
     return mu, white, common, world, cov, mass

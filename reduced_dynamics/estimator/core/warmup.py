@@ -102,8 +102,9 @@ def warm_up() -> None:
     # The block test's statistics are calibrated from Python (multiscale._calibrate).
     impulse.calibrate(np.zeros(2), np.full(2, 0.5), np.ones(2), 1.0, 0.0, False)
     eye, p = np.eye(6), np.eye(18)
-    impulse.measured_momentum_se3(pose.actionInverse, eye, np.ones(6), eye, eye, p[:6, :6],
-                                  eye, eye, pose.rotation, pose.translation, eye)
+    impulse.measured_momentum_se3(pose.actionInverse, eye, np.ones(6), np.ones(6), eye, eye,
+                                  p[:6, :6], SUBGROUPS['SE(3)'].structure_constants, eye,
+                                  pose.rotation, pose.translation, eye)
     # The filter's inputs from a chunk's mass matrices (core/inputs.py).
     from reduced_dynamics.estimator.core import inputs
     inputs.connection_terms(np.tile(np.eye(8), (2, 1, 1)), 6, np.zeros((2, 2)), 1e-4)
