@@ -28,7 +28,8 @@ step test's bank full), each as a multiple of one ``crba``:
   i.e. without the interpreter, the same called from Python, and the dense step it
   replaced (``core/reference.py``) on the same arguments, side by side;
 * ``step test``: the wrench-step test's compiled kernels (``absorb`` +
-  ``evaluate`` over a full bank of onsets), in a compiled loop;
+  ``evaluate`` over a full bank of onsets, one call: ``absorb_evaluate``), in a
+  compiled loop;
 * ``smoother step``: one step of the smoother's backward pass
   (``core/smoother.backward_step``, structured) and the dense step it replaced
   (``core/smoother_reference.py``), on two recorded steps, in compiled loops (a
@@ -66,12 +67,11 @@ def _capture(robot) -> dict:
     estimator.add_samples(messages[:2 * WARMUP_SAMPLES])
     captured: dict = {}
     originals = {(kernels, 'propagate_update'): kernels.propagate_update,
-                 (step_kernels, 'absorb'): step_kernels.absorb,
-                 (step_kernels, 'evaluate'): step_kernels.evaluate}
+                 (step_kernels, 'absorb_evaluate'): step_kernels.absorb_evaluate}
 
     def recorder(name: str, function: Callable) -> Callable:
         def record(*args: Any) -> Any:
-            # Copies: absorb and evaluate work in place on the bank's arrays.
+            # Copies: absorb_evaluate works in place on the bank's arrays.
             captured[name] = tuple(a.copy() if isinstance(a, np.ndarray) else a
                                    for a in args)
             return function(*args)
@@ -173,9 +173,8 @@ def measure_floor(robot, calls: int = 2000) -> dict:
     out['filter_step_called'] = _seconds_per_call(lambda: kernels.propagate_update(*step),
                                                   calls)
     out['filter_step_reference'] = _looped(reference.propagate_update, step, calls)
-    absorb, evaluate = captured['absorb'], captured['evaluate']
-    out['step_test_compiled'] = _looped(step_kernels.absorb, absorb, calls) \
-        + _looped(step_kernels.evaluate, evaluate, calls)
+    out['step_test_compiled'] = _looped(step_kernels.absorb_evaluate,
+                                        captured['absorb_evaluate'], calls)
     backward = _smoother_args(robot)
     out['smoother_step'] = _looped(smoother.backward_step, backward, calls)
     out['smoother_step_reference'] = _looped(smoother_reference.backward_step, backward, calls)

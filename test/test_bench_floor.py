@@ -24,8 +24,9 @@ def test_floor_times_the_steady_state_calls_and_adds_them_up() -> None:
     """Captured in steady state (a full step-test bank), each part timed, sums consistent."""
     robot = load_robot()
     captured = bench_floor._capture(robot)
-    # evaluate(c, b0, j0, bound_inv, bounded, count, ...): onsets open, as in steady state.
-    assert captured['evaluate'][5] >= 10
+    # absorb_evaluate(h, s, gain, nu, psi, omega, beta, outlier, c, b0, j0, bound_inv,
+    # bounded, count, ...): onsets open, as in steady state.
+    assert captured['absorb_evaluate'][13] >= 10
     step = captured['propagate_update']
     assert step[2].shape == (3 * robot.n, 3 * robot.n) and step[11]  # an Odometry update
     floor = bench_floor.measure_floor(robot, calls=50)
@@ -59,7 +60,7 @@ def test_the_capture_leaves_the_multi_scale_test_out(monkeypatch) -> None:
             return original(self, *args, **kwargs)
         monkeypatch.setattr(cls, name, counted)
     captured = bench_floor._capture(load_robot())
-    assert calls == [] and captured['evaluate'][5] >= 10
+    assert calls == [] and captured['absorb_evaluate'][13] >= 10
 
 
 def test_the_smoother_rows_time_a_recorded_step_both_ways() -> None:

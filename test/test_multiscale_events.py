@@ -404,7 +404,7 @@ def test_warm_up_loads_the_block_kernels():
             'import numpy as np; '
             'from reduced_dynamics.estimator.multiscale import MomentumBlocks, window_bank; '
             'kernels = (b.bank_statistics, b.block_mean, b.accumulate, '
-            'b.accumulate_position, b.learn_excess, b.sample_information); '
+            'b.accumulate_position, b.learn_excess, b.sample_information, b.add_sample); '
             'before = [len(k.signatures) for k in kernels]; '
             'm = MomentumBlocks(3, window_bank()); m._differences = 10 ** 6; '
             '[m.add(k * 10 ** 7, np.zeros(3), np.eye(3), np.zeros((3, 3)), '

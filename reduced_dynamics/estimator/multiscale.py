@@ -126,6 +126,10 @@ class MultiScaleTest:
         #: the same bank on measured momenta (a twist measured: :class:`MomentumBlocks`)
         self.blocks = MomentumBlocks(n, self.windows)
         self._moving_thresholds: dict[int, float] = {}
+        # Per window length asked for: the bank windows it covers and their threshold
+        # (still_moving), the nearest bank window (window_statistic).
+        self._moving_windows: dict[float, tuple[np.ndarray, float]] = {}
+        self._nearest: dict[float, int] = {}
         #: per test (filtered momentum, blocks) and window: the running fraction of
         #: quiet updates above the chi2_n median, and the inflation of T it implies
         self._above = np.full((2, len(self.windows)), 0.5)
@@ -151,25 +155,29 @@ class MultiScaleTest:
 
     def _store(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray) -> None:
         if self._end == self._capacity:
-            oldest = stamp_ns - self._lags_ns[-1]
-            keep = max(self._start, int(np.searchsorted(
-                self._stamps[self._start:self._end], oldest, 'right')) + self._start - 1)
-            count = self._end - keep
-            if count > self._capacity // 2:
-                self._capacity *= 2
-                for name in ('_stamps', '_mu', '_cov'):
-                    old = getattr(self, name)
-                    new = np.zeros((self._capacity,) + old.shape[1:], old.dtype)
-                    new[:count] = old[keep:self._end]
-                    setattr(self, name, new)
-            else:
-                for array in (self._stamps, self._mu, self._cov):
-                    array[:count] = array[keep:self._end]
-            self._start, self._end = 0, count
+            self._make_room(stamp_ns)
         self._stamps[self._end] = stamp_ns
         self._mu[self._end] = mu
         self._cov[self._end] = cov
         self._end += 1
+
+    def _make_room(self, stamp_ns: int) -> None:
+        """Drop the samples no window reaches (or double the ring) before storing one."""
+        oldest = stamp_ns - self._lags_ns[-1]
+        keep = max(self._start, int(np.searchsorted(
+            self._stamps[self._start:self._end], oldest, 'right')) + self._start - 1)
+        count = self._end - keep
+        if count > self._capacity // 2:
+            self._capacity *= 2
+            for name in ('_stamps', '_mu', '_cov'):
+                old = getattr(self, name)
+                new = np.zeros((self._capacity,) + old.shape[1:], old.dtype)
+                new[:count] = old[keep:self._end]
+                setattr(self, name, new)
+        else:
+            for array in (self._stamps, self._mu, self._cov):
+                array[:count] = array[keep:self._end]
+        self._start, self._end = 0, count
 
     def update(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
                measured: Optional[list[tuple]] = None,
@@ -226,33 +234,40 @@ class MultiScaleTest:
             if dt > 0.0:
                 self._period = dt if self._period is None else \
                     self._period + 0.01 * (dt - self._period)
-        self._store(stamp_ns, mu, cov)
         if self._period is None:
+            self._store(stamp_ns, mu, cov)
             return None
+        if self._end == self._capacity:
+            self._make_room(stamp_ns)
         if abs(self._period - self._threshold_period) > \
                 PERIOD_TOLERANCE * self._threshold_period or not self._threshold_period:
             # chi2.isf is ~50 us: recomputed only when the update rate changes.
             self._threshold_period = self._period
             self.threshold = float(chi2.isf(self.significance(self._period), self.n))
         floor = self.floor_ns
-        self.statistics[:] = 0.0
         try:
-            # One compiled call: each window's ring row, d_L and V_L^-1 d_L (core/impulse.py).
-            rows, d, solved = impulse.window_changes(
+            # One compiled call: the sample stored, each window's ring row, d_L and
+            # V_L^-1 d_L (core/impulse.py).
+            rows, d, solved = impulse.store_window_changes(
                 self._stamps, self._mu, self._cov, self._start, self._end, self._lags_ns,
                 stamp_ns, 0 if floor is None else floor, floor is not None, mu, cov)
         except np.linalg.LinAlgError:
+            self._end += 1
+            self.statistics[:] = 0.0
             return None
+        self._end += 1
         if not len(d):
+            self.statistics[:] = 0.0
+            return None
+        rate, learn = self._calibration()
+        best, value = impulse.calibrated_best(
+            rows, np.einsum('ij,ij->i', d, solved), self.statistics, self._above[0],
+            self.inflation[0], self._median, rate, learn)
+        if not value > self.threshold:
             return None
         covered = rows >= 0
         rows = rows[covered]
-        self.statistics[covered] = np.einsum('ij,ij->i', d, solved)
-        self.statistics[:] = self._calibrate(0, self.statistics)
         values = self.statistics[covered]
-        best = int(np.argmax(values))
-        if not values[best] > self.threshold:
-            return None
         # A weak pulse is crossed first by a long window reaching back well before it.
         # A constant wrench since theta makes T_L grow as min(L, t - theta)^2: the
         # shortest window with half the largest statistic dates the start (the
@@ -265,6 +280,11 @@ class MultiScaleTest:
                                 float(values[best]), self._mu[rows[longest]].copy(),
                                 self._cov[rows[longest]].copy())
 
+    def _calibration(self) -> tuple[float, bool]:
+        """Return the null calibration's learning rate per update and whether it learns."""
+        learn = self.quiet and self._period is not None
+        return (min(1.0, self._period / self.calibration_memory) if learn else 0.0), learn
+
     def _calibrate(self, test: int, raw: np.ndarray) -> np.ndarray:
         """
         Learn test ``test``'s null from quiet updates; return ``raw`` / its inflation.
@@ -275,8 +295,7 @@ class MultiScaleTest:
         comes from the test's own median (robust: a push is a small part of the
         time), learnt over ``calibration_memory`` s while no event is open.
         """
-        learn = self.quiet and self._period is not None
-        rate = min(1.0, self._period / self.calibration_memory) if learn else 0.0
+        rate, learn = self._calibration()
         return impulse.calibrate(raw, self._above[test], self.inflation[test], self._median,
                                  rate, learn)
 
@@ -291,15 +310,23 @@ class MultiScaleTest:
         """
         if not self.blocks.active:
             return False
-        short = self.windows <= max(window, self.windows[0]) * (1 + 1e-9)
-        count = int(short.sum())
-        if count not in self._moving_thresholds:
-            self._moving_thresholds[count] = float(chi2.isf(0.01 / count, self.n))
-        return bool(np.any(self.blocks.statistics[short] > self._moving_thresholds[count]))
+        known = self._moving_windows.get(window)
+        if known is None:
+            # Called per sample while an event is open, with a few window lengths.
+            short = self.windows <= max(window, self.windows[0]) * (1 + 1e-9)
+            count = int(short.sum())
+            if count not in self._moving_thresholds:
+                self._moving_thresholds[count] = float(chi2.isf(0.01 / count, self.n))
+            known = self._moving_windows[window] = (short, self._moving_thresholds[count])
+        short, threshold = known
+        return bool(np.any(self.blocks.statistics[short] > threshold))
 
     def window_statistic(self, window: float) -> float:
         """Return the last statistic of the bank window nearest ``window`` s."""
-        return float(self.statistics[int(np.argmin(np.abs(self.windows - window)))])
+        index = self._nearest.get(window)
+        if index is None:
+            index = self._nearest[window] = int(np.argmin(np.abs(self.windows - window)))
+        return float(self.statistics[index])
 
 
 def twist_momentum(ad_inverse: np.ndarray, locked: np.ndarray, connection_qd: np.ndarray,
@@ -324,7 +351,7 @@ def twist_momentum(ad_inverse: np.ndarray, locked: np.ndarray, connection_qd: np
 
 
 def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stamp_ns: int,
-                  measurements: list, gated: list) -> list[tuple]:
+                  measurements: list, gated: list, g: Any = None) -> list[tuple]:
     """
     Return (stamp, mu, covariance) of a row's accepted twist measurements.
 
@@ -332,16 +359,19 @@ def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stam
     and of this one (at ``stamp_ns``); A qbar_dot is interpolated to each
     measurement's stamp, as the filter does (a moving arm's A qbar_dot changes within
     a row interval by more than a precise twist's noise). ``gated``: stamps the
-    filter refused. The filter's pose maps them to the world.
+    filter refused. The filter's pose maps them to the world (``g``: that pose as a
+    pin.SE3 when the caller has it; None: taken from the filter).
     """
-    if flt.g is None:
+    if flt._g is None:
         return []
     # To the world with the filter's pose, not each sample's: a measured pose's noise
     # would weigh the samples by their own error (C depends on it), biasing the means.
     n = lin.locked.shape[0]
-    ad_inverse, pose_cov = flt._adjoint_inverse(flt.g), flt.p[:n, :n]
+    ad_inverse = flt._adjoint_inverse(flt.g if g is None else g)
+    pose_cov = flt.p[:n, :n]
     out = []
     span = None if start_ns is None or before is None else stamp_ns - start_ns
+    se3 = flt.group.name == 'SE(3)'
     for measurement in measurements:
         if measurement is None or measurement.twist is None or \
                 measurement.stamp_ns in gated:
@@ -356,12 +386,22 @@ def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stam
         if span and measurement.stamp_ns < stamp_ns:
             locked = before.locked + fraction * (lin.locked - before.locked)
         own_pose = None if measurement.noise is None else measurement.noise[0]
+        twist_cov = flt._r_twist if own is None else own
+        com_cov = flt._r_pose if own_pose is None else own_pose
+        if se3:
+            # twist_momentum and centre_of_mass below, in one compiled call.
+            pose = measurement.pose
+            mu, white, common, world, cov, mass = impulse.measured_momentum_se3(
+                ad_inverse, lin.locked, measurement.twist, connection, twist_cov,
+                lin.joint_cov, pose_cov, flt.group.structure_constants, locked,
+                pose.rotation, pose.translation, com_cov)
+            out.append((measurement.stamp_ns, mu, white, common,
+                        (world, cov, mass, LINEAR['SE(3)'])))
+            continue
         out.append((measurement.stamp_ns, *twist_momentum(
-            ad_inverse, lin.locked, connection, measurement.twist,
-            flt._r_twist if own is None else own, lin.joint_cov, pose_cov,
-            flt.group.coadjoint_form), centre_of_mass(
-                flt.group.name, measurement.pose, locked,
-                flt._r_pose if own_pose is None else own_pose)))
+            ad_inverse, lin.locked, connection, measurement.twist, twist_cov,
+            lin.joint_cov, pose_cov, flt.group.coadjoint_form), centre_of_mass(
+                flt.group.name, measurement.pose, locked, com_cov)))
     return out
 
 
@@ -462,6 +502,8 @@ class MomentumBlocks:
         self._differences = 0
         self._last: Optional[tuple[np.ndarray, np.ndarray]] = None
         self._no_position = np.zeros((0, 0))
+        self._no_common = np.zeros((n, n))
+        self._no_centre = np.zeros(0)
 
     @staticmethod
     def _position_arrays(capacity: int, d: int) -> list[np.ndarray]:
@@ -511,6 +553,8 @@ class MomentumBlocks:
         """
         if self._end and stamp_ns <= self._stamps[self._end - 1]:
             return
+        if self._add_compiled(stamp_ns, mu, cov, common, position):
+            return
         self._learn_excess(mu, cov)
         try:
             info, lam = blocks.sample_information(
@@ -540,6 +584,39 @@ class MomentumBlocks:
                 np.asarray(position[0], float) if present else np.zeros(d), present)
         self._end += 1
         self.active = True
+
+    def _add_compiled(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
+                      common: Optional[np.ndarray], position: Optional[tuple]) -> bool:
+        """
+        Take the common sample in one compiled call (blocks.add_sample); False: not common.
+
+        Common: a sample after the first, with a last one to difference against, the
+        excess noise's eigen-decomposition not due, room in the ring, and a position
+        exactly when the test reads positions (all of :meth:`add` otherwise).
+        """
+        last, k, d = self._last, self._end, len(self.linear)
+        differences = self._differences + 1
+        if last is None or not k or k == self._capacity or differences % 16 == 1 \
+                or differences == EXCESS_MINIMUM or (position is None) != (not d) \
+                or (d and len(position[0]) != d):
+            return False
+        self._last = (mu, cov)
+        self._differences = differences
+        try:
+            blocks.add_sample(
+                self._excess_raw, mu, cov, last[0], last[1],
+                float(min(differences, EXCESS_SAMPLES)), self.excess,
+                self._no_position if position is None else position[1], self._info,
+                self._score, self._common, self._no_common if common is None else common,
+                self._stamps, stamp_ns, k, *self._positions,
+                (stamp_ns - self._origin_ns) * 1e-9,
+                self._no_centre if position is None else np.asarray(position[0], float),
+                position is not None)
+        except np.linalg.LinAlgError:
+            return True
+        self._end += 1
+        self.active = True
+        return True
 
     def _compact(self, stamp_ns: int) -> None:
         """Drop samples older than three longest windows (and re-base the prefix sums)."""

@@ -119,7 +119,7 @@ class ChunkProcessing:
             prior = None
             measurements = self._filter_measurements(measured[k], stamp)
             at_row = bool(measurements) and measurements[-1] is None
-            if at_row or flt.g is None or stamp - flt.stamp_ns > coast_ns:
+            if at_row or flt._g is None or stamp - flt.stamp_ns > coast_ns:
                 # The base state at the row's stamp (a measurement there, the start, or
                 # a restart after a coast beyond the filter's cap).
                 prior = Measurement(stamp, pin.SE3(rotation[k], translation[k]),
@@ -136,14 +136,14 @@ class ChunkProcessing:
                 self._period_rejected += 1
                 self.last_rejection = (f'innovation_gate: base measurement at {gated} '
                                        f'improbable under the filter (chi-square {nis:.3g})')
+            g = flt.g  # one pin.SE3 per row (the property builds a new one each time)
             # Each accepted twist's own momentum, for the event tests (multiscale.py).
             measured_mu = twist_momenta(flt, before, lins[k], start_ns, stamp, measurements,
-                                        gated_at) \
+                                        gated_at, g) \
                 if twists is not None and commands is None else None
             if lagged is not None and lagged._ready:
                 # Rows whose lag passed during this row's steps go out with it.
                 fixed_lag[k] = lagged.take()
-            g = flt.g
             x, p = flt.x, flt.p
             mu[k] = x[:n]
             pi[k] = adjoint(g).T @ x[:n]

@@ -236,3 +236,30 @@ def fold(c: np.ndarray, b0: np.ndarray, j0: np.ndarray, bound_inv: np.ndarray,
             inverse = np.eye(n)
             _solve_in_place(low, inverse)
             bound_inv[i] = inverse
+
+
+@njit(cache=True)
+def absorb_evaluate(h: np.ndarray, s: np.ndarray, gain: np.ndarray, nu: np.ndarray,
+                    psi: np.ndarray, omega: np.ndarray, beta: np.ndarray, outlier: float,
+                    c: np.ndarray, b0: np.ndarray, j0: np.ndarray, bound_inv: np.ndarray,
+                    bounded: np.ndarray, count: int, score: np.ndarray, threshold: float,
+                    nis_scale: float, elapsed: float, dt: float, nis_time: float) -> tuple:
+    """
+    Run :func:`absorb`, the NIS average and :func:`evaluate` of one update (count > 0).
+
+    Returns (NIS, whether it was evidence, the new NIS average and elapsed time, best
+    onset, its statistic, the largest bound, onsets evaluated). An outlier (or NaN)
+    NIS stops after absorb, as WrenchStepTest.update does.
+    """
+    nis_total = absorb(h, s, gain, nu, psi, omega, beta, outlier)
+    if not nis_total <= outlier:
+        return nis_total, False, nis_scale, elapsed, -1, 0.0, 0.0, 0
+    # A running mean over the first nis_time seconds, then an exponential average.
+    elapsed += dt
+    horizon = min(elapsed, nis_time)
+    weight = 1.0 if horizon <= 0.0 else min(1.0, dt / horizon)
+    nis_scale += weight * (nis_total / nu.shape[0] - nis_scale)
+    scale = max(1.0, nis_scale)
+    best, statistic, top, evaluated = evaluate(c, b0, j0, bound_inv, bounded, count, omega,
+                                               beta, scale, threshold, score)
+    return nis_total, True, nis_scale, elapsed, best, statistic, top, evaluated

@@ -213,27 +213,35 @@ class WrenchStepTest:
         m = len(nu)
         outlier = self._outlier.get(m, math.inf)
         if self._count:
-            nis_total = self._kernels.absorb(
-                np.ascontiguousarray(h), np.ascontiguousarray(s), np.ascontiguousarray(gain),
-                np.ascontiguousarray(nu), self._psi, self._omega, self._beta, outlier)
-        else:
-            nis_total = float(nu @ np.linalg.solve(s, nu))
+            # Absorb, the NIS average and the evaluation below in one compiled call.
+            _, evidence, self.nis_scale, self._elapsed, best, statistic, top, evaluated = \
+                self._kernels.absorb_evaluate(
+                    np.ascontiguousarray(h), np.ascontiguousarray(s),
+                    np.ascontiguousarray(gain), np.ascontiguousarray(nu), self._psi,
+                    self._omega, self._beta, outlier, self._c, self._b0, self._j0,
+                    self._bound_inv, self._bounded, self._count, self._score,
+                    self.threshold, self.nis_scale, self._elapsed, self._dt, NIS_TIME)
+            if not evidence:
+                return None
+            return self._evaluated(best, statistic, top, evaluated)
+        # Settling (or no onset yet): the NIS average still describes the sensors.
+        nis_total = float(nu @ np.linalg.solve(s, nu))
         if not nis_total <= outlier:
             # One improbable innovation is an outlier (a pose stamped tens of ms off),
             # not the growing drift a step makes: it carries no evidence here.
             return None
-        # A running mean over the first NIS_TIME seconds, then an exponential average.
+        # A running mean over the first NIS_TIME seconds, then an exponential average
+        # (absorb_evaluate's arithmetic, in the same order).
         self._elapsed += self._dt
         horizon = min(self._elapsed, NIS_TIME)
         weight = 1.0 if horizon <= 0.0 else min(1.0, self._dt / horizon)
         self.nis_scale += weight * (nis_total / m - self.nis_scale)
-        if not self._count:
-            # Settling (or no onset yet): the NIS average still describes the sensors.
-            return None
+        return None
+
+    def _evaluated(self, best: int, statistic: float, top: float,
+                   evaluated: int) -> Optional[StepDetection]:
+        """Take the evaluation of the onsets (best, its statistic); return a detection."""
         scale = max(1.0, self.nis_scale)
-        best, statistic, top, evaluated = self._kernels.evaluate(
-            self._c, self._b0, self._j0, self._bound_inv, self._bounded, self._count,
-            self._omega, self._beta, scale, self.threshold, self._score)
         self.evaluated += evaluated
         self.last_statistic = top if best < 0 or not statistic > self.threshold \
             else statistic

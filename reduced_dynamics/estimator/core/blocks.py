@@ -218,3 +218,28 @@ def sample_information(cov: np.ndarray, excess: np.ndarray,
     if d == 0:
         return info, np.zeros((0, 0))
     return info, np.ascontiguousarray(np.linalg.solve(position_cov, np.eye(d)))
+
+
+@njit(cache=True)
+def add_sample(raw: np.ndarray, mu: np.ndarray, cov: np.ndarray, last_mu: np.ndarray,
+               last_cov: np.ndarray, divisor: float, excess: np.ndarray,
+               position_cov: np.ndarray, info: np.ndarray, score: np.ndarray,
+               common_ring: np.ndarray, common: np.ndarray, stamps: np.ndarray,
+               stamp_ns: int, k: int, s0: np.ndarray, s1: np.ndarray, s2: np.ndarray,
+               y0: np.ndarray, t1: np.ndarray, counts: np.ndarray, t: float, c: np.ndarray,
+               with_positions: bool) -> None:
+    """
+    Take one measured momentum into prefix row ``k`` (k > 0): the calls it replaces in turn.
+
+    :func:`learn_excess`, :func:`sample_information`, the sample's stamp and common
+    covariance, :func:`accumulate` and (``with_positions``: a position present)
+    :func:`accumulate_position`. A singular covariance raises after the excess was
+    learnt and before the row is written, as the separate calls did.
+    """
+    learn_excess(raw, mu, cov, last_mu, last_cov, divisor)
+    sample_info, lam = sample_information(cov, excess, position_cov)
+    stamps[k] = stamp_ns
+    common_ring[k] = common
+    accumulate(info, score, k, sample_info, mu)
+    if with_positions:
+        accumulate_position(s0, s1, s2, y0, t1, counts, k, lam, t, c, True)

@@ -23,6 +23,8 @@ LAPACK solve per window and the same elementwise expressions in the same order:
 the statistics are those of the numpy code bit for bit (test_multiscale_kernels.py).
 """
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -65,6 +67,49 @@ def window_changes(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray
 
 
 @njit(cache=True)
+def store_window_changes(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray,
+                         start: int, end: int, lags: np.ndarray, stamp_ns: int,
+                         floor_ns: int, has_floor: bool, mu: np.ndarray,
+                         cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Store the sample at ring row ``end`` (room made), then :func:`window_changes`."""
+    stamps[end] = stamp_ns
+    mu_ring[end] = mu
+    cov_ring[end] = cov
+    return window_changes(stamps, mu_ring, cov_ring, start, end + 1, lags, stamp_ns,
+                          floor_ns, has_floor, mu, cov)
+
+
+@njit(cache=True)
+def calibrated_best(rows: np.ndarray, products: np.ndarray, statistics: np.ndarray,
+                    above: np.ndarray, inflation: np.ndarray, median: float, rate: float,
+                    learn: bool) -> tuple[int, float]:
+    """
+    Write the calibrated statistics (0 where not covered); return the best covered one.
+
+    ``products``: d_L^T V_L^-1 d_L of the covered windows (``rows`` >= 0) in order.
+    Returns (its index among the covered windows, its value) as ``np.argmax`` picks
+    it: the first largest, or the first NaN.
+    """
+    k = 0
+    for w in range(rows.shape[0]):
+        if rows[w] >= 0:
+            statistics[w] = products[k]
+            k += 1
+        else:
+            statistics[w] = 0.0
+    statistics[:] = calibrate(statistics, above, inflation, median, rate, learn)
+    best, value, k = -1, 0.0, 0
+    for w in range(rows.shape[0]):
+        if rows[w] < 0:
+            continue
+        v = statistics[w]
+        if best < 0 or (not math.isnan(value) and (v > value or math.isnan(v))):
+            best, value = k, v
+        k += 1
+    return best, value
+
+
+@njit(cache=True)
 def calibrate(raw: np.ndarray, above: np.ndarray, inflation: np.ndarray, median: float,
               rate: float, learn: bool) -> np.ndarray:
     """
@@ -104,3 +149,43 @@ def centre_of_mass_se3(locked: np.ndarray, rotation: np.ndarray, translation: np
     jacobian[:, 3:] = -rotation @ skew
     world = translation + rotation @ c
     return world, jacobian @ np.ascontiguousarray(pose_cov) @ jacobian.T, mass
+
+
+@njit(cache=True)
+def kirillov_form(structure: np.ndarray, covector: np.ndarray) -> np.ndarray:
+    """
+    Return W[a, b] = sum_c structure[a, c, b] covector[c] (BaseGroup.coadjoint_form).
+
+    Summed from +0.0 in the order of c, as numpy's einsum does: with the structure
+    constants of the base groups (0 and +-1, at most one non-zero term per entry)
+    every entry is exact, zero signs included (test_row_kernels.py).
+    """
+    n = covector.shape[0]
+    out = np.empty((n, n))
+    for a in range(n):
+        for b in range(n):
+            acc = 0.0
+            for c in range(n):
+                acc += structure[a, c, b] * covector[c]
+            out[a, b] = acc
+    return out
+
+
+@njit(cache=True)
+def measured_momentum_se3(ad_inverse: np.ndarray, locked: np.ndarray, twist: np.ndarray,
+                          connection_qd: np.ndarray, twist_cov: np.ndarray,
+                          joint_cov: np.ndarray, pose_cov: np.ndarray, structure: np.ndarray,
+                          com_locked: np.ndarray, rotation: np.ndarray,
+                          translation: np.ndarray, com_pose_cov: np.ndarray) -> tuple:
+    """
+    Return multiscale.twist_momentum's and :func:`centre_of_mass_se3`'s results in one call.
+
+    A measured twist of an SE(3) base gives both per row (multiscale.twist_momenta):
+    pi = I (xi + A qbar_dot), its Kirillov form and the two kernels in one dispatch,
+    the same operations.
+    """
+    pi = locked @ (twist + connection_qd)
+    mu, white, common = twist_momentum(ad_inverse, locked, pi, twist_cov, joint_cov,
+                                       pose_cov, kirillov_form(structure, pi))
+    world, cov, mass = centre_of_mass_se3(com_locked, rotation, translation, com_pose_cov)
+    return mu, white, common, world, cov, mass

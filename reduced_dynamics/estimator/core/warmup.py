@@ -99,6 +99,12 @@ def warm_up() -> None:
     pose = pin.SE3.Identity()  # its rotation comes in Fortran order
     for pose_cov in (np.eye(6), np.eye(18)[:6, :6]):
         impulse.centre_of_mass_se3(np.eye(6), pose.rotation, pose.translation, pose_cov)
+    # The block test's statistics are calibrated from Python (multiscale._calibrate).
+    impulse.calibrate(np.zeros(2), np.full(2, 0.5), np.ones(2), 1.0, 0.0, False)
+    eye, p = np.eye(6), np.eye(18)
+    impulse.measured_momentum_se3(pose.actionInverse, eye, np.ones(6), np.ones(6), eye, eye,
+                                  p[:6, :6], SUBGROUPS['SE(3)'].structure_constants, eye,
+                                  pose.rotation, pose.translation, eye)
     # The filter's inputs from a chunk's mass matrices (core/inputs.py).
     from reduced_dynamics.estimator.core import inputs
     inputs.connection_terms(np.tile(np.eye(8), (2, 1, 1)), 6, np.zeros((2, 2)), 1e-4)

@@ -1,0 +1,339 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+
+"""
+The per-row Python around the compiled kernels, trimmed: the same numbers, fewer calls.
+
+Each compiled routine that fuses kernels equals the calls it replaces bit for bit, and
+the counts of per-row calls show what left the row (issue 19, docs/performance.md).
+"""
+
+from unittest import mock
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from reduced_dynamics.estimator import multiscale
+from reduced_dynamics.estimator.core import impulse
+
+
+@pytest.fixture(scope='module')
+def bench_run():
+    """Return (robot, the bench's messages of 400 samples) (1 kHz, joints and Odometry)."""
+    from reduced_dynamics.bench import update_samples
+    from reduced_dynamics.robot.model import load_robot
+    from reduced_dynamics.estimator.core.warmup import warm_up
+    # Compiled (or loaded) before a test patches the kernels a fused one calls.
+    warm_up()
+    robot = load_robot()
+    joints, bases = update_samples(robot, 400)
+    return robot, [m for pair in zip(joints, bases) for m in pair]
+
+
+def _estimator(robot):
+    from reduced_dynamics.estimator.config import EstimatorConfig
+    from reduced_dynamics.estimator.pipeline import Estimator
+    return Estimator(robot, EstimatorConfig(prediction_rate=0.0))
+
+
+def test_measured_momentum_se3_equals_the_two_kernels_it_fuses() -> None:
+    """Poses from Pinocchio, the filter covariance's block as a strided view (as the filter)."""
+    from reduced_dynamics.geometry.lie_group import SUBGROUPS
+    rng = np.random.default_rng(11)
+    group = SUBGROUPS['SE(3)']
+    for _ in range(300):
+        g, pose = pin.SE3.Random(), pin.SE3.Random()
+        root = rng.standard_normal((6, 6))
+        locked = root @ root.T + 6.0 * np.eye(6)
+        interpolated = locked + 0.01 * rng.standard_normal((6, 6))
+        p = rng.standard_normal((18, 18))
+        p = p @ p.T
+        twist, connection = rng.standard_normal(6), rng.standard_normal(6)
+        twist_cov = np.diag(rng.uniform(0.1, 1.0, 6))
+        joint_cov, pose_noise = np.diag(rng.uniform(0.1, 1.0, 6)), np.diag(rng.uniform(0.1, 1, 6))
+        expected = multiscale.twist_momentum(g.actionInverse, locked, connection, twist,
+                                             twist_cov, joint_cov, p[:6, :6],
+                                             group.coadjoint_form) \
+            + multiscale.centre_of_mass('SE(3)', pose, interpolated, pose_noise)[:3]
+        fused = impulse.measured_momentum_se3(
+            g.actionInverse, locked, twist, connection, twist_cov, joint_cov, p[:6, :6],
+            group.structure_constants, interpolated, pose.rotation, pose.translation,
+            pose_noise)
+        assert len(fused) == len(expected)
+        for mine, want in zip(fused, expected):
+            np.testing.assert_array_equal(mine, want)
+
+
+def test_the_compiled_kirillov_form_equals_the_einsum_bit_for_bit() -> None:
+    """Every base group, covectors of every scale and sign, zeros: the same bits."""
+    from reduced_dynamics.geometry.lie_group import SUBGROUPS
+    rng = np.random.default_rng(2)
+    for group in SUBGROUPS.values():
+        n = group.dim
+        for k in range(400):
+            covector = rng.standard_normal(n) * 10.0 ** rng.integers(-6, 6)
+            if k % 3 == 0:
+                covector = -np.abs(covector)
+            if k % 5 == 0:
+                covector[rng.integers(n)] = 0.0 if k % 2 else -0.0
+            expected = group.coadjoint_form(covector)
+            mine = impulse.kirillov_form(group.structure_constants, covector)
+            np.testing.assert_array_equal(mine.view(np.uint64), expected.view(np.uint64))
+
+
+def test_a_measured_twist_is_one_compiled_call_per_row(bench_run) -> None:
+    """An SE(3) row with a twist: its momentum and centre of mass come from one call."""
+    robot, messages = bench_run
+    calls = {'fused': 0, 'twist_momentum': 0, 'centre_of_mass_se3': 0}
+
+    def counted(name, function):
+        def wrapper(*args):
+            calls[name] += 1
+            return function(*args)
+        return wrapper
+
+    estimator = _estimator(robot)
+    with mock.patch.object(impulse, 'measured_momentum_se3',
+                           counted('fused', impulse.measured_momentum_se3)), \
+            mock.patch.object(impulse, 'twist_momentum',
+                              counted('twist_momentum', impulse.twist_momentum)), \
+            mock.patch.object(impulse, 'centre_of_mass_se3',
+                              counted('centre_of_mass_se3', impulse.centre_of_mass_se3)):
+        estimator.add_samples(messages)
+    assert estimator.processed == 400
+    # Every row measures a twist (the first one's starts the filter and is one too).
+    assert calls == {'fused': 400, 'twist_momentum': 0, 'centre_of_mass_se3': 0}
+
+
+def test_the_event_windows_lookups_are_done_once_per_window_length() -> None:
+    """still_moving and window_statistic: the direct formulas' answers, bank scans once."""
+    from reduced_dynamics.chi_square import chi2
+    rng = np.random.default_rng(3)
+    test = multiscale.MultiScaleTest(6, 1.0)
+    test.blocks.active = True
+    lengths = [0.3, 0.05, 1.7, 0.3, 3.0, 1.7]
+    with mock.patch.object(multiscale.np, 'argmin', wraps=np.argmin) as argmin:
+        for _ in range(50):
+            test.statistics[:] = rng.chisquare(6, len(test.windows))
+            test.blocks.statistics[:] = rng.chisquare(6, len(test.windows)) * 2.0
+            for window in lengths:
+                short = test.windows <= max(window, test.windows[0]) * (1 + 1e-9)
+                threshold = float(chi2.isf(0.01 / int(short.sum()), 6))
+                assert test.still_moving(window) == bool(
+                    np.any(test.blocks.statistics[short] > threshold))
+                nearest = int(np.argmin(np.abs(test.windows - window)))
+                assert test.window_statistic(window) == float(test.statistics[nearest])
+        # 50 x 6 direct lookups above, and one per distinct length in the test itself.
+        assert argmin.call_count == 50 * len(lengths) + len(set(lengths))
+
+
+def test_a_measured_momentum_enters_the_block_test_in_one_compiled_call(bench_run) -> None:
+    """Per sample blocks.add_sample; the separate kernels only where add_sample cannot run."""
+    from reduced_dynamics.estimator.core import blocks
+    robot, messages = bench_run
+    calls = {'add_sample': 0, 'accumulate': 0, 'learn_excess': 0}
+
+    def counted(name):
+        function = getattr(blocks, name)
+
+        def wrapper(*args):
+            calls[name] += 1
+            return function(*args)
+        return wrapper
+
+    estimator = _estimator(robot)
+    with mock.patch.object(blocks, 'add_sample', counted('add_sample')), \
+            mock.patch.object(blocks, 'accumulate', counted('accumulate')), \
+            mock.patch.object(blocks, 'learn_excess', counted('learn_excess')):
+        estimator.add_samples(messages)
+    # 400 measured momenta: the first (no difference yet), those where the excess
+    # noise's eigen-decomposition is due (differences 1, 17, ..., 385 and 200: 26) and the
+    # one that finds the ring full (row 256: compacted) take the separate calls.
+    assert calls == {'add_sample': 400 - 1 - 27, 'accumulate': 1 + 27, 'learn_excess': 27}
+
+
+def test_calibrated_best_equals_the_numpy_steps_it_replaces() -> None:
+    """Covered windows, ties, NaN, learning on and off: statistics, above and the argmax."""
+    rng = np.random.default_rng(8)
+    for trial in range(2000):
+        count = int(rng.integers(1, 14))
+        rows = np.where(rng.random(count) < 0.7, rng.integers(0, 50, count), -1)
+        covered = rows >= 0
+        products = rng.chisquare(6, int(covered.sum()))
+        if trial % 5 == 0 and len(products):
+            products[rng.integers(len(products))] = products.max()  # a tie
+        if trial % 7 == 0 and len(products):
+            products[rng.integers(len(products))] = np.nan
+        inflation = rng.uniform(1.0, 3.0, count)
+        above, learn = rng.uniform(0.3, 0.9, count), bool(trial % 2)
+        rate, median = 0.01, 5.35
+        # The numpy steps of MultiScaleTest._filtered before (main 7bf0c5e).
+        statistics = np.full(count, -1.0)
+        statistics[:] = 0.0
+        statistics[covered] = products
+        expected_above = above.copy()
+        statistics[:] = impulse.calibrate(statistics, expected_above, inflation, median, rate,
+                                          learn)
+        mine = np.full(count, 7.0)
+        mine_above = above.copy()
+        best, value = impulse.calibrated_best(rows, products, mine, mine_above, inflation,
+                                              median, rate, learn)
+        np.testing.assert_array_equal(mine, statistics)
+        np.testing.assert_array_equal(mine_above, expected_above)
+        if not covered.any():
+            assert best == -1
+            continue
+        values = statistics[covered]
+        assert best == int(np.argmax(values))
+        np.testing.assert_array_equal(value, values[best])
+
+
+def test_the_filtered_momentum_test_is_one_call_before_its_einsum(bench_run) -> None:
+    """Per update: store_window_changes and calibrated_best, not the kernels they call."""
+    rng = np.random.default_rng(4)
+    test = multiscale.MultiScaleTest(6, 1.0)
+    calls = {'store_window_changes': 0, 'calibrated_best': 0, 'window_changes': 0,
+             'calibrate': 0}
+
+    def counted(name):
+        function = getattr(impulse, name)
+
+        def wrapper(*args):
+            calls[name] += 1
+            return function(*args)
+        return wrapper
+
+    patches = [mock.patch.object(impulse, name, counted(name)) for name in calls]
+    for patch in patches:
+        patch.start()
+    try:
+        for k in range(300):
+            root = rng.standard_normal((6, 6)) * 1e-2
+            test.update(1_000_000 * k, rng.standard_normal(6) * 1e-2,
+                        root @ root.T + 1e-6 * np.eye(6))
+    finally:
+        for patch in patches:
+            patch.stop()
+    # The first update has no period yet (stored only); then each stores and computes in
+    # one call, and calibrates in one more once a window is covered (50 ms: k >= 50).
+    assert calls == {'store_window_changes': 299, 'calibrated_best': 250,
+                     'window_changes': 0, 'calibrate': 0}
+
+
+class _SeparateCalls:
+    """WrenchStepTest.update as it was (main 7bf0c5e): absorb, then evaluate, from Python."""
+
+    @staticmethod
+    def update(test, h, s, gain, nu):
+        import math
+        from reduced_dynamics.estimator.step_test import NIS_TIME
+        kernels = test._kernels
+        test._recent.append((test._since, h, s, gain, nu))
+        test._since = test._identity
+        m = len(nu)
+        outlier = test._outlier.get(m, math.inf)
+        if test._count:
+            nis_total = kernels.absorb(
+                np.ascontiguousarray(h), np.ascontiguousarray(s), np.ascontiguousarray(gain),
+                np.ascontiguousarray(nu), test._psi, test._omega, test._beta, outlier)
+        else:
+            nis_total = float(nu @ np.linalg.solve(s, nu))
+        if not nis_total <= outlier:
+            return None
+        test._elapsed += test._dt
+        horizon = min(test._elapsed, NIS_TIME)
+        weight = 1.0 if horizon <= 0.0 else min(1.0, test._dt / horizon)
+        test.nis_scale += weight * (nis_total / m - test.nis_scale)
+        if not test._count:
+            return None
+        scale = max(1.0, test.nis_scale)
+        best, statistic, top, evaluated = kernels.evaluate(
+            test._c, test._b0, test._j0, test._bound_inv, test._bounded, test._count,
+            test._omega, test._beta, scale, test.threshold, test._score)
+        test.evaluated += evaluated
+        test.last_statistic = top if best < 0 or not statistic > test.threshold \
+            else statistic
+        if best < 0 or not statistic > test.threshold:
+            return None
+        if test._pose_statistic() / scale >= statistic:
+            test.pose_steps += 1
+            return None
+        d = test._psi @ test._c[best]
+        j = test._j0[best] + test._c[best].T @ test._omega @ test._c[best]
+        step = np.linalg.solve(j, test._score[best])
+        from reduced_dynamics.estimator.step_test import StepDetection
+        return StepDetection(statistic, step, d @ step, d @ np.linalg.solve(j, d.T))
+
+
+@pytest.mark.parametrize('group_name,twist,rate,force', [
+    ('SE(2)', False, 120.0, 5.0), ('SE(3)', True, 100.0, 2.0)])
+def test_the_step_tests_one_call_update_equals_its_two_calls(bench_run, group_name, twist,
+                                                             rate, force) -> None:
+    """Recorded filter runs with steps on and off: detections and state bit for bit."""
+    from test_step_test import _record
+    from reduced_dynamics.estimator.step_test import WrenchStepTest
+    flt, calls = _record(group_name, twist, rate, force, 4.0, seed=3)
+    assert flt.steps_taken >= 2
+    fused, separate = (WrenchStepTest(flt.n, 1e-6, flt.dim) for _ in range(2))
+    detections = 0
+    for call in calls:
+        if call[0] == 'reset':
+            fused.reset(call[1])
+            separate.reset(call[1])
+        elif call[0] == 'propagate':
+            fused.propagate(call[1], call[2])
+            separate.propagate(call[1], call[2])
+        else:
+            mine = fused.update(*call[1:])
+            expected = _SeparateCalls.update(separate, *call[1:])
+            assert (mine is None) == (expected is None)
+            if mine is not None:
+                detections += 1
+                for a, b in zip(mine, expected):
+                    np.testing.assert_array_equal(a, b)
+        for name in ('nis_scale', '_elapsed', 'evaluated', 'last_statistic', 'pose_steps'):
+            assert getattr(fused, name) == getattr(separate, name), name
+        for name in ('_psi', '_omega', '_beta', '_c', '_b0', '_j0', '_score'):
+            np.testing.assert_array_equal(getattr(fused, name), getattr(separate, name))
+    assert detections >= 2
+
+
+def test_a_step_test_update_is_one_compiled_call(bench_run) -> None:
+    """With onsets open: absorb_evaluate per update, not absorb and evaluate from Python."""
+    from reduced_dynamics.bench import update_samples
+    from reduced_dynamics.estimator import step_kernels
+    robot = bench_run[0]
+    joints, bases = update_samples(robot, 1200)
+    messages = [m for pair in zip(joints, bases) for m in pair]
+    calls = {'absorb_evaluate': 0, 'absorb': 0, 'evaluate': 0}
+
+    def counted(name):
+        function = getattr(step_kernels, name)
+
+        def wrapper(*args):
+            calls[name] += 1
+            return function(*args)
+        return wrapper
+
+    estimator = _estimator(robot)
+    estimator.add_samples(messages[:2 * 1100])  # settled (1 s from the start), onsets open
+    assert estimator.filter.step_test.onsets
+    with mock.patch.object(step_kernels, 'absorb_evaluate', counted('absorb_evaluate')), \
+            mock.patch.object(step_kernels, 'absorb', counted('absorb')), \
+            mock.patch.object(step_kernels, 'evaluate', counted('evaluate')):
+        estimator.add_samples(messages[2 * 1100:])
+    # One update per row (the joint and base stamps are equal), each one call.
+    assert calls == {'absorb_evaluate': 100, 'absorb': 0, 'evaluate': 0}
