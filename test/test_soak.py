@@ -25,7 +25,8 @@ import pytest
 from reduced_dynamics.bench import register_command, Settings
 from reduced_dynamics.soak import (classify_smaps, growth_figures, kind_slopes, MIB,
                                    node_soak_figures, retained_per_sample,
-                                   proc_sample, rss_by_kind, RSS_KINDS, rss_slope, run_node_soak,
+                                   proc_sample, rss_by_kind, RSS_KINDS, rss_slope, rss_trend,
+                                  run_node_soak,
                                    soak_warmup, tenth_figures)
 
 NS = 1_000_000_000
@@ -40,6 +41,44 @@ def test_rss_slope_fits_after_the_warm_up_only():
     assert rss_slope(t, rss, 0.0) > 10.0
     with pytest.raises(ValueError, match='fewer than two'):
         rss_slope(t, rss, 1e6)
+
+
+def _swinging_hour(growth_mib_h: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """One hour of 1 s RSS samples: a ceiling, 5 MiB blocks returned for 10-40 s at a time."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 3600.0, 1.0)
+    rss = 410.0 + growth_mib_h * t / 3600.0 + rng.normal(0.0, 0.05, t.size)
+    at = 900.0
+    while at < 3600.0:
+        length = rng.uniform(10.0, 40.0)
+        rss[(t >= at) & (t < at + length)] -= 5.0 * rng.integers(1, 3)
+        at += length + rng.uniform(20.0, 90.0)
+    return t, rss * MIB
+
+
+def test_rss_trend_reads_a_swinging_flat_hour_as_flat_and_growth_at_its_rate():
+    # Stop 22's hour: flat but swinging; its least-squares slope read 1.03 MiB/h.
+    # Over many such hours the robust slopes stay near 0 where least squares
+    # wanders by its standard error; a true 3 MiB/h shows as 3 in all of them.
+    flat = [rss_trend(*_swinging_hour(0.0, seed), 900.0) for seed in range(20)]
+    least = np.array([trend['least_squares'] for trend in flat])
+    robust = np.array([trend['theil_sen'] for trend in flat])
+    ceiling = np.array([trend['ceiling'] for trend in flat])
+    assert np.abs(least).max() > 2 * np.abs(robust).max()
+    assert np.abs(robust).max() < 0.3 and np.abs(ceiling).max() < 0.3
+    assert all(trend['theil_sen_low'] <= 0.0 <= trend['theil_sen_high'] for trend in flat)
+    assert all(trend['blocks'] == 45 and trend['block_s'] == 60.0 for trend in flat)
+    # the standard error is the spread least squares shows over the hours
+    spread = least.std()
+    assert np.median([trend['least_squares_se'] for trend in flat]) == pytest.approx(
+        spread, rel=0.6)
+    for seed in range(5):
+        growing = rss_trend(*_swinging_hour(3.0, seed), 900.0)
+        assert growing['theil_sen'] == pytest.approx(3.0, abs=0.3)
+        assert growing['ceiling'] == pytest.approx(3.0, abs=0.3)
+        assert growing['theil_sen_low'] < 3.0 < growing['theil_sen_high']
+    with pytest.raises(ValueError, match='fewer than three'):
+        rss_trend(np.arange(0.0, 100.0), np.ones(100), 50.0, block_s=30.0)
 
 
 def test_the_warm_up_covers_the_stores_filling_in_a_long_soak():
@@ -87,6 +126,10 @@ def test_node_soak_figures_from_raw_measurements():
     assert figures['outputs_per_input'] == pytest.approx(1.0 - 10 / len(stamps))
     assert figures['log_lines_per_hour'] == pytest.approx(5 * 36.0)
     assert figures['rss_slope_mib_per_h'] == pytest.approx(1e3 * 3600 / MIB)
+    trend = figures['rss_trend_mib_per_h']
+    assert trend['theil_sen'] == trend['ceiling'] == pytest.approx(1e3 * 3600 / MIB)
+    assert trend['least_squares_se'] == pytest.approx(0.0, abs=1e-9)
+    assert trend['block_s'] == pytest.approx(8.1)  # samples to 101 s
     assert figures['first_tenth']['cpu_us_per_sample'] == pytest.approx(200.0)
     assert json.dumps(figures)
 
