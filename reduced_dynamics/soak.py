@@ -65,7 +65,8 @@ def rss_slope(times_s: Sequence[float], rss_bytes: Sequence[float], warmup_s: fl
 
 
 def rss_trend(times_s: Sequence[float], rss_bytes: Sequence[float], warmup_s: float,
-              block_s: Optional[float] = None, max_points: int = 4000) -> dict[str, float]:
+              block_s: Optional[float] = None, max_points: int = 4000,
+              draws: int = 200) -> dict[str, float]:
     """
     Robust RSS slopes [MiB/h] after ``warmup_s``, each with its uncertainty.
 
@@ -75,11 +76,12 @@ def rss_trend(times_s: Sequence[float], rss_bytes: Sequence[float], warmup_s: fl
     swings fall. So three figures, each robust in its own way:
 
     * ``theil_sen``: the median of the pairwise slopes of the samples (evenly
-      thinned to ``max_points``), which a swing moves little; its 95 % interval
-      (``theil_sen_low``/``_high``) from the same estimator on ``block_s`` block
-      means (default 60 s, a tenth of a shorter window), whose errors are nearly
-      independent, unlike 1 s samples';
-    * ``least_squares`` over the block means and its standard error;
+      thinned to ``max_points``), which a swing moves little. Its standard error
+      and 95 % interval (``theil_sen_se``, ``_low``, ``_high``) come from a
+      residual block bootstrap (``draws`` series, blocks of ``block_s``, seeded):
+      the swings last tens of seconds, so 1 s samples are not independent;
+    * ``least_squares`` over ``block_s`` block means (default 60 s, a tenth of a
+      shorter window) and its standard error;
     * ``ceiling``: the Theil-Sen slope of each block's maximum, the high-water
       mark a leak raises and a returned block does not lower.
     """
@@ -95,19 +97,37 @@ def rss_trend(times_s: Sequence[float], rss_bytes: Sequence[float], warmup_s: fl
     if len(blocks) < 3:
         raise ValueError(f'fewer than three {block_s:g} s blocks of RSS after the warm-up')
     thin = np.linspace(0, t.size - 1, min(t.size, max_points)).round().astype(int)
+    slope, intercept = theilslopes(rss[thin], t[thin])[:2]
+    boot = _block_bootstrap(t, rss, slope, intercept, block_s, draws)
     centre = np.array([t[k].mean() for k in blocks])
-    mean = np.array([rss[k].mean() for k in blocks])
-    ceiling = np.array([rss[k].max() for k in blocks])
-    interval = theilslopes(mean, centre, 0.95)
-    line = linregress(centre, mean)
+    line = linregress(centre, [rss[k].mean() for k in blocks])
     hour = 3600.0
-    return {'theil_sen': float(theilslopes(rss[thin], t[thin])[0] * hour),
-            'theil_sen_low': float(interval[2] * hour),
-            'theil_sen_high': float(interval[3] * hour),
+    return {'theil_sen': float(slope * hour),
+            'theil_sen_se': float(boot.std() * hour),
+            'theil_sen_low': float(np.quantile(boot, 0.025) * hour),
+            'theil_sen_high': float(np.quantile(boot, 0.975) * hour),
             'least_squares': float(line.slope * hour),
             'least_squares_se': float(line.stderr * hour),
-            'ceiling': float(theilslopes(ceiling, centre)[0] * hour),
+            'ceiling': float(theilslopes([rss[k].max() for k in blocks], centre)[0] * hour),
             'blocks': len(blocks), 'block_s': float(block_s)}
+
+
+def _block_bootstrap(t: np.ndarray, rss: np.ndarray, slope: float, intercept: float,
+                     block_s: float, draws: int, points: int = 900) -> np.ndarray:
+    """Theil-Sen slopes of ``draws`` series: the fitted line plus resampled residual blocks."""
+    from scipy.stats import theilslopes
+    keep = np.linspace(0, t.size - 1, min(t.size, points)).round().astype(int)
+    t, residual = t[keep], (rss - (intercept + slope * t))[keep]
+    spacing = (t[-1] - t[0]) / max(t.size - 1, 1)
+    size = int(np.clip(round(block_s / spacing) if spacing > 0 else 1, 1, t.size))
+    rng = np.random.default_rng(0)  # the same series give the same figures
+    count = -(-t.size // size)
+    slopes = np.empty(draws)
+    for draw in range(draws):
+        starts = rng.integers(0, t.size - size + 1, count)
+        noise = np.concatenate([residual[a:a + size] for a in starts])[:t.size]
+        slopes[draw] = theilslopes(intercept + slope * t + noise, t)[0]
+    return slopes
 
 
 def tenth_figures(records: np.ndarray, cpu: np.ndarray, start_ns: int,
@@ -502,9 +522,10 @@ def bench_soak(report: Any, robot: Any, settings: Any, workdir: str) -> None:
             target=f'<= {SLOPE_TARGET_MIB_H:g} MiB/h',
             check=lambda v: v <= SLOPE_TARGET_MIB_H,
             note=f'{window}; RSS {node["rss_at_warmup_mib"]:.1f} -> {node["rss_end_mib"]:.1f}'
-                 ' MiB; Theil-Sen over 1 s samples of /proc, 95 % interval '
-                 f'[{trend["theil_sen_low"]:.2f}, {trend["theil_sen_high"]:.2f}] from '
-                 f'{trend["blocks"]} {trend["block_s"]:g} s block means; least squares '
+                 ' MiB; Theil-Sen over 1 s samples of /proc, standard error '
+                 f'{trend["theil_sen_se"]:.2f}, 95 % interval [{trend["theil_sen_low"]:.2f}, '
+                 f'{trend["theil_sen_high"]:.2f}] (block bootstrap, {trend["block_s"]:g} s '
+                 f'blocks); least squares '
                  f'{trend["least_squares"]:.2f} +- {trend["least_squares_se"]:.2f} (block '
                  f'means; over 1 s samples {node["rss_slope_mib_per_h"]:.2f}); ceiling (block '
                  f'maxima) {trend["ceiling"]:.2f}; by kind (least squares): '

@@ -60,23 +60,26 @@ def test_rss_trend_reads_a_swinging_flat_hour_as_flat_and_growth_at_its_rate():
     # Stop 22's hour: flat but swinging; its least-squares slope read 1.03 MiB/h.
     # Over many such hours the robust slopes stay near 0 where least squares
     # wanders by its standard error; a true 3 MiB/h shows as 3 in all of them.
-    flat = [rss_trend(*_swinging_hour(0.0, seed), 900.0) for seed in range(20)]
+    flat = [rss_trend(*_swinging_hour(0.0, seed), 900.0, draws=40) for seed in range(8)]
     least = np.array([trend['least_squares'] for trend in flat])
     robust = np.array([trend['theil_sen'] for trend in flat])
     ceiling = np.array([trend['ceiling'] for trend in flat])
     assert np.abs(least).max() > 2 * np.abs(robust).max()
     assert np.abs(robust).max() < 0.3 and np.abs(ceiling).max() < 0.3
-    assert all(trend['theil_sen_low'] <= 0.0 <= trend['theil_sen_high'] for trend in flat)
     assert all(trend['blocks'] == 45 and trend['block_s'] == 60.0 for trend in flat)
-    # the standard error is the spread least squares shows over the hours
-    spread = least.std()
-    assert np.median([trend['least_squares_se'] for trend in flat]) == pytest.approx(
-        spread, rel=0.6)
-    for seed in range(5):
-        growing = rss_trend(*_swinging_hour(3.0, seed), 900.0)
+    # each standard error is the spread its slope shows over the hours
+    for key, slopes in (('least_squares', least), ('theil_sen', robust)):
+        assert np.median([trend[f'{key}_se'] for trend in flat]) == pytest.approx(
+            slopes.std(), rel=0.6)
+    assert sum(trend['theil_sen_low'] <= 0.0 <= trend['theil_sen_high'] for trend in flat) >= 7
+    for seed in range(3):
+        growing = rss_trend(*_swinging_hour(3.0, seed), 900.0, draws=40)
         assert growing['theil_sen'] == pytest.approx(3.0, abs=0.3)
         assert growing['ceiling'] == pytest.approx(3.0, abs=0.3)
         assert growing['theil_sen_low'] < 3.0 < growing['theil_sen_high']
+        assert growing['theil_sen_high'] - growing['theil_sen_low'] < 1.0
+    again = rss_trend(*_swinging_hour(3.0, 0), 900.0, draws=40)
+    assert again == rss_trend(*_swinging_hour(3.0, 0), 900.0, draws=40)  # seeded
     with pytest.raises(ValueError, match='fewer than three'):
         rss_trend(np.arange(0.0, 100.0), np.ones(100), 50.0, block_s=30.0)
 
