@@ -44,7 +44,7 @@ import os
 import subprocess
 import sys
 import time
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
@@ -131,27 +131,57 @@ def _block_bootstrap(t: np.ndarray, rss: np.ndarray, slope: float, intercept: fl
 
 
 def tenth_figures(records: np.ndarray, cpu: np.ndarray, start_ns: int,
-                  end_ns: int) -> dict[str, dict]:
+                  end_ns: int, reference: Optional[np.ndarray] = None) -> dict[str, dict]:
     """
     CPU per sample [us] and latency p50/p99 [ms] in the first and last tenth of a window.
 
     ``records`` (K, 2): the probe's (stamp, receive time) per output, stamps
     being send times; ``cpu`` (J, 2): (wall time ns, process CPU seconds)
-    samples. The window [start_ns, end_ns] is split in ten by stamp.
+    samples. The window [start_ns, end_ns] is split in ten by stamp. With
+    ``reference`` (L, 3: wall ns, CPU s of one crba, load average), each tenth
+    also has the median crba [us] and load in it and the CPU per sample in crba.
     """
     edges = np.linspace(start_ns, end_ns, 11)
-    out = {}
-    for name, (low, high) in (('first', edges[:2]), ('last', edges[-2:])):
-        chosen = (records[:, 0] >= low) & (records[:, 0] < high)
-        latency = (records[chosen, 1] - records[chosen, 0]) * 1e-6
-        at = np.interp([low, high], cpu[:, 0], cpu[:, 1])
-        spent = float(at[1] - at[0])
-        count = int(chosen.sum())
-        out[name] = {'outputs': count,
-                     'cpu_us_per_sample': spent / count * 1e6 if count else float('nan'),
-                     'p50_ms': float(np.percentile(latency, 50)) if count else float('nan'),
-                     'p99_ms': float(np.percentile(latency, 99)) if count else float('nan')}
+    return {name: window_figures(records, cpu, low, high, reference)
+            for name, (low, high) in (('first', edges[:2]), ('last', edges[-2:]))}
+
+
+def window_figures(records: np.ndarray, cpu: np.ndarray, low: float, high: float,
+                   reference: Optional[np.ndarray] = None) -> dict[str, float]:
+    """Return :func:`tenth_figures`'s figures of the outputs stamped in [low, high)."""
+    chosen = (records[:, 0] >= low) & (records[:, 0] < high)
+    latency = (records[chosen, 1] - records[chosen, 0]) * 1e-6
+    at = np.interp([low, high], cpu[:, 0], cpu[:, 1])
+    count = int(chosen.sum())
+    out = {'outputs': count,
+           'cpu_us_per_sample': float(at[1] - at[0]) / count * 1e6 if count else float('nan'),
+           'p50_ms': float(np.percentile(latency, 50)) if count else float('nan'),
+           'p99_ms': float(np.percentile(latency, 99)) if count else float('nan')}
+    inside = np.zeros(0, bool) if reference is None else \
+        (reference[:, 0] >= low) & (reference[:, 0] < high)
+    if inside.any():
+        crba_us = float(np.median(reference[inside, 1])) * 1e6
+        out.update(crba_us=crba_us, load=float(np.median(reference[inside, 2])),
+                   cpu_crba_per_sample=out['cpu_us_per_sample'] / crba_us)
     return out
+
+
+def minute_series(records: np.ndarray, cpu: np.ndarray, start_ns: int, end_ns: int,
+                  reference: Optional[np.ndarray] = None,
+                  block_s: float = 60.0) -> list[list[float]]:
+    """
+    Per ``block_s`` from ``start_ns``: [start s, CPU us/sample, p99 ms, crba us, load].
+
+    A drift over the run shows as a trend in these rows, a change of the machine's
+    load as a step in the load and crba columns at the same time.
+    """
+    rows = []
+    for low in np.arange(start_ns, end_ns, block_s * NS):
+        figures = window_figures(records, cpu, low, min(low + block_s * NS, end_ns), reference)
+        rows.append([round((low - start_ns) * 1e-9, 1)]
+                    + [round(figures.get(key, float('nan')), 3)
+                       for key in ('cpu_us_per_sample', 'p99_ms', 'crba_us', 'load')])
+    return rows
 
 
 def proc_sample(pid: int) -> tuple[int, float]:
@@ -218,14 +248,17 @@ def _stop(process: subprocess.Popen, timeout: float = 20.0) -> Optional[int]:
     return stop(process, timeout)
 
 
-def run_node_soak(workdir: str, seconds: float, env: dict, period: float = 1.0) -> dict:
+def run_node_soak(workdir: str, seconds: float, env: dict, period: float = 1.0,
+                  reference: Optional[Callable[[], float]] = None) -> dict:
     """
     Run the node, the probe and the publisher for ``seconds``; return the raw measurements.
 
     Returns the publisher's JSON, the probe's records (K, 2), the /proc samples
     (J, 3: wall ns, RSS bytes, CPU s) of the node, every SMAPS_EVERY-th with its
     RSS by kind ((wall ns, {kind: bytes}), :func:`rss_by_kind`), its log lines
-    and its exit code.
+    and its exit code. With ``reference`` (CPU seconds of a fixed piece of work,
+    :func:`crba_reference`), also (L, 3) ``reference`` samples every
+    SMAPS_EVERY-th sample: (wall ns, CPU seconds of the work, 1-minute load average).
     """
     python = sys.executable
     node_log = os.path.join(workdir, 'node.log')
@@ -241,6 +274,7 @@ def run_node_soak(workdir: str, seconds: float, env: dict, period: float = 1.0) 
                              env=env, stdout=log, stderr=log)
     samples: list[tuple[int, int, float]] = []
     kinds: list[tuple[int, dict]] = []
+    references: list[tuple[int, float, float]] = []
     code: Optional[int] = None
     try:
         deadline = time.monotonic() + 120.0
@@ -262,6 +296,8 @@ def run_node_soak(workdir: str, seconds: float, env: dict, period: float = 1.0) 
             samples.append((time.time_ns(), resident, cpu))
             if len(samples) % SMAPS_EVERY == 1:
                 kinds.append((samples[-1][0], rss_by_kind(node.pid)))
+                if reference is not None:
+                    references.append((time.time_ns(), reference(), os.getloadavg()[0]))
             next_at += period
             time.sleep(max(0.0, next_at - time.monotonic()))
         if publisher.returncode:
@@ -278,7 +314,29 @@ def run_node_soak(workdir: str, seconds: float, env: dict, period: float = 1.0) 
     with open(node_log, encoding='utf-8', errors='replace') as stream:
         lines = stream.read().splitlines()
     return {'sent': sent, 'records': np.load(probe_out), 'proc': np.array(samples, float),
-            'log_lines': lines, 'exit_code': code, 'rss_kinds': kinds}
+            'log_lines': lines, 'exit_code': code, 'rss_kinds': kinds,
+            'reference': np.array(references, float).reshape(-1, 3)}
+
+
+def crba_reference(robot: Any, calls: int = 500) -> Callable[[], float]:
+    """
+    Return a function giving the CPU seconds of one ``crba`` call, timed over ``calls``.
+
+    The bench's unit of cost, timed beside the node in the same scheduling group:
+    on a shared 2-core machine the CPU time a sample costs rises with the load on
+    the other core (caches, a shared physical core), so a tenth's CPU per sample
+    is compared in this unit as well as in microseconds.
+    """
+    import pinocchio as pin
+    model, data = robot.model, robot.model.createData()
+    q = robot.identity_configuration(np.linspace(-0.3, 0.3, robot.m)).copy()
+
+    def cost() -> float:
+        start = time.process_time()
+        for _ in range(calls):
+            pin.crba(model, data, q)
+        return (time.process_time() - start) / calls
+    return cost
 
 
 def soak_warmup(seconds: float) -> float:
@@ -303,7 +361,8 @@ def node_soak_figures(raw: dict, warmup_s: float) -> dict:
     start_ns, end_ns = int(sent['start_ns']), int(sent['end_ns'])
     t = (proc[:, 0] - start_ns) * 1e-9
     window_start = start_ns + int(warmup_s * NS)
-    tenths = tenth_figures(records, proc[:, [0, 2]], window_start, end_ns)
+    tenths = tenth_figures(records, proc[:, [0, 2]], window_start, end_ns,
+                           raw.get('reference'))
     hours = (end_ns - start_ns) * 1e-9 / 3600.0
     during = (proc[:, 0] >= start_ns) & (proc[:, 0] <= end_ns + NS)
     rss = proc[during, 1] / MIB
@@ -320,6 +379,8 @@ def node_soak_figures(raw: dict, warmup_s: float) -> dict:
             'log_lines_per_hour': len(raw['log_lines']) / hours if hours else float('nan'),
             'publisher_late_max_s': sent['late_max_s'], 'exit_code': raw['exit_code'],
             'first_tenth': tenths['first'], 'last_tenth': tenths['last'],
+            'by_minute': minute_series(records, proc[:, [0, 2]], start_ns, end_ns,
+                                       raw.get('reference')),
             'rss_slope_by_kind_mib_per_h': kind_slopes(raw.get('rss_kinds', []), start_ns,
                                                        warmup_s),
             # the RSS curve itself, every 1 s sample, to tell a step from a slope
@@ -513,7 +574,8 @@ def bench_soak(report: Any, robot: Any, settings: Any, workdir: str) -> None:
                    ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
         seconds = settings.soak_seconds
         warmup = soak_warmup(seconds)
-        node = node_soak_figures(run_node_soak(workdir, seconds, env), warmup)
+        node = node_soak_figures(run_node_soak(workdir, seconds, env,
+                                               reference=crba_reference(robot)), warmup)
         details['node'] = node
         window = f'{node["seconds"]:.0f} s at 1 kHz + 200 Hz, defaults; after {warmup:g} s'
         trend = node['rss_trend_mib_per_h']
@@ -524,7 +586,7 @@ def bench_soak(report: Any, robot: Any, settings: Any, workdir: str) -> None:
             note=f'{window}; RSS {node["rss_at_warmup_mib"]:.1f} -> {node["rss_end_mib"]:.1f}'
                  ' MiB; Theil-Sen over 1 s samples of /proc, standard error '
                  f'{trend["theil_sen_se"]:.2f}, 95 % interval [{trend["theil_sen_low"]:.2f}, '
-                 f'{trend["theil_sen_high"]:.2f}] (block bootstrap, {trend["block_s"]:g} s '
+                 f'{trend["theil_sen_high"]:.2f}] (block bootstrap, {trend["block_s"]:.3g} s '
                  f'blocks); least squares '
                  f'{trend["least_squares"]:.2f} +- {trend["least_squares_se"]:.2f} (block '
                  f'means; over 1 s samples {node["rss_slope_mib_per_h"]:.2f}); ceiling (block '
@@ -532,12 +594,20 @@ def bench_soak(report: Any, robot: Any, settings: Any, workdir: str) -> None:
                  + ', '.join(f'{kind} {slope:.1f}' for kind, slope in
                              node['rss_slope_by_kind_mib_per_h'].items())))
         first, last = node['first_tenth'], node['last_tenth']
+        loads = (f'; load average {first.get("load", float("nan")):.1f} and '
+                 f'{last.get("load", float("nan")):.1f}, crba '
+                 f'{first.get("crba_us", float("nan")):.2f} and '
+                 f'{last.get("crba_us", float("nan")):.2f} us in the first and last')
         for key, name, unit in (('cpu_us_per_sample', 'node CPU per sample', 'us'),
+                                ('cpu_crba_per_sample', 'node CPU per sample', 'crba'),
                                 ('p99_ms', 'node latency p99', 'ms')):
+            if key not in last or key not in first:
+                continue
             report.add(make_figure(
                 'soak', f'{name}, last tenth', unit, [last[key]], 'same, first tenth',
                 [first[key]], [last[key] / first[key]], f'ratio <= {TENTH_TARGET:g}',
-                lambda r: r <= TENTH_TARGET, f'tenths of the window after {warmup:g} s'))
+                lambda r: r <= TENTH_TARGET, f'tenths of the window after {warmup:g} s'
+                + loads))
         report.add(make_figure(
             'soak', 'node outputs per input', '1', [node['outputs_per_input']],
             target='1', check=lambda v: v >= 0.999,

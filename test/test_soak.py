@@ -23,11 +23,11 @@ import numpy as np
 import pytest
 
 from reduced_dynamics.bench import register_command, Settings
-from reduced_dynamics.soak import (classify_smaps, growth_figures, kind_slopes, MIB,
-                                   node_soak_figures, retained_per_sample,
-                                   proc_sample, rss_by_kind, RSS_KINDS, rss_slope, rss_trend,
-                                  run_node_soak,
-                                   soak_warmup, tenth_figures)
+from reduced_dynamics.soak import (classify_smaps, crba_reference, growth_figures,
+                                   kind_slopes, MIB, minute_series, node_soak_figures,
+                                   proc_sample, retained_per_sample, rss_by_kind, RSS_KINDS,
+                                   rss_slope, rss_trend, run_node_soak, soak_warmup,
+                                   tenth_figures)
 
 NS = 1_000_000_000
 
@@ -116,6 +116,37 @@ def test_tenths_compare_cpu_and_latency_at_both_ends():
     assert figures['last']['p99_ms'] == pytest.approx(3.0)
 
 
+def test_cpu_per_sample_is_also_compared_in_crba_timed_beside_it():
+    # The machine's load doubles in the last tenth: CPU per sample 100 -> 150 us and
+    # crba 2 -> 3 us at the same time; in crba the node costs the same (50 crba).
+    start, end = 10 * NS, 110 * NS
+    stamps = np.arange(start, end, 1_000_000, dtype=np.int64)
+    records = np.column_stack([stamps, stamps + 1_000_000])
+    wall = np.arange(0, 121 * NS, NS, dtype=float)
+    late = wall >= start + 90 * NS
+    rate = np.where(late, 0.15, 0.1)
+    cpu = np.column_stack([wall, np.concatenate([[0.0], np.cumsum(rate[:-1])])])
+    reference = np.column_stack([wall, np.where(late, 3e-6, 2e-6), np.where(late, 4.0, 2.0)])
+    figures = tenth_figures(records, cpu, start, end, reference)
+    first, last = figures['first'], figures['last']
+    assert (first['crba_us'], last['crba_us']) == pytest.approx((2.0, 3.0))
+    assert (first['load'], last['load']) == (2.0, 4.0)
+    assert first['cpu_crba_per_sample'] == pytest.approx(50.0)
+    assert last['cpu_crba_per_sample'] == pytest.approx(50.0)
+    assert 'crba_us' not in tenth_figures(records, cpu, start, end)['first']
+    rows = minute_series(records, cpu, start, end, reference, block_s=10.0)
+    assert len(rows) == 10 and [row[0] for row in rows] == pytest.approx(np.arange(0, 100, 10))
+    assert rows[0][1:] == pytest.approx([100.0, 1.0, 2.0, 2.0])
+    assert rows[-1][1:] == pytest.approx([150.0, 1.0, 3.0, 4.0])
+
+
+def test_crba_reference_times_one_call_in_cpu_seconds():
+    from reduced_dynamics.robot.model import load_robot
+    cost = crba_reference(load_robot(), calls=50)
+    # no wall-clock figure asserted: a positive CPU time under a millisecond a call
+    assert all(0.0 < cost() < 1e-3 for _ in range(3))
+
+
 def test_node_soak_figures_from_raw_measurements():
     start, end = 0, 100 * NS
     stamps = np.arange(start, end, 1_000_000, dtype=np.int64)
@@ -133,6 +164,7 @@ def test_node_soak_figures_from_raw_measurements():
     assert trend['theil_sen'] == trend['ceiling'] == pytest.approx(1e3 * 3600 / MIB)
     assert trend['least_squares_se'] == pytest.approx(0.0, abs=1e-9)
     assert trend['block_s'] == pytest.approx(8.1)  # samples to 101 s
+    assert len(figures['by_minute']) == 2 and figures['by_minute'][0][1] == pytest.approx(200.0)
     assert figures['first_tenth']['cpu_us_per_sample'] == pytest.approx(200.0)
     assert json.dumps(figures)
 
@@ -161,8 +193,12 @@ def test_node_soak_over_real_dds(tmp_path):
     from reduced_dynamics.soak import _package_env
     env = dict(_package_env(), ROS_DOMAIN_ID=str(node_domain_id()),
                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
-    raw = run_node_soak(str(tmp_path), 2.0, env)
+    calls = []
+    raw = run_node_soak(str(tmp_path), 2.0, env, reference=lambda: calls.append(1) or 2e-6)
     sent, records = raw['sent'], raw['records']
+    # the reference is timed with the first /proc sample and then every SMAPS_EVERY-th
+    assert raw['reference'].shape == (len(calls), 3) and len(calls) >= 1
+    assert np.all(raw['reference'][:, 1] == 2e-6) and np.all(raw['reference'][:, 2] >= 0)
     assert sent['joint_states'] == 2000 and sent['odometry'] == 401, sent
     assert sent['start_ns'] < sent['end_ns']
     assert records.dtype == np.int64 and records.shape[1] == 2 and len(records) > 0
