@@ -974,19 +974,20 @@ def decode_once(bag: str, topics: Sequence[str], joint_topic: str,
 
 
 _MEMORY_SCRIPT = """
-import resource, sys, time
+import sys, time
+from reduced_dynamics.peak_memory import peak_resident_kib
 from reduced_dynamics.robot.model import load_robot
 from reduced_dynamics.params import defaults
 from reduced_dynamics.replay import replay, ReplayOptions
 robot = load_robot()
 params = defaults()
 params['prediction_rate'] = 0.0
-before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+before = peak_resident_kib()
 start = time.perf_counter()
 summary = replay(sys.argv[1], sys.argv[2], robot,
                  ReplayOptions(params=params, overwrite=True, smooth=True))
 elapsed = time.perf_counter() - start
-after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+after = peak_resident_kib()
 print(before, after, summary['processed'], elapsed)
 """
 

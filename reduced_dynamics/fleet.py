@@ -40,12 +40,13 @@ import json
 import multiprocessing
 import os
 from pathlib import Path
-import resource
 import sys
 import time
 from typing import Any, Callable, Iterator, NamedTuple, Optional, Sequence
 
 import yaml
+
+from reduced_dynamics.peak_memory import peak_resident_kib
 
 BACKENDS = ('local', 'ray', 'dask')
 TABLE_CSV = 'fleet.csv'
@@ -336,7 +337,7 @@ def run_bag(job: BagJob) -> dict:
         fleet['wall_s'] = time.perf_counter() - started
         # The worker's high-water mark so far (Linux: KiB): the fleet's largest is
         # the memory one worker needs.
-        fleet['worker_peak_rss_mib'] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        fleet['worker_peak_rss_mib'] = peak_resident_kib() / 1024
         summary['fleet'] = fleet
         _write_json(summary_path, summary)
         return fleet_row(job, summary)

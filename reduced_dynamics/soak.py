@@ -512,17 +512,18 @@ def retained_per_sample(warmup: int, samples: int, every: int = RETAINED_EVERY) 
 
 
 _REPLAY_SCRIPT = """
-import resource, sys, time
+import sys, time
+from reduced_dynamics.peak_memory import peak_resident_kib
 from reduced_dynamics.robot.model import load_robot
 from reduced_dynamics.params import defaults
 from reduced_dynamics.replay import replay, ReplayOptions
 robot = load_robot()
-before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+before = peak_resident_kib()
 start = time.perf_counter()
 summary = replay(sys.argv[1], sys.argv[2], robot,
                  ReplayOptions(params=defaults(), overwrite=True, smooth=False))
 elapsed = time.perf_counter() - start
-after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+after = peak_resident_kib()
 print(before, after, summary['processed'], summary['predictions'], elapsed)
 """
 
