@@ -78,6 +78,20 @@ class MomentumEvent:
     cov_after: Optional[np.ndarray] = None
     #: when it was detected (the start is where the multi-scale test dates it)
     detected_ns: Optional[int] = None
+    #: whether mu_after is fixed (SETTLE s after the end; a re-opened event clears it)
+    settled: bool = False
+
+    def horizon(self) -> float:
+        """
+        Return the seconds after the end during which a detection may continue the event.
+
+        SETTLE, and for an event a window found, 3 such windows more: no window reaches
+        back before the end, so that window, which sees a push going on at the force it
+        found undiminished (a constant force moves its blocks' difference by 2 L F, its
+        largest value), is blind until it is covered again, 3 L after the end
+        (docs/multiscale_events.md, "One push, one event").
+        """
+        return SETTLE if self.window is None else SETTLE + 3.0 * self.window
 
     @property
     def impulse_cov(self) -> Optional[np.ndarray]:
@@ -104,8 +118,8 @@ class EventNotice(NamedTuple):
 
     Issued twice per event: at its detection (``final`` False, ``end_ns`` None, the
     impulse so far: mu now - mu before) and once its impulse is settled (``final``
-    True: SETTLE s after its end, or when the next event starts, or at the end of
-    the data).
+    True: its horizon after its end, :meth:`MomentumEvent.horizon`, or when the next
+    event starts, or at the end of the data).
     """
 
     start_ns: int
@@ -187,16 +201,26 @@ class EventDetector:
             self._settling = None
 
     def _finalise(self, stamp_ns: int, starting: bool) -> None:
-        """Issue the final notice of the ended event once its impulse has settled."""
+        """
+        Settle the ended event's impulse after SETTLE s; its final notice after its horizon.
+
+        Until :meth:`MomentumEvent.horizon` has passed, a detection dated at its end
+        continues it (a push that went on), so its final notice waits; ``starting``: the
+        next event starts, both now.
+        """
         last = self._settling
-        if last is not None and last.end_ns is not None and \
-                (starting or (stamp_ns - last.end_ns) * 1e-9 > SETTLE):
+        if last is None or last.end_ns is None:
+            return
+        since = (stamp_ns - last.end_ns) * 1e-9
+        if not last.settled and (starting or since > SETTLE):
             # With measured twists, mu after is their mean over the settling time:
             # every sample's information, not the filter's last estimate.
             after = self.multiscale.measured_mean(
                 last.end_ns, min(stamp_ns, last.end_ns + int(SETTLE * 1e9)))
             if after is not None:
                 last.mu_after, last.cov_after = after
+            last.settled = True
+        if starting or since > last.horizon():
             self.notices.append(notice(last, True))
             self._settling = None
 
@@ -256,15 +280,20 @@ class EventDetector:
             # own overshoot) belongs to that event: re-open it, its mu_before stays.
             event = self.events[-1]
             event.end_ns = None
+            event.settled = False
             self._changed = False
         if event is None and pulse is not None and self._settling is not None and \
                 self._settling.end_ns is not None and \
                 pulse.start_ns - self._settling.end_ns <= SETTLE * 1e9:
             # The momentum moves on right after the last event's end (a long push
             # that the end criteria let go): that event goes on, its mu_before stays.
+            # Found up to its horizon after the end (the windows are blind until then).
             event = self._settling
             event.end_ns = None
+            event.settled = False
             self._changed = False
+            # Its hold starts afresh (the quiet time before its end is not this one's).
+            self._quiet_since = None
             pulse = None
         if event is None:
             if significance > self.start_threshold or step:
