@@ -165,10 +165,12 @@ def detection_rows(name: str, work: Path, seeds: int, pushes: int,
                 events = list(_replay(name, robot, bag)["events"])
                 if VERBOSE:
                     origin = truth['start_time_ns']
-                    print('events (start, detected, window):',
+                    print('events (start, detected, end, window):',
                           [(round((e['start_stamp_ns'] - origin) * 1e-9, 2),
-                            round((e['detected_stamp_ns'] - origin) * 1e-9, 2), e['window_s'])
-                           for e in events], 'pushes at', [p[0] for p in plan], flush=True)
+                            round((e['detected_stamp_ns'] - origin) * 1e-9, 2),
+                            None if e['end_s'] is None else round(e['end_s'], 2),
+                            e['window_s']) for e in events],
+                          'pushes at', [p[0] for p in plan], flush=True)
                 origin = truth['start_time_ns']
                 for (start, _, _), pulse in zip(plan, truth['pulses']):
                     mine = [e for e in events
