@@ -45,7 +45,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 from reduced_dynamics.chi_square import chi2
 from reduced_dynamics.estimator.event_log import EventLog
-from reduced_dynamics.estimator.multiscale import MultiScaleTest
+from reduced_dynamics.estimator.multiscale import ImpulseDetection, MultiScaleTest
 
 # The step test's names stay importable from here (filter.py and older callers).
 from reduced_dynamics.estimator.step_test import StepDetection, WrenchStepTest
@@ -224,6 +224,25 @@ class EventDetector:
             self.notices.append(notice(last, True))
             self._settling = None
 
+    def _continues(self, pulse: ImpulseDetection, stamp_ns: int) -> bool:
+        """
+        Return whether a pulse detected at ``stamp_ns`` continues the last ended event.
+
+        Its fit must date it within SETTLE of that end. Within SETTLE of the end, that
+        is all. Later (up to the event's horizon), the window that found it must have
+        done so within one window length of reaching back to the end (3 L after it for
+        the block test, L for the filtered momentum's): a push that goes on moves the
+        momentum across the end, so its window finds it as soon as it is covered; a new
+        push after the end is found later than that.
+        """
+        last = self._settling
+        if last is None or last.end_ns is None or \
+                pulse.start_ns - last.end_ns > SETTLE * 1e9:
+            return False
+        since = (stamp_ns - last.end_ns) * 1e-9
+        reach = (3.0 if pulse.measured else 1.0) * pulse.window
+        return since <= SETTLE or since <= reach + pulse.window
+
     def _open(self, event: MomentumEvent, mu: np.ndarray,
               mu_cov: Optional[np.ndarray]) -> None:
         """Start an event: the previous one is final, this one is announced."""
@@ -282,12 +301,9 @@ class EventDetector:
             event.end_ns = None
             event.settled = False
             self._changed = False
-        if event is None and pulse is not None and self._settling is not None and \
-                self._settling.end_ns is not None and \
-                pulse.start_ns - self._settling.end_ns <= SETTLE * 1e9:
+        if event is None and pulse is not None and self._continues(pulse, stamp_ns):
             # The momentum moves on right after the last event's end (a long push
             # that the end criteria let go): that event goes on, its mu_before stays.
-            # Found up to its horizon after the end (the windows are blind until then).
             event = self._settling
             event.end_ns = None
             event.settled = False
