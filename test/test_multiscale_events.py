@@ -392,7 +392,7 @@ def test_a_push_that_goes_on_after_its_event_ended_continues_it():
     assert event.impulse[0] == pytest.approx(12.0, rel=0.05)  # measured 12.03
     # Announced once, final once: after the horizon in which the push could go on.
     assert [n.final for _, n in notices] == [False, True]
-    assert notices[1][0] > event.end_ns + event.horizon() * NS
+    assert notices[1][0] > event.end_ns + event.horizon(True) * NS
 
 
 def test_warm_up_loads_the_block_kernels():

@@ -81,17 +81,18 @@ class MomentumEvent:
     #: whether mu_after is fixed (SETTLE s after the end; a re-opened event clears it)
     settled: bool = False
 
-    def horizon(self) -> float:
+    def horizon(self, blocks: bool) -> float:
         """
         Return the seconds after the end during which a detection may continue the event.
 
-        SETTLE, and for an event a window found, 3 such windows more: no window reaches
-        back before the end, so that window, which sees a push going on at the force it
-        found undiminished (a constant force moves its blocks' difference by 2 L F, its
-        largest value), is blind until it is covered again, 3 L after the end
-        (docs/multiscale_events.md, "One push, one event").
+        SETTLE; with the block test on measured momenta (``blocks``), for an event a
+        window found, 3 such windows more: no window reaches back before the end, so
+        that window, which sees a push going on at the force it found undiminished (a
+        constant force moves its blocks' difference by 2 L F, its largest value), is
+        blind until it is covered again, 3 L after the end (docs/multiscale_events.md,
+        "One push, one event").
         """
-        return SETTLE if self.window is None else SETTLE + 3.0 * self.window
+        return SETTLE + (3.0 * self.window if blocks and self.window is not None else 0.0)
 
     @property
     def impulse_cov(self) -> Optional[np.ndarray]:
@@ -118,7 +119,7 @@ class EventNotice(NamedTuple):
 
     Issued twice per event: at its detection (``final`` False, ``end_ns`` None, the
     impulse so far: mu now - mu before) and once its impulse is settled (``final``
-    True: its horizon after its end, :meth:`MomentumEvent.horizon`, or when the next
+    True: its horizon after its end (:meth:`MomentumEvent.horizon`), or when the next
     event starts, or at the end of the data).
     """
 
@@ -220,7 +221,7 @@ class EventDetector:
             if after is not None:
                 last.mu_after, last.cov_after = after
             last.settled = True
-        if starting or since > last.horizon():
+        if starting or since > last.horizon(self.multiscale.blocks.active):
             self.notices.append(notice(last, True))
             self._settling = None
 
@@ -229,19 +230,18 @@ class EventDetector:
         Return whether a pulse detected at ``stamp_ns`` continues the last ended event.
 
         Its fit must date it within SETTLE of that end. Within SETTLE of the end, that
-        is all. Later (up to the event's horizon), the window that found it must have
-        done so within one window length of reaching back to the end (3 L after it for
-        the block test, L for the filtered momentum's): a push that goes on moves the
-        momentum across the end, so its window finds it as soon as it is covered; a new
-        push after the end is found later than that.
+        is all. Later (up to the event's horizon), the block test must have found it
+        within one window length L of that window reaching back to the end (3 L after
+        it): a push that goes on moves the momentum across the end, so the window finds
+        it as soon as it is covered (measured: within 0.8 L); a new push after the end
+        is found later than that.
         """
         last = self._settling
         if last is None or last.end_ns is None or \
                 pulse.start_ns - last.end_ns > SETTLE * 1e9:
             return False
         since = (stamp_ns - last.end_ns) * 1e-9
-        reach = (3.0 if pulse.measured else 1.0) * pulse.window
-        return since <= SETTLE or since <= reach + pulse.window
+        return since <= SETTLE or (pulse.measured and since <= 4.0 * pulse.window)
 
     def _open(self, event: MomentumEvent, mu: np.ndarray,
               mu_cov: Optional[np.ndarray]) -> None:
