@@ -166,6 +166,9 @@ class EventDetector:
     #: notices not yet taken (:meth:`take_notices`) and the last event not yet final
     notices: list[EventNotice] = field(default_factory=list)
     _settling: Optional[MomentumEvent] = None
+    #: the window [s] whose end criteria the open stretch of the event follows: the
+    #: window that opened it or, once continued, the one that found the continuation
+    _stretch_window: Optional[float] = None
 
     def __post_init__(self) -> None:
         """Set the start and end thresholds from the chi-square quantiles."""
@@ -249,6 +252,7 @@ class EventDetector:
         self._finalise(event.start_ns, True)
         self.events.append(event)
         self._settling = event
+        self._stretch_window = event.window
         self.notices.append(notice(event, False, mu, mu_cov))
 
     def _measured_before(self, start_ns: int, mu: np.ndarray, cov: Optional[np.ndarray]
@@ -308,8 +312,14 @@ class EventDetector:
             event.end_ns = None
             event.settled = False
             self._changed = False
-            # Its hold starts afresh (the quiet time before its end is not this one's).
+            # Its hold starts afresh (the quiet time before its end is not this one's),
+            # and this stretch ends as an event the continuing detection opened would
+            # (its window's end criteria below), not by the window that found the event:
+            # the merge is of records, dated back to the end; which rows are paused (an
+            # event under way: no prediction, processing.py) stays as without it
+            # (docs/multiscale_events.md, "Which rows an event pauses").
             self._quiet_since = None
+            self._stretch_window = pulse.window
             pulse = None
         if event is None:
             if significance > self.start_threshold or step:
@@ -340,12 +350,13 @@ class EventDetector:
         event.peak_significance = max(event.peak_significance, significance)
         # A pulse found by its window goes on while the window of half its length
         # still moves mu beyond the median (a slow push barely moves w's chi-square).
-        pushing = event.window is not None and self.multiscale.window_statistic(
-            event.window / 2) >= self.rest_threshold
+        window = self._stretch_window
+        pushing = window is not None and self.multiscale.window_statistic(
+            window / 2) >= self.rest_threshold
         # With measured twists: while the measured momenta still move (a long push
         # goes on after the wrench estimate's chi-square dips; multiscale.py).
         pushing = pushing or self.multiscale.still_moving(
-            MOVING_WINDOW if event.window is None else event.window / 2)
+            MOVING_WINDOW if window is None else window / 2)
         if significance >= self.end_threshold or step or pushing:
             self._quiet_since = None
             return
