@@ -395,7 +395,6 @@ def test_a_push_that_goes_on_after_its_event_ended_continues_it():
     assert notices[1][0] > event.end_ns + event.horizon(True) * NS
 
 
-
 def test_an_events_horizon_without_a_continuation_pauses_nothing():
     """
     After an event's end, nothing pauses predictions while its horizon runs.
@@ -425,6 +424,7 @@ def test_an_events_horizon_without_a_continuation_pauses_nothing():
     assert final_at > event.end_ns + event.horizon(True) * NS
     # ... and no row of that wait was paused.
     assert len(horizon) > 100 and not any(horizon)
+
 
 def test_warm_up_loads_the_block_kernels():
     # The block test is compiled (estimator/core/blocks.py) and the node's warm-up
