@@ -181,7 +181,17 @@ class EventDetector:
 
     @property
     def in_event(self) -> bool:
-        """Return whether an event is under way."""
+        """
+        Return whether an event is under way: from a detection to the event's end.
+
+        Predictions pause while one is (processing.py: they assume mu constant). The
+        horizon after an end (:meth:`MomentumEvent.horizon`) is no part of it: it keeps
+        the record open for a continuation, found up to 3 windows late and dated back
+        to the end, when the rows in between have long been processed; only such a
+        detection re-opens the event, from its own row on, and that stretch ends as the
+        event it would have opened alone (docs/multiscale_events.md, "Which rows an
+        event pauses").
+        """
         return bool(self.events) and self.events[-1].end_ns is None
 
     def take_level_change(self) -> bool:
