@@ -375,7 +375,8 @@ def test_a_push_that_goes_on_after_its_event_ended_continues_it():
     the end, dated 0.1 s after it. The re-opening of a just-ended event lasted SETTLE
     (1 s): two events, the first with 48 % of the impulse (the bus's 3 s push at 30x
     the bound, docs/multiscale_events.md). Now it lasts the event's horizon, SETTLE +
-    3 windows. Seeds 1-20 here: 5 split before, none now.
+    3 windows. Seeds 1-20 here: 5 split before, none now (none either since a continued
+    stretch ends by its continuing window's criteria: the end 12.73 s, 13.44 s before).
     """
     from reduced_dynamics.estimator.events import EventDetector
     rng = np.random.default_rng(4)
@@ -388,8 +389,8 @@ def test_a_push_that_goes_on_after_its_event_ended_continues_it():
         notices += [(stamp, n) for n in detector.take_notices()]
     (event,) = detector.events
     assert abs(event.start_ns / NS - 10.0) <= 0.5
-    assert 12.5 <= event.end_ns / NS <= 13.0 + 3 * event.window  # measured 13.44 s
-    assert event.impulse[0] == pytest.approx(12.0, rel=0.05)  # measured 12.03
+    assert 12.5 <= event.end_ns / NS <= 13.0 + 3 * event.window  # measured 12.73 s
+    assert event.impulse[0] == pytest.approx(12.0, rel=0.05)  # measured 11.93
     # Announced once, final once: after the horizon in which the push could go on.
     assert [n.final for _, n in notices] == [False, True]
     assert notices[1][0] > event.end_ns + event.horizon(True) * NS
