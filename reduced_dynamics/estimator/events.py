@@ -80,6 +80,9 @@ class MomentumEvent:
     detected_ns: Optional[int] = None
     #: whether mu_after is fixed (SETTLE s after the end; a re-opened event clears it)
     settled: bool = False
+    #: once a detection continued it, the window [s] that found the continuation: the
+    #: open stretch ends by its criteria (None: by ``window``'s)
+    stretch_window: Optional[float] = None
 
     def horizon(self, blocks: bool) -> float:
         """
@@ -166,9 +169,6 @@ class EventDetector:
     #: notices not yet taken (:meth:`take_notices`) and the last event not yet final
     notices: list[EventNotice] = field(default_factory=list)
     _settling: Optional[MomentumEvent] = None
-    #: the window [s] whose end criteria the open stretch of the event follows: the
-    #: window that opened it or, once continued, the one that found the continuation
-    _stretch_window: Optional[float] = None
 
     def __post_init__(self) -> None:
         """Set the start and end thresholds from the chi-square quantiles."""
@@ -262,7 +262,6 @@ class EventDetector:
         self._finalise(event.start_ns, True)
         self.events.append(event)
         self._settling = event
-        self._stretch_window = event.window
         self.notices.append(notice(event, False, mu, mu_cov))
 
     def _measured_before(self, start_ns: int, mu: np.ndarray, cov: Optional[np.ndarray]
@@ -329,7 +328,7 @@ class EventDetector:
             # event under way: no prediction, processing.py) stays as without it
             # (docs/multiscale_events.md, "Which rows an event pauses").
             self._quiet_since = None
-            self._stretch_window = pulse.window
+            event.stretch_window = pulse.window
             pulse = None
         if event is None:
             if significance > self.start_threshold or step:
@@ -360,7 +359,7 @@ class EventDetector:
         event.peak_significance = max(event.peak_significance, significance)
         # A pulse found by its window goes on while the window of half its length
         # still moves mu beyond the median (a slow push barely moves w's chi-square).
-        window = self._stretch_window
+        window = event.window if event.stretch_window is None else event.stretch_window
         pushing = window is not None and self.multiscale.window_statistic(
             window / 2) >= self.rest_threshold
         # With measured twists: while the measured momenta still move (a long push
