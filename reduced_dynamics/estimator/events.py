@@ -45,7 +45,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 from reduced_dynamics.chi_square import chi2
 from reduced_dynamics.estimator.event_log import EventLog
-from reduced_dynamics.estimator.multiscale import MultiScaleTest
+from reduced_dynamics.estimator.multiscale import ImpulseDetection, MultiScaleTest
 
 # The step test's names stay importable from here (filter.py and older callers).
 from reduced_dynamics.estimator.step_test import StepDetection, WrenchStepTest
@@ -78,6 +78,24 @@ class MomentumEvent:
     cov_after: Optional[np.ndarray] = None
     #: when it was detected (the start is where the multi-scale test dates it)
     detected_ns: Optional[int] = None
+    #: whether mu_after is fixed (SETTLE s after the end; a re-opened event clears it)
+    settled: bool = False
+    #: once a detection continued it, the window [s] that found the continuation: the
+    #: open stretch ends by its criteria (None: by ``window``'s)
+    stretch_window: Optional[float] = None
+
+    def horizon(self, blocks: bool) -> float:
+        """
+        Return the seconds after the end during which a detection may continue the event.
+
+        SETTLE; with the block test on measured momenta (``blocks``), for an event a
+        window found, 3 such windows more: no window reaches back before the end, so
+        that window, which sees a push going on at the force it found undiminished (a
+        constant force moves its blocks' difference by 2 L F, its largest value), is
+        blind until it is covered again, 3 L after the end (docs/multiscale_events.md,
+        "One push, one event").
+        """
+        return SETTLE + (3.0 * self.window if blocks and self.window is not None else 0.0)
 
     @property
     def impulse_cov(self) -> Optional[np.ndarray]:
@@ -104,8 +122,8 @@ class EventNotice(NamedTuple):
 
     Issued twice per event: at its detection (``final`` False, ``end_ns`` None, the
     impulse so far: mu now - mu before) and once its impulse is settled (``final``
-    True: SETTLE s after its end, or when the next event starts, or at the end of
-    the data).
+    True: its horizon after its end (:meth:`MomentumEvent.horizon`), or when the next
+    event starts, or at the end of the data).
     """
 
     start_ns: int
@@ -163,7 +181,17 @@ class EventDetector:
 
     @property
     def in_event(self) -> bool:
-        """Return whether an event is under way."""
+        """
+        Return whether an event is under way: from a detection to the event's end.
+
+        Predictions pause while one is (processing.py: they assume mu constant). The
+        horizon after an end (:meth:`MomentumEvent.horizon`) is no part of it: it keeps
+        the record open for a continuation, found up to 3 windows late and dated back
+        to the end, when the rows in between have long been processed; only such a
+        detection re-opens the event, from its own row on, and that stretch ends as the
+        event it would have opened alone (docs/multiscale_events.md, "Which rows an
+        event pauses").
+        """
         return bool(self.events) and self.events[-1].end_ns is None
 
     def take_level_change(self) -> bool:
@@ -187,18 +215,46 @@ class EventDetector:
             self._settling = None
 
     def _finalise(self, stamp_ns: int, starting: bool) -> None:
-        """Issue the final notice of the ended event once its impulse has settled."""
+        """
+        Settle the ended event's impulse after SETTLE s; its final notice after its horizon.
+
+        Until :meth:`MomentumEvent.horizon` has passed, a detection dated at its end
+        continues it (a push that went on), so its final notice waits; ``starting``: the
+        next event starts, both now.
+        """
         last = self._settling
-        if last is not None and last.end_ns is not None and \
-                (starting or (stamp_ns - last.end_ns) * 1e-9 > SETTLE):
+        if last is None or last.end_ns is None:
+            return
+        since = (stamp_ns - last.end_ns) * 1e-9
+        if not last.settled and (starting or since > SETTLE):
             # With measured twists, mu after is their mean over the settling time:
             # every sample's information, not the filter's last estimate.
             after = self.multiscale.measured_mean(
                 last.end_ns, min(stamp_ns, last.end_ns + int(SETTLE * 1e9)))
             if after is not None:
                 last.mu_after, last.cov_after = after
+            last.settled = True
+        if starting or since > last.horizon(self.multiscale.blocks.active):
             self.notices.append(notice(last, True))
             self._settling = None
+
+    def _continues(self, pulse: ImpulseDetection, stamp_ns: int) -> bool:
+        """
+        Return whether a pulse detected at ``stamp_ns`` continues the last ended event.
+
+        Its fit must date it within SETTLE of that end. Within SETTLE of the end, that
+        is all. Later (up to the event's horizon), the block test must have found it
+        within one window length L of that window reaching back to the end (3 L after
+        it): a push that goes on moves the momentum across the end, so the window finds
+        it as soon as it is covered (measured: within 0.8 L); a new push after the end
+        is found later than that.
+        """
+        last = self._settling
+        if last is None or last.end_ns is None or \
+                pulse.start_ns - last.end_ns > SETTLE * 1e9:
+            return False
+        since = (stamp_ns - last.end_ns) * 1e-9
+        return since <= SETTLE or (pulse.measured and since <= 4.0 * pulse.window)
 
     def _open(self, event: MomentumEvent, mu: np.ndarray,
               mu_cov: Optional[np.ndarray]) -> None:
@@ -256,15 +312,23 @@ class EventDetector:
             # own overshoot) belongs to that event: re-open it, its mu_before stays.
             event = self.events[-1]
             event.end_ns = None
+            event.settled = False
             self._changed = False
-        if event is None and pulse is not None and self._settling is not None and \
-                self._settling.end_ns is not None and \
-                pulse.start_ns - self._settling.end_ns <= SETTLE * 1e9:
+        if event is None and pulse is not None and self._continues(pulse, stamp_ns):
             # The momentum moves on right after the last event's end (a long push
             # that the end criteria let go): that event goes on, its mu_before stays.
             event = self._settling
             event.end_ns = None
+            event.settled = False
             self._changed = False
+            # Its hold starts afresh (the quiet time before its end is not this one's),
+            # and this stretch ends as an event the continuing detection opened would
+            # (its window's end criteria below), not by the window that found the event:
+            # the merge is of records, dated back to the end; which rows are paused (an
+            # event under way: no prediction, processing.py) stays as without it
+            # (docs/multiscale_events.md, "Which rows an event pauses").
+            self._quiet_since = None
+            event.stretch_window = pulse.window
             pulse = None
         if event is None:
             if significance > self.start_threshold or step:
@@ -295,12 +359,13 @@ class EventDetector:
         event.peak_significance = max(event.peak_significance, significance)
         # A pulse found by its window goes on while the window of half its length
         # still moves mu beyond the median (a slow push barely moves w's chi-square).
-        pushing = event.window is not None and self.multiscale.window_statistic(
-            event.window / 2) >= self.rest_threshold
+        window = event.window if event.stretch_window is None else event.stretch_window
+        pushing = window is not None and self.multiscale.window_statistic(
+            window / 2) >= self.rest_threshold
         # With measured twists: while the measured momenta still move (a long push
         # goes on after the wrench estimate's chi-square dips; multiscale.py).
         pushing = pushing or self.multiscale.still_moving(
-            MOVING_WINDOW if event.window is None else event.window / 2)
+            MOVING_WINDOW if window is None else window / 2)
         if significance >= self.end_threshold or step or pushing:
             self._quiet_since = None
             return

@@ -166,6 +166,8 @@ class ChunkProcessing:
             # Commanded wrench: the total wrench (delivered command + disturbance) at this
             # row is what mu does over a prediction from it.
             states.append((x, p) if disturbance is None else (x, p, rate[k], w_cov[k]))
+            # Predictions assume mu constant: none starts while an event is under way
+            # (not while an ended event's record waits out its horizon: in_event).
             quiet.append(not detector.in_event)
         # Drift twist I^-1 pi, stacked (the same kernel per row, whatever the chunk).
         drift = np.matmul(inverse, pi[:, :, None])[:, :, 0]
