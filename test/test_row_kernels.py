@@ -312,16 +312,21 @@ def test_the_step_tests_one_call_update_equals_its_two_calls(bench_run, group_na
 
 
 def test_a_step_test_update_is_one_compiled_call(bench_run) -> None:
-    """With onsets open: absorb_evaluate per update, not absorb and evaluate from Python."""
+    """
+    With onsets open: no step-test kernel is called from Python per update.
+
+    absorb_evaluate (one call where absorb and evaluate were two) now runs inside
+    the filter's compiled row step (step_row.filter_step, test_step_row.py).
+    """
     from reduced_dynamics.bench import update_samples
-    from reduced_dynamics.estimator import step_kernels
+    from reduced_dynamics.estimator import step_kernels, step_row
     robot = bench_run[0]
     joints, bases = update_samples(robot, 1200)
     messages = [m for pair in zip(joints, bases) for m in pair]
-    calls = {'absorb_evaluate': 0, 'absorb': 0, 'evaluate': 0}
+    calls = {'absorb_evaluate': 0, 'absorb': 0, 'evaluate': 0, 'filter_step': 0}
 
     def counted(name):
-        function = getattr(step_kernels, name)
+        function = getattr(step_row if name == 'filter_step' else step_kernels, name)
 
         def wrapper(*args):
             calls[name] += 1
@@ -333,7 +338,8 @@ def test_a_step_test_update_is_one_compiled_call(bench_run) -> None:
     assert estimator.filter.step_test.onsets
     with mock.patch.object(step_kernels, 'absorb_evaluate', counted('absorb_evaluate')), \
             mock.patch.object(step_kernels, 'absorb', counted('absorb')), \
-            mock.patch.object(step_kernels, 'evaluate', counted('evaluate')):
+            mock.patch.object(step_kernels, 'evaluate', counted('evaluate')), \
+            mock.patch.object(step_row, 'filter_step', counted('filter_step')):
         estimator.add_samples(messages[2 * 1100:])
     # One update per row (the joint and base stamps are equal), each one call.
-    assert calls == {'absorb_evaluate': 100, 'absorb': 0, 'evaluate': 0}
+    assert calls == {'absorb_evaluate': 0, 'absorb': 0, 'evaluate': 0, 'filter_step': 100}
