@@ -202,21 +202,28 @@ def test_calibrated_best_equals_the_numpy_steps_it_replaces() -> None:
 
 
 def test_the_filtered_momentum_test_is_one_call_before_its_einsum(bench_run) -> None:
-    """Per update: store_window_changes and calibrated_best, not the kernels they call."""
+    """
+    Per update: bank_step.changes and bank_step.calibrated, not the kernels they call.
+
+    (They were store_window_changes and calibrated_best from Python; the block test's
+    statistics and calibration joined them: core/bank_step.py, test_bank_step.py.)
+    """
+    from reduced_dynamics.estimator.core import bank_step
     rng = np.random.default_rng(4)
     test = multiscale.MultiScaleTest(6, 1.0)
     calls = {'store_window_changes': 0, 'calibrated_best': 0, 'window_changes': 0,
-             'calibrate': 0}
+             'calibrate': 0, 'changes': 0, 'calibrated': 0}
 
     def counted(name):
-        function = getattr(impulse, name)
+        module = bank_step if name in ('changes', 'calibrated') else impulse
+        function = getattr(module, name)
 
         def wrapper(*args):
             calls[name] += 1
             return function(*args)
-        return wrapper
+        return mock.patch.object(module, name, wrapper)
 
-    patches = [mock.patch.object(impulse, name, counted(name)) for name in calls]
+    patches = [counted(name) for name in calls]
     for patch in patches:
         patch.start()
     try:
@@ -228,9 +235,10 @@ def test_the_filtered_momentum_test_is_one_call_before_its_einsum(bench_run) -> 
         for patch in patches:
             patch.stop()
     # The first update has no period yet (stored only); then each stores and computes in
-    # one call, and calibrates in one more once a window is covered (50 ms: k >= 50).
-    assert calls == {'store_window_changes': 299, 'calibrated_best': 250,
-                     'window_changes': 0, 'calibrate': 0}
+    # one call, and calibrates in one more (zeros until a window is covered: k >= 50).
+    assert calls == {'store_window_changes': 0, 'calibrated_best': 0, 'window_changes': 0,
+                     'calibrate': 0, 'changes': 299, 'calibrated': 299}
+    assert test.statistics.any()
 
 
 class _SeparateCalls:

@@ -169,3 +169,19 @@ def test_a_row_is_one_compiled_filter_call() -> None:
             estimator.add_joint_state(joint)
             estimator.add_base_state(base)
     assert calls == {'filter_step': 100, 'propagate_update': 0, 'absorb_evaluate': 0}
+
+
+def test_warm_up_loads_the_row_step_with_the_estimators_argument_types() -> None:
+    """A fresh process: after warm_up, an estimator's run compiles no new signature."""
+    from filter_helpers import fresh_process_words
+    code = ('from reduced_dynamics.estimator.core.warmup import warm_up; warm_up(); '
+            'from reduced_dynamics.estimator import step_row; '
+            'from reduced_dynamics.robot.model import load_robot; '
+            'from reduced_dynamics.bench import update_samples; '
+            'from reduced_dynamics.estimator.pipeline import Estimator; '
+            'before = len(step_row.filter_step.signatures); '
+            'robot = load_robot(); joints, bases = update_samples(robot, 1300); '
+            'e = Estimator(robot); '
+            'e.add_samples([m for pair in zip(joints, bases) for m in pair]); '
+            'print(before > 0, before == len(step_row.filter_step.signatures))')
+    assert fresh_process_words(code) == ['True', 'True']
