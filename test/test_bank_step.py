@@ -185,3 +185,20 @@ def test_the_fused_update_equals_the_separate_calls(n, d, monkeypatch) -> None:
     assert sum(unformed) >= 2  # the singular V_L, caught as the Python caught it
     assert fused.blocks.active and fused.blocks.ready
     assert math.isfinite(fused.threshold)
+
+
+def test_no_detection_is_formed_when_the_caller_has_no_use_for_it(monkeypatch) -> None:
+    """An event open (not wanted): statistics updated, the pulse's dating not computed."""
+    formed = []
+    real = multiscale.ImpulseDetection
+
+    def counted(*args, **kwargs):
+        formed.append(1)
+        return real(*args, **kwargs)
+    monkeypatch.setattr(multiscale, 'ImpulseDetection', counted)
+    test = MultiScaleTest(6, 50.0)
+    above = 0
+    for stamp, mu, cov, measured, _, _, _, _ in _inputs(6, 3, 8.0, 100.0, 6):
+        assert test.update(stamp, mu, cov, measured, wanted=False) is None
+        above += bool(test.statistics.max() > test.threshold)
+    assert above > 10 and not formed

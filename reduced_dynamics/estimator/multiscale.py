@@ -207,7 +207,7 @@ class MultiScaleTest:
             p = np.clip(self._above, 0.5, 1.0 - 1e-3)
             self.inflation = np.maximum(1.0, self._median / chdtri(self.n, p))
         # Both banks (the block test's as MomentumBlocks.update, then calibrated).
-        found, best = self._filtered(stamp_ns, mu, cov)
+        found, best = self._filtered(stamp_ns, mu, cov, wanted)
         if not self.blocks.active or self._period is None:
             return found if wanted else None
         if not wanted:
@@ -225,14 +225,15 @@ class MultiScaleTest:
         """Return the mean measured momentum over (lo_ns, hi_ns] (None: no twist)."""
         return self.blocks.mean(lo_ns, hi_ns) if self.blocks.active else None
 
-    def _filtered(self, stamp_ns: int, mu: np.ndarray,
-                  cov: np.ndarray) -> tuple[Optional[ImpulseDetection], int]:
+    def _filtered(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
+                  wanted: bool = True) -> tuple[Optional[ImpulseDetection], int]:
         """
         Run the test on the filtered momentum (module doc) and the block test's update.
 
-        Return the filtered test's detection (or None) and the block test's best
-        window (-1: none), calibrated: two compiled calls (core/bank_step.py) with
-        numpy's einsum between them.
+        Return the filtered test's detection (or None; None too when not ``wanted``:
+        the caller would drop it) and the block test's best window (-1: none),
+        calibrated: two compiled calls (core/bank_step.py) with numpy's einsum
+        between them.
         """
         if self._end > self._start:
             dt = (stamp_ns - int(self._stamps[self._end - 1])) * 1e-9
@@ -273,7 +274,7 @@ class MultiScaleTest:
             rows, products, self.statistics, self._above[0], self.inflation[0],
             self._median, rate, learn, measured.statistics, self._above[1],
             self.inflation[1], covered)
-        if not len(products) or not value > self.threshold:
+        if not wanted or not len(products) or not value > self.threshold:
             return None, block_best
         covered = rows >= 0
         rows = rows[covered]
