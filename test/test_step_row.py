@@ -21,6 +21,7 @@ detecting steps, and the estimator on the bench's motion (events found), each ru
 once with it and once with it refused (the filter then makes the separate calls).
 """
 
+from pathlib import Path
 from unittest import mock
 
 import numpy as np
@@ -179,9 +180,51 @@ def test_warm_up_loads_the_row_step_with_the_estimators_argument_types() -> None
             'from reduced_dynamics.robot.model import load_robot; '
             'from reduced_dynamics.bench import update_samples; '
             'from reduced_dynamics.estimator.pipeline import Estimator; '
-            'before = len(step_row.filter_step.signatures); '
+            f'import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); '
+            'from test_step_row import _odometry_200hz; '
+            'kernels = (step_row.filter_step, step_row.propagate_step); '
+            'before = [len(k.signatures) for k in kernels]; '
             'robot = load_robot(); joints, bases = update_samples(robot, 1300); '
             'e = Estimator(robot); '
             'e.add_samples([m for pair in zip(joints, bases) for m in pair]); '
-            'print(before > 0, before == len(step_row.filter_step.signatures))')
+            'Estimator(robot).add_samples(_odometry_200hz(robot, 1300)); '
+            'print(min(before) > 0, before == [len(k.signatures) for k in kernels])')
     assert fresh_process_words(code) == ['True', 'True']
+
+
+def _odometry_200hz(robot, count: int) -> list:
+    """Return the bench's 1 kHz joint states with every 5th base sample, 0.3 ms later."""
+    from reduced_dynamics.bench import ODOMETRY_EVERY, ODOMETRY_OFFSET_NS, update_samples
+    from reduced_dynamics.messages.samples import BaseStateSample
+    joints, bases = update_samples(robot, count)
+    shifted = [BaseStateSample(b.stamp_ns + ODOMETRY_OFFSET_NS, b.frame_id, b.child_frame_id,
+                               b.position, b.orientation_xyzw, b.twist_linear,
+                               b.twist_angular) for b in bases[::ODOMETRY_EVERY]]
+    return [m for _, _, m in sorted([(j.stamp_ns, 0, j) for j in joints]
+                                    + [(b.stamp_ns, 1, b) for b in shifted],
+                                    key=lambda e: e[:2])]
+
+
+def test_rows_between_odometry_samples_propagate_in_one_call_bit_identically() -> None:
+    """1 kHz joints, 200 Hz odometry: propagate_step on the rows between, same outputs."""
+    from reduced_dynamics.estimator.step_test import WrenchStepTest
+    from reduced_dynamics.robot.model import load_robot
+    robot = load_robot()
+    messages = _odometry_200hz(robot, 2500)
+    calls = []
+    compiled = step_row.propagate_step
+
+    def counted(*args):
+        calls.append(1)
+        return compiled(*args)
+
+    with mock.patch.object(step_row, 'propagate_step', counted):
+        mine = _columns(robot, messages, refuse=False)
+    # The reference: the step test's propagate from Python after kernels.propagate.
+    with mock.patch.object(WrenchStepTest, 'active', mock.PropertyMock(return_value=False)):
+        expected = _columns(robot, messages, refuse=True)
+    assert len(calls) > 1500  # four rows in five
+    assert expected[3] > 0, 'onsets were evaluated'
+    for name, value in expected[0].items():
+        np.testing.assert_array_equal(mine[0][name], value, err_msg=name)
+    assert mine[1:] == expected[1:]

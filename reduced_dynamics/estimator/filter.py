@@ -524,6 +524,18 @@ class MomentumFilter:
         if dt <= 0.0:
             self.step_test.propagate(stamp_ns, self._eye)
             return self._eye
+        test = self.step_test
+        if not self.command and test.active:
+            # The step test's propagate in the same compiled call (step_row.py).
+            out = step_row.propagate_step(
+                self._g, self.x, self.p, lin.locked, lin.locked_inverse, lin.connection_qd,
+                lin.joint_cov, dt, u, self._jerk_var, self._densities(lin), self._basis,
+                self._pinv, self._whole, self._ad_rows, self._form_rows, stamp_ns,
+                *test.compiled_state(self.n))
+            self._g, self.x, self.p = out[0], out[1], out[2]
+            self.stamp_ns = stamp_ns
+            test.take_propagated(stamp_ns, *out[4:])
+            return out[3]
         self._g, self.x, self.p, transition = kernels.propagate(
             self._g, self.x, self.p, lin.locked, lin.locked_inverse, lin.connection_qd,
             lin.joint_cov, dt, u, self.command, self._jerk_var, self._densities(lin),

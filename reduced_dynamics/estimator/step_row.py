@@ -25,13 +25,15 @@ same operations in the same order, so the results are the same bits
 (test/test_step_row.py compares it with the calls it replaces). The step test's
 update runs only where the filter's own would reach it (measurement accepted,
 covariance healthy, an onset open); elsewhere the caller takes the Python path
-from the prediction on, as before.
+from the prediction on, as before. A row without a measurement (joint states
+between odometry samples) propagates in one call the same way
+(:func:`propagate_step`).
 """
 
 import numpy as np
 from numba import njit
 
-from reduced_dynamics.estimator.core.kernels import propagate_update
+from reduced_dynamics.estimator.core.kernels import propagate, propagate_update
 from reduced_dynamics.estimator.step_kernels import absorb_evaluate, fold
 
 
@@ -140,3 +142,33 @@ def filter_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
     return (g0, x0, p0, phi, accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain, health,
             averaged, wrench_test, test_dt, count, psi, omega, beta, since, since_identity,
             tested, evidence, nis_scale, elapsed, best, statistic, top, evaluated)
+
+
+@njit(cache=True)
+def propagate_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
+                   inverse_locked: np.ndarray, connection_qd: np.ndarray,
+                   joint_cov: np.ndarray, dt: float, u: np.ndarray, jerk_var: np.ndarray,
+                   density: np.ndarray, basis: np.ndarray, pinv: np.ndarray, whole: bool,
+                   ad_rows: np.ndarray, form_rows: np.ndarray, stamp_ns: int,
+                   last_stamp: int, count: int, onsets: np.ndarray, c: np.ndarray,
+                   b0: np.ndarray, j0: np.ndarray, bound_inv: np.ndarray,
+                   bounded: np.ndarray, score: np.ndarray, psi: np.ndarray,
+                   omega: np.ndarray, beta: np.ndarray, e: np.ndarray, since: np.ndarray,
+                   since_identity: bool, recent: bool, window_ns: int, spacing_ns: int,
+                   settle_until: int, settling: bool, outlier: float, threshold: float,
+                   nis_scale: float, elapsed: float, nis_time: float) -> tuple:
+    """
+    Propagate without a measurement (``kernels.propagate``), then :func:`test_propagate`.
+
+    A row between two base measurements (joint states faster than odometry). The
+    step test's state is :func:`filter_step`'s (its update's part unused). Returns
+    (g, x, P, Phi), then :func:`test_propagate`'s results.
+    """
+    g1, x1, p1, phi = propagate(g, x, p, locked, inverse_locked, connection_qd, joint_cov,
+                                dt, u, False, jerk_var, density, basis, pinv, whole,
+                                ad_rows, form_rows)
+    test_dt, count, psi, omega, beta, since, since_identity = test_propagate(
+        stamp_ns, last_stamp, phi, count, onsets, c, b0, j0, bound_inv, bounded, psi,
+        omega, beta, e, since, since_identity, recent, window_ns, spacing_ns, settle_until,
+        settling)
+    return (g1, x1, p1, phi, test_dt, count, psi, omega, beta, since, since_identity)
