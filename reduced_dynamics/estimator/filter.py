@@ -617,7 +617,7 @@ class MomentumFilter:
         as :meth:`_propagate` and :meth:`_update` one after the other; with the step
         test on and ``before`` given (``step`` None: the mean of ``before`` and
         ``lin``), the step test's share of the step joins that call
-        (:mod:`..step_row`).
+        (:mod:`~reduced_dynamics.estimator.step_row`).
         """
         burst = None
         if measurement is not None and not self.command and measurement.noise is None \
@@ -645,7 +645,7 @@ class MomentumFilter:
 
     def _stamp_noise(self, stamp_ns: int, measurement: Measurement) -> tuple[float, float]:
         """Return the stamp sigma and the stamp twist's average weight of a fused step."""
-        if self.noise.pose_stamp <= 0.0:
+        if not self.noise.pose_stamp > 0.0:
             return 0.0, -1.0
         sigma = self.noise.pose_stamp if measurement.stamp_sigma is None \
             else measurement.stamp_sigma
