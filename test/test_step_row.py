@@ -228,3 +228,18 @@ def test_rows_between_odometry_samples_propagate_in_one_call_bit_identically() -
     for name, value in expected[0].items():
         np.testing.assert_array_equal(mine[0][name], value, err_msg=name)
     assert mine[1:] == expected[1:]
+
+
+def test_the_bench_still_records_the_step_tests_calls_and_runs_the_explicit_bank() -> None:
+    """The bench's step-test rows: every propagate and update recorded; the reference runs."""
+    from reduced_dynamics import bench
+    from reduced_dynamics.estimator import filter as filter_module
+    from reduced_dynamics.estimator.step_reference import ExplicitStepTest
+    from reduced_dynamics.robot.model import load_robot
+    robot = load_robot()
+    joints, bases = bench.update_samples(robot, 300)
+    calls = bench.record_step_calls(robot, joints, bases)
+    names = [call[0] for call in calls]
+    assert names.count('propagate') >= 299 and names.count('update') >= 299
+    with mock.patch.object(filter_module, 'WrenchStepTest', ExplicitStepTest):
+        assert bench.time_update(robot, joints, bases, warmup=10) > 0.0
