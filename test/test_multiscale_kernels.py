@@ -248,11 +248,11 @@ def test_warm_up_loads_the_impulse_kernels_with_the_estimators_argument_types() 
     from filter_helpers import fresh_process_words
     code = ('from reduced_dynamics.estimator.core.warmup import warm_up; warm_up(); '
             'from reduced_dynamics.estimator.core import impulse as i; '
+            'from reduced_dynamics.estimator.core import bank_step as s; '
             'from reduced_dynamics.robot.model import load_robot; '
             'from reduced_dynamics.bench import update_samples; '
             'from reduced_dynamics.estimator.pipeline import Estimator; '
-            'kernels = (i.store_window_changes, i.calibrated_best, i.calibrate, '
-            'i.measured_momentum_se3); '
+            'kernels = (s.changes, s.calibrated, i.calibrate, i.measured_momentum_se3); '
             'before = [len(k.signatures) for k in kernels]; '
             'robot = load_robot(); joints, bases = update_samples(robot, 300); '
             'e = Estimator(robot); '

@@ -202,21 +202,28 @@ def test_calibrated_best_equals_the_numpy_steps_it_replaces() -> None:
 
 
 def test_the_filtered_momentum_test_is_one_call_before_its_einsum(bench_run) -> None:
-    """Per update: store_window_changes and calibrated_best, not the kernels they call."""
+    """
+    Per update: bank_step.changes and bank_step.calibrated, not the kernels they call.
+
+    (They were store_window_changes and calibrated_best from Python; the block test's
+    statistics and calibration joined them: core/bank_step.py, test_bank_step.py.)
+    """
+    from reduced_dynamics.estimator.core import bank_step
     rng = np.random.default_rng(4)
     test = multiscale.MultiScaleTest(6, 1.0)
     calls = {'store_window_changes': 0, 'calibrated_best': 0, 'window_changes': 0,
-             'calibrate': 0}
+             'calibrate': 0, 'changes': 0, 'calibrated': 0}
 
     def counted(name):
-        function = getattr(impulse, name)
+        module = bank_step if name in ('changes', 'calibrated') else impulse
+        function = getattr(module, name)
 
         def wrapper(*args):
             calls[name] += 1
             return function(*args)
-        return wrapper
+        return mock.patch.object(module, name, wrapper)
 
-    patches = [mock.patch.object(impulse, name, counted(name)) for name in calls]
+    patches = [counted(name) for name in calls]
     for patch in patches:
         patch.start()
     try:
@@ -228,9 +235,10 @@ def test_the_filtered_momentum_test_is_one_call_before_its_einsum(bench_run) -> 
         for patch in patches:
             patch.stop()
     # The first update has no period yet (stored only); then each stores and computes in
-    # one call, and calibrates in one more once a window is covered (50 ms: k >= 50).
-    assert calls == {'store_window_changes': 299, 'calibrated_best': 250,
-                     'window_changes': 0, 'calibrate': 0}
+    # one call, and calibrates in one more (zeros until a window is covered: k >= 50).
+    assert calls == {'store_window_changes': 0, 'calibrated_best': 0, 'window_changes': 0,
+                     'calibrate': 0, 'changes': 299, 'calibrated': 299}
+    assert test.statistics.any()
 
 
 class _SeparateCalls:
@@ -312,16 +320,21 @@ def test_the_step_tests_one_call_update_equals_its_two_calls(bench_run, group_na
 
 
 def test_a_step_test_update_is_one_compiled_call(bench_run) -> None:
-    """With onsets open: absorb_evaluate per update, not absorb and evaluate from Python."""
+    """
+    With onsets open: no step-test kernel is called from Python per update.
+
+    absorb_evaluate (one call where absorb and evaluate were two) now runs inside
+    the filter's compiled row step (step_row.filter_step, test_step_row.py).
+    """
     from reduced_dynamics.bench import update_samples
-    from reduced_dynamics.estimator import step_kernels
+    from reduced_dynamics.estimator import step_kernels, step_row
     robot = bench_run[0]
     joints, bases = update_samples(robot, 1200)
     messages = [m for pair in zip(joints, bases) for m in pair]
-    calls = {'absorb_evaluate': 0, 'absorb': 0, 'evaluate': 0}
+    calls = {'absorb_evaluate': 0, 'absorb': 0, 'evaluate': 0, 'filter_step': 0}
 
     def counted(name):
-        function = getattr(step_kernels, name)
+        function = getattr(step_row if name == 'filter_step' else step_kernels, name)
 
         def wrapper(*args):
             calls[name] += 1
@@ -333,7 +346,8 @@ def test_a_step_test_update_is_one_compiled_call(bench_run) -> None:
     assert estimator.filter.step_test.onsets
     with mock.patch.object(step_kernels, 'absorb_evaluate', counted('absorb_evaluate')), \
             mock.patch.object(step_kernels, 'absorb', counted('absorb')), \
-            mock.patch.object(step_kernels, 'evaluate', counted('evaluate')):
+            mock.patch.object(step_kernels, 'evaluate', counted('evaluate')), \
+            mock.patch.object(step_row, 'filter_step', counted('filter_step')):
         estimator.add_samples(messages[2 * 1100:])
     # One update per row (the joint and base stamps are equal), each one call.
-    assert calls == {'absorb_evaluate': 100, 'absorb': 0, 'evaluate': 0}
+    assert calls == {'absorb_evaluate': 0, 'absorb': 0, 'evaluate': 0, 'filter_step': 100}

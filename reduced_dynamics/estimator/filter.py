@@ -115,7 +115,7 @@ import numpy as np
 import pinocchio as pin
 from reduced_dynamics.chi_square import chi2
 
-from reduced_dynamics.estimator import command_gain
+from reduced_dynamics.estimator import command_gain, step_row
 from reduced_dynamics.estimator.core import kernels
 from reduced_dynamics.estimator.core.smoother import smooth
 from reduced_dynamics.estimator.core.stalls import StallDetector
@@ -524,6 +524,18 @@ class MomentumFilter:
         if dt <= 0.0:
             self.step_test.propagate(stamp_ns, self._eye)
             return self._eye
+        test = self.step_test
+        if not self.command and test.active:
+            # The step test's propagate in the same compiled call (step_row.py).
+            out = step_row.propagate_step(
+                self._g, self.x, self.p, lin.locked, lin.locked_inverse, lin.connection_qd,
+                lin.joint_cov, dt, u, self._jerk_var, self._densities(lin), self._basis,
+                self._pinv, self._whole, self._ad_rows, self._form_rows, stamp_ns,
+                *test.compiled_state(self.n))
+            self._g, self.x, self.p = out[0], out[1], out[2]
+            self.stamp_ns = stamp_ns
+            test.take_propagated(stamp_ns, *out[4:])
+            return out[3]
         self._g, self.x, self.p, transition = kernels.propagate(
             self._g, self.x, self.p, lin.locked, lin.locked_inverse, lin.connection_qd,
             lin.joint_cov, dt, u, self.command, self._jerk_var, self._densities(lin),
@@ -585,33 +597,93 @@ class MomentumFilter:
                           None if commands is None else commands[index], measurement,
                           between(before, lin, fraction), False, gated)
             done = fraction
-        self._step_to(stamp_ns, between(before, lin, 0.5 * (done + 1.0)),
-                      None if commands is None else commands[-1], last, lin, True, gated)
+        # A measurement at the row with none before it in the interval: the step's
+        # inputs are the rows' mean, which the compiled row step forms itself.
+        midway = done == 0.0 and last is not None
+        self._step_to(stamp_ns, None if midway else between(before, lin, 0.5 * (done + 1.0)),
+                      None if commands is None else commands[-1], last, lin, True, gated,
+                      before if midway else None)
         return gated
 
-    def _step_to(self, stamp_ns: int, step: Linearisation, command: Optional[Command],
-                 measurement: Optional[Measurement], lin: Linearisation, output: bool,
-                 gated: list) -> None:
+    def _step_to(self, stamp_ns: int, step: Optional[Linearisation],
+                 command: Optional[Command], measurement: Optional[Measurement],
+                 lin: Linearisation, output: bool, gated: list,
+                 before: Optional[Linearisation] = None) -> None:
         """
         Propagate to ``stamp_ns`` with inputs ``step``, then measure (:meth:`_measure`).
 
         The common step (no commanded wrench, the noise parameters, not a burst) runs
         as one compiled call (``kernels.propagate_update``) doing the same operations
-        as :meth:`_propagate` and :meth:`_update` one after the other.
+        as :meth:`_propagate` and :meth:`_update` one after the other; with the step
+        test on and ``before`` given (``step`` None: the mean of ``before`` and
+        ``lin``), the step test's share of the step joins that call
+        (:mod:`~reduced_dynamics.estimator.step_row`).
         """
         burst = None
         if measurement is not None and not self.command and measurement.noise is None \
                 and stamp_ns > self.stamp_ns:
             burst = self.stalls.in_burst(measurement.stamp_ns) \
                 and measurement.stamp_sigma is None
+            if not burst and before is not None and self.step_test.active:
+                fused = self._row_step(stamp_ns, before, measurement, lin)
+                if fused is not None:
+                    self._measure(stamp_ns, fused[3], measurement, lin, output, gated,
+                                  burst=False, fused=fused)
+                    return
+            if step is None:
+                step = between(before, lin, 0.5)
             if not burst:
                 fused = self._fused_step(stamp_ns, step, measurement, lin)
                 if fused is not None:
                     self._measure(stamp_ns, fused[3], measurement, lin, output, gated,
                                   burst=False, fused=fused)
                     return
+        if step is None:
+            step = between(before, lin, 0.5)
         transition = self._propagate(stamp_ns, step, command)
         self._measure(stamp_ns, transition, measurement, lin, output, gated, burst=burst)
+
+    def _stamp_noise(self, stamp_ns: int, measurement: Measurement) -> tuple[float, float]:
+        """Return the stamp sigma and the stamp twist's average weight of a fused step."""
+        if not self.noise.pose_stamp > 0.0:
+            return 0.0, -1.0
+        sigma = self.noise.pose_stamp if measurement.stamp_sigma is None \
+            else measurement.stamp_sigma
+        # The stamp twist's average weight of _update (the time since its last move).
+        last = self._stamp_twist_ns
+        dt = 0.0 if last is None else max(stamp_ns - last, 0) * 1e-9
+        return sigma, min(1.0, dt / STAMP_TWIST_TIME)
+
+    def _row_step(self, stamp_ns: int, before: Linearisation, measurement: Measurement,
+                  lin: Linearisation) -> Optional[tuple]:
+        """
+        Run ``step_row.filter_step``: :meth:`_fused_step` and the step test's share.
+
+        Return its results (``kernels.propagate_update``'s first), or None when it
+        raised (nothing changed: the caller takes the separate calls).
+        """
+        twist = measurement.twist
+        with_twist = twist is not None
+        values = _EMPTY if twist is None else np.asarray(twist, dtype=float)
+        sigma, weight = self._stamp_noise(stamp_ns, measurement)
+        test = self.step_test
+        try:
+            fused = step_row.filter_step(
+                self._g, self.x, self.p, lin.locked, before.locked_inverse,
+                before.connection_qd, (stamp_ns - self.stamp_ns) * 1e-9, self._jerk_var,
+                np.ascontiguousarray(measurement.pose.homogeneous), values, with_twist,
+                lin.locked_inverse, lin.connection_qd, lin.joint_cov, self._pose_var,
+                self._stamp_twist, sigma, self._twist_var,
+                self._gates[2 * self.n if with_twist else self.n], weight, self._basis,
+                self._pinv, self._whole, self._ad_rows, self._form_rows, self._h_pose,
+                stamp_ns, *test.compiled_state(2 * self.n if with_twist else self.n))
+        except (np.linalg.LinAlgError, ZeroDivisionError):
+            return None
+        self._g, self.x, self.p = fused[0], fused[1], fused[2]
+        self.stamp_ns = stamp_ns
+        self._fused_significance = (fused[11], fused[10], fused[17])
+        test.take_propagated(stamp_ns, *fused[18:25])
+        return fused
 
     def _fused_step(self, stamp_ns: int, step: Linearisation, measurement: Measurement,
                     lin: Linearisation) -> Optional[tuple]:
@@ -624,14 +696,7 @@ class MomentumFilter:
         twist = measurement.twist
         with_twist = twist is not None
         values = _EMPTY if twist is None else np.asarray(twist, dtype=float)
-        sigma, weight = 0.0, -1.0
-        if self.noise.pose_stamp > 0.0:
-            sigma = self.noise.pose_stamp if measurement.stamp_sigma is None \
-                else measurement.stamp_sigma
-            # The stamp twist's average weight of _update (the time since its last move).
-            last = self._stamp_twist_ns
-            dt = 0.0 if last is None else max(stamp_ns - last, 0) * 1e-9
-            weight = min(1.0, dt / STAMP_TWIST_TIME)
+        sigma, weight = self._stamp_noise(stamp_ns, measurement)
         try:
             fused = kernels.propagate_update(
                 self._g, self.x, self.p, step.locked, step.locked_inverse,
@@ -816,7 +881,13 @@ class MomentumFilter:
             self._stamp_twist = self._stamp_twist + weight * (kernels.twist(
                 g1, x1[:n], lin.locked_inverse, lin.connection_qd, self._basis, self._pinv,
                 self._whole) - self._stamp_twist)
-        detection = self.step_test.update(self._h_pose if not with_twist else h, s, gain, nu)
+        if fused is not None and len(fused) > 18 and fused[25]:
+            # The compiled row step absorbed and evaluated this update (step_row.py).
+            detection = self.step_test.take_compiled(self._h_pose if not with_twist else h,
+                                                     s, gain, nu, *fused[26:])
+        else:
+            detection = self.step_test.update(self._h_pose if not with_twist else h, s,
+                                              gain, nu)
         if detection is not None:
             # A wrench step (thruster on/off: a jump, not a random walk): take its
             # maximum-likelihood size and its uncertainty (Willsky-Jones compensation).

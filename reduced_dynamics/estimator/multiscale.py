@@ -54,7 +54,7 @@ from typing import Any, NamedTuple, Optional
 import numpy as np
 from reduced_dynamics.chi_square import chi2
 from scipy.special import chdtri
-from reduced_dynamics.estimator.core import blocks, impulse
+from reduced_dynamics.estimator.core import bank_step, blocks, impulse
 
 #: Shortest and longest window [s] and the ratio between successive windows.
 SHORTEST = 0.05
@@ -70,6 +70,8 @@ EXCESS_SAMPLES = 2000
 #: statistic is above the chi2_n median), and updates between its inflation's updates.
 CALIBRATION_MEMORY = 600.0
 CALIBRATION_EVERY = 256
+#: the filtered test's products when no window's change was formed
+_NO_PRODUCTS = np.zeros(0)
 
 
 def window_bank(shortest: float = SHORTEST, longest: float = LONGEST,
@@ -204,13 +206,10 @@ class MultiScaleTest:
             # median / isf(p). Never below 1 (never looser than the noise model).
             p = np.clip(self._above, 0.5, 1.0 - 1e-3)
             self.inflation = np.maximum(1.0, self._median / chdtri(self.n, p))
-        found = self._filtered(stamp_ns, mu, cov)
+        # Both banks (the block test's as MomentumBlocks.update, then calibrated).
+        found, best = self._filtered(stamp_ns, mu, cov, wanted)
         if not self.blocks.active or self._period is None:
             return found if wanted else None
-        best = self.blocks.update(stamp_ns, self.floor_ns)
-        if best >= 0:
-            self.blocks.statistics[:] = self._calibrate(1, self.blocks.statistics)
-            best = int(np.argmax(self.blocks.statistics))
         if not wanted:
             # The fit below costs ~ points^2 x the window's samples (MomentumBlocks.locate):
             # once per sample it was most of the node's time while a push lasted.
@@ -226,9 +225,16 @@ class MultiScaleTest:
         """Return the mean measured momentum over (lo_ns, hi_ns] (None: no twist)."""
         return self.blocks.mean(lo_ns, hi_ns) if self.blocks.active else None
 
-    def _filtered(self, stamp_ns: int, mu: np.ndarray,
-                  cov: np.ndarray) -> Optional[ImpulseDetection]:
-        """Run the test on the filtered momentum (module doc)."""
+    def _filtered(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
+                  wanted: bool = True) -> tuple[Optional[ImpulseDetection], int]:
+        """
+        Run the test on the filtered momentum (module doc) and the block test's update.
+
+        Return the filtered test's detection (or None; None too when not ``wanted``:
+        the caller would drop it) and the block test's best window (-1: none),
+        calibrated: two compiled calls (core/bank_step.py) with numpy's einsum
+        between them.
+        """
         if self._end > self._start:
             dt = (stamp_ns - int(self._stamps[self._end - 1])) * 1e-9
             if dt > 0.0:
@@ -236,7 +242,7 @@ class MultiScaleTest:
                     self._period + 0.01 * (dt - self._period)
         if self._period is None:
             self._store(stamp_ns, mu, cov)
-            return None
+            return None, -1
         if self._end == self._capacity:
             self._make_room(stamp_ns)
         if abs(self._period - self._threshold_period) > \
@@ -245,26 +251,31 @@ class MultiScaleTest:
             self._threshold_period = self._period
             self.threshold = float(chi2.isf(self.significance(self._period), self.n))
         floor = self.floor_ns
-        try:
-            # One compiled call: the sample stored, each window's ring row, d_L and
-            # V_L^-1 d_L (core/impulse.py).
-            rows, d, solved = impulse.store_window_changes(
-                self._stamps, self._mu, self._cov, self._start, self._end, self._lags_ns,
-                stamp_ns, 0 if floor is None else floor, floor is not None, mu, cov)
-        except np.linalg.LinAlgError:
-            self._end += 1
-            self.statistics[:] = 0.0
-            return None
+        measured = self.blocks
+        # MomentumBlocks.update's conditions: it runs with a twist measured, and tests
+        # from four samples with its excess noise known.
+        ready = measured.active and measured._end >= 4 and measured.ready
+        first = 0
+        if ready:
+            first = int(measured._stamps[0])
+            first = first if floor is None else max(floor, first)
+        # One compiled call: the sample stored, each window's ring row, d_L and
+        # V_L^-1 d_L (core/impulse.py); then the block test's statistics.
+        formed, rows, d, solved, covered = bank_step.changes(
+            self._stamps, self._mu, self._cov, self._start, self._end, self._lags_ns,
+            stamp_ns, 0 if floor is None else floor, floor is not None, mu, cov,
+            measured.active, ready, *measured._arrays(), measured._common, measured._stamps,
+            measured._end, measured._lags_ns, first, measured.mass, measured.linear,
+            measured.statistics)
         self._end += 1
-        if not len(d):
-            self.statistics[:] = 0.0
-            return None
         rate, learn = self._calibration()
-        best, value = impulse.calibrated_best(
-            rows, np.einsum('ij,ij->i', d, solved), self.statistics, self._above[0],
-            self.inflation[0], self._median, rate, learn)
-        if not value > self.threshold:
-            return None
+        products = np.einsum('ij,ij->i', d, solved) if formed and len(d) else _NO_PRODUCTS
+        best, value, block_best = bank_step.calibrated(
+            rows, products, self.statistics, self._above[0], self.inflation[0],
+            self._median, rate, learn, measured.statistics, self._above[1],
+            self.inflation[1], covered)
+        if not wanted or not len(products) or not value > self.threshold:
+            return None, block_best
         covered = rows >= 0
         rows = rows[covered]
         values = self.statistics[covered]
@@ -278,7 +289,7 @@ class MultiScaleTest:
         return ImpulseDetection(int(self._stamps[rows[knee]]),
                                 float(self.windows[np.flatnonzero(covered)[best]]),
                                 float(values[best]), self._mu[rows[longest]].copy(),
-                                self._cov[rows[longest]].copy())
+                                self._cov[rows[longest]].copy()), block_best
 
     def _calibration(self) -> tuple[float, bool]:
         """Return the null calibration's learning rate per update and whether it learns."""

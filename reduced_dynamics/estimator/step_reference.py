@@ -48,6 +48,10 @@ class ExplicitStepTest:
     kept stacked, so one step costs a few matrix products whatever their number.
     """
 
+    #: the filter's compiled row step (estimator/step_row.py) needs WrenchStepTest's
+    #: arrays: with this reference the filter makes the step test's calls from Python
+    active = False
+
     def __init__(self, n: int, significance: float, dim: Optional[int] = None) -> None:
         """
         Set up for wrenches of dimension ``n``; ``significance`` 0 turns it off.

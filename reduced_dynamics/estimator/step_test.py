@@ -105,7 +105,8 @@ class WrenchStepTest:
         self._spacing_ns = int(round(spacing * 1e9))
         self._window_ns = int(round(window * 1e9))
         capacity = int(math.ceil(window / spacing)) + 2
-        self._onset_list: list[int] = []
+        #: onset stamps [ns] of the hypotheses alive, oldest first (the first ``_count``)
+        self._onsets = np.zeros(capacity, dtype=np.int64)
         self._count = 0
         self._c = np.zeros((capacity, dim, n))
         self._b0 = np.zeros((capacity, n))
@@ -156,7 +157,6 @@ class WrenchStepTest:
         if settle_from_ns is not None:
             self._settle_until = settle_from_ns + self._window_ns
         self._count = 0
-        self._onset_list.clear()
         self._recent.clear()
         self._since = self._identity
         # nis_scale stays: it describes the sensors, not the hypotheses.
@@ -177,21 +177,21 @@ class WrenchStepTest:
         count = self._count
         expired = 0
         oldest = stamp_ns - self._window_ns
-        while expired < count and self._onset_list[expired] < oldest:
+        while expired < count and self._onsets[expired] < oldest:
             expired += 1
         if expired:
-            del self._onset_list[:expired]
             keep = slice(expired, count)
-            for array in (self._c, self._b0, self._j0, self._bound_inv, self._bounded):
+            for array in (self._onsets, self._c, self._b0, self._j0, self._bound_inv,
+                          self._bounded):
                 array[:count - expired] = array[keep]
             self._count = count = count - expired
         if self._settle_until is not None and stamp_ns < self._settle_until:
             return
-        if not count or stamp_ns - self._onset_list[-1] >= self._spacing_ns:
+        if not count or stamp_ns - self._onsets[count - 1] >= self._spacing_ns:
             if count:
                 self._kernels.fold(self._c, self._b0, self._j0, self._bound_inv,
                                    self._bounded, count, self._psi, self._omega, self._beta)
-            self._onset_list.append(stamp_ns)
+            self._onsets[count] = stamp_ns
             self._c[count] = self._e
             self._b0[count] = 0.0
             self._j0[count] = 0.0
@@ -237,6 +237,54 @@ class WrenchStepTest:
         weight = 1.0 if horizon <= 0.0 else min(1.0, self._dt / horizon)
         self.nis_scale += weight * (nis_total / m - self.nis_scale)
         return None
+
+    @property
+    def active(self) -> bool:
+        """Return whether the test runs (its significance is above 0)."""
+        return math.isfinite(self.threshold)
+
+    def compiled_state(self, m: int) -> tuple:
+        """
+        Return the state step_row.filter_step takes after the stamp (innovations of size m).
+
+        The last stamp (-1: none), the onsets and their arrays, Psi, Omega, beta, E,
+        the transition since the last measurement (and whether it is the identity),
+        whether measurements are kept, the window, spacing and settling, the outlier
+        NIS, the threshold, the NIS average and its elapsed time, NIS_TIME.
+        """
+        settle = self._settle_until
+        return (-1 if self._stamp is None else self._stamp, self._count, self._onsets,
+                self._c, self._b0, self._j0, self._bound_inv, self._bounded, self._score,
+                self._psi, self._omega, self._beta, self._e, self._since,
+                self._since is self._identity, bool(self._recent), self._window_ns,
+                self._spacing_ns, 0 if settle is None else settle, settle is not None,
+                self._outlier.get(m, math.inf), self.threshold, self.nis_scale,
+                self._elapsed, NIS_TIME)
+
+    def take_propagated(self, stamp_ns: int, dt: float, count: int, psi: np.ndarray,
+                        omega: np.ndarray, beta: np.ndarray, since: np.ndarray,
+                        since_identity: bool) -> None:
+        """Take the state after a :meth:`propagate` run compiled (step_row.test_propagate)."""
+        self._dt, self._stamp, self._count = dt, stamp_ns, count
+        self._psi, self._omega, self._beta = psi, omega, beta
+        self._since = self._identity if since_identity else since
+
+    def take_compiled(self, h: np.ndarray, s: np.ndarray, gain: np.ndarray, nu: np.ndarray,
+                      evidence: bool, nis_scale: float, elapsed: float, best: int,
+                      statistic: float, top: float,
+                      evaluated: int) -> Optional[StepDetection]:
+        """
+        Take an update whose absorb and evaluation ran compiled (step_row.filter_step).
+
+        The rest of :meth:`update` for it: the measurement kept for the pose-step
+        hypotheses, the NIS average, and the evaluation's outcome.
+        """
+        self._recent.append((self._since, h, s, gain, nu))
+        self._since = self._identity
+        self.nis_scale, self._elapsed = nis_scale, elapsed
+        if not evidence:
+            return None
+        return self._evaluated(best, statistic, top, evaluated)
 
     def _evaluated(self, best: int, statistic: float, top: float,
                    evaluated: int) -> Optional[StepDetection]:

@@ -45,6 +45,8 @@ def warm_up() -> None:
             pose = group.exp(np.full(n, 1e-3 * k))
             twist = None if k % 2 else np.full(n, 1e-3)
             flt.step(k * 10_000_000, lin, pose, twist, held)
+        # A row without a measurement (joint states between odometry samples).
+        flt.step(45_000_000, lin, None, None, held)
         flt.wrench_significance()
         smooth(group, flt.steps)
         flt._transition(pin.SE3.Identity(), flt.x, lin, 0.01,
