@@ -172,12 +172,16 @@ def minute_series(records: np.ndarray, cpu: np.ndarray, start_ns: int, end_ns: i
     """
     Per ``block_s`` from ``start_ns``: [start s, CPU us/sample, p99 ms, crba us, load].
 
+    Blocks without an output are left out (NaN has no place in the bench's JSON).
+
     A drift over the run shows as a trend in these rows, a change of the machine's
     load as a step in the load and crba columns at the same time.
     """
     rows = []
     for low in np.arange(start_ns, end_ns, block_s * NS):
         figures = window_figures(records, cpu, low, min(low + block_s * NS, end_ns), reference)
+        if not figures['outputs']:
+            continue  # the end's sliver (the window's end is a stamp, not a minute)
         rows.append([round((low - start_ns) * 1e-9, 1)]
                     + [round(figures.get(key, float('nan')), 3)
                        for key in ('cpu_us_per_sample', 'p99_ms', 'crba_us', 'load')])
