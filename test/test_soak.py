@@ -135,7 +135,8 @@ def test_cpu_per_sample_is_also_compared_in_crba_timed_beside_it():
     assert last['cpu_crba_per_sample'] == pytest.approx(50.0)
     assert 'crba_us' not in tenth_figures(records, cpu, start, end)['first']
     rows = minute_series(records, cpu, start, end + 1, reference, block_s=10.0)
-    assert len(rows) == 10  # not the 1 ns sliver at the end and [row[0] for row in rows] == pytest.approx(np.arange(0, 100, 10))
+    # ten rows, not an eleventh for the 1 ns sliver at the end
+    assert len(rows) == 10 and [row[0] for row in rows] == pytest.approx(np.arange(0, 100, 10))
     assert rows[0][1:] == pytest.approx([100.0, 1.0, 2.0, 2.0])
     assert rows[-1][1:] == pytest.approx([150.0, 1.0, 3.0, 4.0])
 
