@@ -39,6 +39,7 @@ The figure computations are ROS-free functions (tested in test/test_soak.py).
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import subprocess
@@ -331,16 +332,8 @@ def crba_reference(robot: Any, calls: int = 500) -> Callable[[], float]:
     the other core (caches, a shared physical core), so a tenth's CPU per sample
     is compared in this unit as well as in microseconds.
     """
-    import pinocchio as pin
-    model, data = robot.model, robot.model.createData()
-    q = robot.identity_configuration(np.linspace(-0.3, 0.3, robot.m)).copy()
-
-    def cost() -> float:
-        start = time.process_time()
-        for _ in range(calls):
-            pin.crba(model, data, q)
-        return (time.process_time() - start) / calls
-    return cost
+    from reduced_dynamics.bench import time_crba
+    return functools.partial(time_crba, robot, calls, time.process_time)
 
 
 def soak_warmup(seconds: float) -> float:
