@@ -52,9 +52,14 @@ def test_statistics_helpers():
 TINY_SECTIONS = [s for s in bench.SECTIONS if s not in ('node', 'fleet')]
 
 
-@pytest.fixture(scope='module')
+@pytest.fixture(scope='session')
 def tiny_report() -> bench.Report:
-    """Run every section but node and fleet once at tiny sizes; the tests below read it."""
+    """
+    Run every section but node and fleet once at tiny sizes; the tests below read it.
+
+    Session scope: pytest-xdist interleaves other modules' tests with this group's, and
+    a module-scoped fixture is torn down at each switch (CI ran it twice, ~400 s each).
+    """
     return bench.run_bench(_tiny(), TINY_SECTIONS)
 
 
