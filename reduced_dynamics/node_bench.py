@@ -241,6 +241,7 @@ def publish(args: argparse.Namespace) -> int:
                                 + [(k / base_rate, 1) for k in
                                    range(int(phase_seconds * base_rate) + 1)])
                 sent: list[int] = []
+                base_stamps: list[int] = []
                 base_sent = 0
                 start = time.monotonic()
                 for offset, kind in events:
@@ -257,11 +258,13 @@ def publish(args: argparse.Namespace) -> int:
                     else:
                         odom_pub.publish(inputs.odometry(stamp, t))
                         base_sent += measured
+                        base_stamps.append(stamp)
                 lateness = time.monotonic() - start - events[-1][0]
                 motion_time += phase_seconds + args.pause
                 phases.append({'repeat': repeat, 'target': name, 'joint_rate': joint_rate,
                                'base_rate': base_rate, 'joint_stamps': sent,
-                               'base_sent': base_sent, 'seconds': args.seconds,
+                               'base_sent': base_sent, 'base_stamps': base_stamps,
+                               'seconds': args.seconds,
                                'late_at_end_s': lateness})
                 time.sleep(args.pause)
     with open(args.out, 'w', encoding='utf-8') as stream:

@@ -37,6 +37,22 @@ def test_phase_figures_count_drops_and_latency():
     assert 1.0 < row['p99_ms'] <= 50.0
     empty = bench.node_phase_figures(sent, [])
     assert empty['drops'] == 100 and math.isnan(empty['p50_ms'])
+    assert 'wait_p99_ms' not in row
+
+
+def test_phase_figures_split_the_wait_for_the_bracketing_base_sample():
+    # Joint states at 1 kHz, base samples at 200 Hz sent just after every fifth joint
+    # state (the bench publisher's order): a joint state waits 0-4 ms for the base sample
+    # its row interpolates to. The node answers 0.5 ms after that sample.
+    ms = 1_000_000
+    sent = [ms * k for k in range(1, 1001)]
+    bases = [ms * k + 1000 for k in range(0, 1006, 5)]
+    ready = {s: next(b for b in bases if b >= s) for s in sent}
+    received = [(s, ready[s] + ms // 2) for s in sent]
+    row = bench.node_phase_figures(sent, received, bases)
+    assert math.isclose(row['wait_p99_ms'], 4.001) and math.isclose(row['wait_p50_ms'], 2.001)
+    assert math.isclose(row['ready_p99_ms'], 0.5) and math.isclose(row['ready_p50_ms'], 0.5)
+    assert row['p99_ms'] > 4.0  # the raw latency carries the wait
 
 
 def test_domain_id_is_its_own(monkeypatch):
@@ -58,7 +74,9 @@ def test_node_section_over_real_dds(tmp_path):
                      rates=(('joints 200 Hz + odom 100 Hz', 200.0, 100.0),), sweep=(50.0,))
     names = [f.name for f in report.figures]
     assert names == ['joints 200 Hz + odom 100 Hz: ' + n for n in
-                     ('joint states delivered/s', 'drops', 'latency p50', 'latency p99')] + \
+                     ('joint states delivered/s', 'drops', 'latency p50', 'latency p99',
+                      'wait for the bracketing base sample, p99',
+                      'latency p99 after the bracketing base sample')] + \
         ['sustained joint-state rate without drops (odom 200 Hz)']
     sweep = report.details['node']['sweep_drops']
     assert set(sweep) == {'relay', 'node'} and all(list(d) == ['50.0'] for d in sweep.values())
@@ -69,6 +87,9 @@ def test_node_section_over_real_dds(tmp_path):
         assert row['sent'] >= 90, row
         assert row['delivered'] > 0, (target, row)
         assert 0.0 < row['p50_ms'] <= row['p99_ms'], row
+        # The publisher's base samples bracket its joint states (10 ms apart at 100 Hz,
+        # more when the loaded machine delays the publisher's sleeps).
+        assert row['wait_p99_ms'] >= 0.0 and row['ready_p99_ms'] <= row['p99_ms']
     assert all(f.section == 'node' for f in report.figures)
 
 
@@ -86,7 +107,9 @@ def test_node_rows_carry_the_issue_19_targets(monkeypatch):
                 stamps = [int(k * 1e9 / rate) + len(out) * 10 ** 10 for k in range(50)]
                 lost = 1 if target == 'node' and rate >= 5000.0 else 0
                 records[output] += [(s, s + delay) for s in stamps[lost:]]
-                out.append({'target': target, 'joint_stamps': stamps, 'joint_rate': rate})
+                # A base sample 0.5 ms after every joint state: 0.5 ms of wait.
+                out.append({'target': target, 'joint_stamps': stamps, 'joint_rate': rate,
+                            'base_stamps': [s + 500_000 for s in stamps]})
         return out, records
     monkeypatch.setattr(bench, 'run_node_phases', phases)
     report = bench.Report(bench.machine_info(), {})
@@ -95,6 +118,11 @@ def test_node_rows_carry_the_issue_19_targets(monkeypatch):
     p99 = figures['joints 1 kHz + odom 200 Hz: latency p99']
     assert p99.target == '<= 2 ms' and p99.met is False and abs(p99.median - 3.0) < 1e-9
     assert figures['joints 1 kHz + odom 1 kHz: latency p99'].target == ''
+    after = figures['joints 1 kHz + odom 200 Hz: latency p99 after the bracketing base sample']
+    assert after.target == '<= 2 ms' and after.met is False
+    assert math.isclose(after.median, 2.5)  # 3 ms after the joint state, 2.5 after its base
+    assert math.isclose(figures['joints 1 kHz + odom 200 Hz: wait for the bracketing base '
+                                'sample, p99'].median, 0.5)
     sustained = figures['sustained joint-state rate without drops (odom 200 Hz)']
     assert sustained.median == 2000.0 and sustained.baseline_median == 5000.0
     assert sustained.target == '>= 5000 Hz' and sustained.met is False
