@@ -70,8 +70,6 @@ EXCESS_SAMPLES = 2000
 #: statistic is above the chi2_n median), and updates between its inflation's updates.
 CALIBRATION_MEMORY = 600.0
 CALIBRATION_EVERY = 256
-#: the filtered test's products when no window's change was formed
-_NO_PRODUCTS = np.zeros(0)
 
 
 def window_bank(shortest: float = SHORTEST, longest: float = LONGEST,
@@ -138,6 +136,14 @@ class MultiScaleTest:
         self.inflation = np.ones((2, len(self.windows)))
         self._median = float(chi2.isf(0.5, n))
         self._updates = 0
+        # The compiled update's arrays (core/bank_step.py): each window's ring row, the
+        # Cholesky work space, and the block bank's grid (stride [ns], last slot, quiet
+        # updates since its last evaluation).
+        self._rows = np.full(len(self.windows), -1, dtype=np.int64)
+        self._scratch = np.zeros((n + 2, n))
+        self._grid = np.zeros((3, len(self.windows)), dtype=np.int64)
+        self._grid[0] = np.maximum(1, self._lags_ns // bank_step.GRID)
+        self._grid[1] = -1
         #: whether no event is open (the detector sets it): only then is the null learnt
         self.quiet = True
 
@@ -205,7 +211,7 @@ class MultiScaleTest:
             # T ~ lambda chi2_n above the median a fraction p of the time: lambda =
             # median / isf(p). Never below 1 (never looser than the noise model).
             p = np.clip(self._above, 0.5, 1.0 - 1e-3)
-            self.inflation = np.maximum(1.0, self._median / chdtri(self.n, p))
+            self.inflation[:] = np.maximum(1.0, self._median / chdtri(self.n, p))
         # Both banks (the block test's as MomentumBlocks.update, then calibrated).
         found, best = self._filtered(stamp_ns, mu, cov, wanted)
         if not self.blocks.active or self._period is None:
@@ -232,8 +238,7 @@ class MultiScaleTest:
 
         Return the filtered test's detection (or None; None too when not ``wanted``:
         the caller would drop it) and the block test's best window (-1: none),
-        calibrated: two compiled calls (core/bank_step.py) with numpy's einsum
-        between them.
+        calibrated: one compiled call (core/bank_step.update) on preallocated arrays.
         """
         if self._end > self._start:
             dt = (stamp_ns - int(self._stamps[self._end - 1])) * 1e-9
@@ -254,27 +259,26 @@ class MultiScaleTest:
         measured = self.blocks
         # MomentumBlocks.update's conditions: it runs with a twist measured, and tests
         # from four samples with its excess noise known.
-        ready = measured.active and measured._end >= 4 and measured.ready
+        ready = measured.active and measured._end >= 4 and \
+            measured._differences >= EXCESS_MINIMUM
         first = 0
         if ready:
             first = int(measured._stamps[0])
             first = first if floor is None else max(floor, first)
-        # One compiled call: the sample stored, each window's ring row, d_L and
-        # V_L^-1 d_L (core/impulse.py); then the block test's statistics.
-        formed, rows, d, solved, covered = bank_step.changes(
+        # _calibration, inlined (called per sample).
+        learn = self.quiet
+        rate = min(1.0, self._period / self.calibration_memory) if learn else 0.0
+        # One compiled call: the sample stored, both banks' statistics, calibrated.
+        best, value, block_best = bank_step.update(
             self._stamps, self._mu, self._cov, self._start, self._end, self._lags_ns,
             stamp_ns, 0 if floor is None else floor, floor is not None, mu, cov,
-            measured.active, ready, *measured._arrays(), measured._common, measured._stamps,
-            measured._end, measured._lags_ns, first, measured.mass, measured.linear,
-            measured.statistics)
+            self._rows, self.statistics, self._above, self.inflation, self._scratch,
+            self._median, rate, learn, measured.active, ready, *measured._arrays(),
+            measured._common, measured._stamps, measured._end, measured._lags_ns, first,
+            measured.mass, measured.linear, measured.statistics, self._grid)
         self._end += 1
-        rate, learn = self._calibration()
-        products = np.einsum('ij,ij->i', d, solved) if formed and len(d) else _NO_PRODUCTS
-        best, value, block_best = bank_step.calibrated(
-            rows, products, self.statistics, self._above[0], self.inflation[0],
-            self._median, rate, learn, measured.statistics, self._above[1],
-            self.inflation[1], covered)
-        if not wanted or not len(products) or not value > self.threshold:
+        rows = self._rows
+        if not wanted or best < 0 or not value > self.threshold:
             return None, block_best
         covered = rows >= 0
         rows = rows[covered]
