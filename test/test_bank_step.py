@@ -92,8 +92,8 @@ def test_the_block_bank_is_evaluated_on_its_grid_and_held_between(n, d, monkeypa
     evaluations = np.zeros(len(test.windows), dtype=int)
     covered_updates = np.zeros(len(test.windows), dtype=int)
     singular_seen = 0
-    for stamp, mu, cov, measured, wanted, quiet, reset, singular in _inputs(n, d, 8.0, 100.0,
-                                                                           n):
+    inputs = _inputs(n, d, 8.0, 100.0, n)
+    for stamp, mu, cov, measured, wanted, quiet, reset, singular in inputs:
         test.quiet = quiet
         if reset:
             test.reset(stamp - 10 ** 8)
