@@ -37,7 +37,7 @@ import math
 import numpy as np
 from numba import njit
 
-from reduced_dynamics.estimator.core.blocks import window_statistics
+from reduced_dynamics.estimator.core.blocks import add_sample, window_statistics
 
 
 #: Evaluations of a block window per its length: window L is evaluated on a grid of
@@ -159,7 +159,9 @@ def update(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray, start:
     is learnt at evaluations only, at ``rate`` times the updates since the last one
     (the same memory in seconds as learning at every update). A window the floor or
     the data leave uncovered is 0 and evaluated as soon as it is covered again. The
-    blocks' best: the largest calibrated statistic (-1: none covered).
+    blocks' best: the largest calibrated statistic (-1: none covered). The block test
+    runs when ``blocks_on`` (a twist measured), ``blocks_ready`` (its excess noise
+    known) and it holds four samples (MomentumBlocks.update's conditions).
     ``above``, ``inflation`` (2, windows): the filtered bank's row, the blocks'.
     ``scratch`` (n + 2, n): the Cholesky factor, then two work vectors.
     """
@@ -187,7 +189,7 @@ def update(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray, start:
     block_best = -1
     if not blocks_on:
         return best, value, block_best
-    if not blocks_ready:
+    if not (blocks_ready and block_end >= 4):
         block_statistics[:] = 0.0
         grid[1] = -1
         return best, value, block_best
@@ -219,3 +221,42 @@ def update(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray, start:
                     or math.isnan(block_statistics[w]))):
                 block_best = w
     return best, value, block_best
+
+
+@njit(cache=True)
+def update_with_sample(raw: np.ndarray, sample_mu: np.ndarray, sample_cov: np.ndarray,
+                       last_mu: np.ndarray, last_cov: np.ndarray, divisor: float,
+                       excess: np.ndarray, position_cov: np.ndarray, common_sample: np.ndarray,
+                       sample_stamp: int, k: int, t: float, centre: np.ndarray,
+                       with_positions: bool, stamps: np.ndarray, mu_ring: np.ndarray,
+                       cov_ring: np.ndarray, start: int, end: int, lags: np.ndarray,
+                       stamp_ns: int, floor_ns: int, has_floor: bool, mu: np.ndarray,
+                       cov: np.ndarray, rows: np.ndarray, statistics: np.ndarray,
+                       above: np.ndarray, inflation: np.ndarray, scratch: np.ndarray,
+                       median: float, rate: float, learn: bool, blocks_ready: bool,
+                       info: np.ndarray, score: np.ndarray, s0: np.ndarray, s1: np.ndarray,
+                       s2: np.ndarray, y0: np.ndarray, t1: np.ndarray, counts: np.ndarray,
+                       common: np.ndarray, block_stamps: np.ndarray, block_lags: np.ndarray,
+                       first: int, mass: float, linear: np.ndarray,
+                       block_statistics: np.ndarray, grid: np.ndarray) -> tuple:
+    """
+    Take one measured momentum into block row ``k`` (:func:`.blocks.add_sample`), then :func:`update`.
+
+    The update's common case (one twist per update, MomentumBlocks._add_compiled's
+    conditions) in one call. Returns (whether the sample was added (False: its
+    covariance singular, as add_sample raised), then :func:`update`'s three values).
+    """
+    added = True
+    try:
+        add_sample(raw, sample_mu, sample_cov, last_mu, last_cov, divisor, excess,
+                   position_cov, info, score, common, common_sample, block_stamps,
+                   sample_stamp, k, s0, s1, s2, y0, t1, counts, t, centre, with_positions)
+    except Exception:  # noqa: B902 numba catches no narrower class (a LinAlgError here)
+        added = False
+    block_end = k + 1 if added else k
+    best, value, block_best = update(
+        stamps, mu_ring, cov_ring, start, end, lags, stamp_ns, floor_ns, has_floor, mu, cov,
+        rows, statistics, above, inflation, scratch, median, rate, learn, True,
+        blocks_ready, info, score, s0, s1, s2, y0, t1, counts, common, block_stamps,
+        block_end, block_lags, first, mass, linear, block_statistics, grid)
+    return added, best, value, block_best
