@@ -140,7 +140,7 @@ class MultiScaleTest:
         # Cholesky work space, and the block bank's grid (stride [ns], last slot, quiet
         # updates since its last evaluation).
         self._rows = np.full(len(self.windows), -1, dtype=np.int64)
-        self._scratch = np.zeros((n + 2, n))
+        self._scratch = np.zeros((14, n, n))
         self._grid = np.zeros((3, len(self.windows)), dtype=np.int64)
         self._grid[0] = np.maximum(1, self._lags_ns // bank_step.GRID)
         self._grid[1] = -1

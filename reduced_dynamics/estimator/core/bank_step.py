@@ -37,7 +37,7 @@ import math
 import numpy as np
 from numba import njit
 
-from reduced_dynamics.estimator.core.blocks import add_sample, window_statistics
+from reduced_dynamics.estimator.core.blocks import add_sample
 
 
 #: Evaluations of a block window per its length: window L is evaluated on a grid of
@@ -119,18 +119,148 @@ def _filtered_bank(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray
 
 
 @njit(cache=True)
+def _cholesky(a: np.ndarray, out: np.ndarray) -> bool:
+    """Write the lower Cholesky factor of ``a`` into ``out``; False: ``a`` not positive."""
+    n = a.shape[0]
+    for i in range(n):
+        for j in range(i + 1):
+            s = a[i, j]
+            for k in range(j):
+                s -= out[i, k] * out[j, k]
+            if i == j:
+                if not s > 0.0:
+                    return False
+                out[i, i] = math.sqrt(s)
+            else:
+                out[i, j] = s / out[j, j]
+        for j in range(i + 1, n):
+            out[i, j] = 0.0
+    return True
+
+
+@njit(cache=True)
+def _cholesky_solve(factor: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """Write ``a^-1 b`` (``factor``: a's lower Cholesky factor) into ``out`` (may be ``b``)."""
+    n = b.shape[0]
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= factor[i, k] * out[k]
+        out[i] = s / factor[i, i]
+    for i in range(n - 1, -1, -1):
+        s = out[i]
+        for k in range(i + 1, n):
+            s -= factor[k, i] * out[k]
+        out[i] = s / factor[i, i]
+
+
+@njit(cache=True)
+def _block(info: np.ndarray, score: np.ndarray, s0: np.ndarray, s1: np.ndarray,
+           s2: np.ndarray, y0: np.ndarray, t1: np.ndarray, counts: np.ndarray, lo: int,
+           hi: int, mass: float, linear: np.ndarray, cov: np.ndarray, mean: np.ndarray,
+           work: np.ndarray) -> bool:
+    """
+    Write the block (lo, hi]'s mean momentum and covariance (:func:`.blocks.block_mean`).
+
+    The same algebra by Cholesky factors on ``work`` ((6, n, n) scratch), no allocation:
+    the slope's information a2 - a1 a0^-1 a1 and score b1 - a1 a0^-1 b0 (a1 and a0
+    symmetric), then the inverse of the information. False: a factor not positive.
+    """
+    n = mean.shape[0]
+    lam, factor, inverse = work[0], work[1], work[2]
+    for i in range(n):
+        mean[i] = score[hi, i] - (score[lo, i] if lo >= 0 else 0.0)
+        for j in range(n):
+            lam[i, j] = info[hi, i, j] - (info[lo, i, j] if lo >= 0 else 0.0)
+    d = linear.shape[0]
+    count = counts[hi] - (counts[lo] if lo >= 0 else 0) if d else 0
+    if d and mass > 0.0 and count >= 2:
+        a0, a1, x = work[3][:d, :d], work[4][:d, :d], work[5][:d, :d]
+        chol0 = inverse[:d, :d]
+        b0, b1 = factor[0, :d], factor[1, :d]
+        for i in range(d):
+            b0[i] = y0[hi, i] - (y0[lo, i] if lo >= 0 else 0.0)
+            b1[i] = t1[hi, i] - (t1[lo, i] if lo >= 0 else 0.0)
+            for j in range(d):
+                a0[i, j] = s0[hi, i, j] - (s0[lo, i, j] if lo >= 0 else 0.0)
+                a1[i, j] = s1[hi, i, j] - (s1[lo, i, j] if lo >= 0 else 0.0)
+        if not _cholesky(a0, chol0):
+            return False
+        for j in range(d):
+            # x = a0^-1 a1, column by column; a1 a0^-1 = x^T.
+            for i in range(d):
+                x[i, j] = a1[i, j]
+            _cholesky_solve(chol0, x[:, j], x[:, j])
+        for i in range(d):
+            residual = b1[i]
+            for k in range(d):
+                residual -= x[k, i] * b0[k]
+            mean[linear[i]] += residual / mass
+        for i in range(d):
+            for j in range(d):
+                schur_ij = s2[hi, i, j] - (s2[lo, i, j] if lo >= 0 else 0.0)
+                schur_ji = s2[hi, j, i] - (s2[lo, j, i] if lo >= 0 else 0.0)
+                for k in range(d):
+                    schur_ij -= a1[i, k] * x[k, j]
+                    schur_ji -= a1[j, k] * x[k, i]
+                lam[linear[i], linear[j]] += 0.5 * (schur_ij + schur_ji) / (mass * mass)
+    if not _cholesky(lam, factor):
+        return False
+    _cholesky_solve(factor, mean, mean)
+    # cov = lam^-1 = L^-T L^-1: the inverse factor, then its product.
+    for j in range(n):
+        for i in range(n):
+            if i < j:
+                inverse[i, j] = 0.0
+                continue
+            s = 1.0 if i == j else 0.0
+            for k in range(j, i):
+                s -= factor[i, k] * inverse[k, j]
+            inverse[i, j] = s / factor[i, i]
+    for i in range(n):
+        for j in range(i + 1):
+            s = 0.0
+            for k in range(i, n):
+                s += inverse[k, i] * inverse[k, j]
+            cov[i, j] = s
+            cov[j, i] = s
+    return True
+
+
+@njit(cache=True)
 def _block_window(info: np.ndarray, score: np.ndarray, s0: np.ndarray, s1: np.ndarray,
                   s2: np.ndarray, y0: np.ndarray, t1: np.ndarray, counts: np.ndarray,
                   common: np.ndarray, stamps: np.ndarray, end: int, lag: int,
-                  stamp_ns: int, mass: float, linear: np.ndarray) -> float:
-    """Return window ``lag``'s block T_L (:func:`.blocks.bank_statistics`), 0: a block empty."""
-    index = np.empty((1, 4), dtype=np.int64)
-    for j in range(4):
-        index[0, j] = np.searchsorted(stamps[:end], stamp_ns - lag * (3 - j), 'right') - 1
-    if not (index[0, 1] > index[0, 0] and index[0, 3] > index[0, 2]):
+                  stamp_ns: int, mass: float, linear: np.ndarray,
+                  work: np.ndarray) -> float:
+    """
+    Return window ``lag``'s block T_L (:func:`.blocks.window_statistics`); 0: not formed.
+
+    Before (t-3L, t-2L] against after (t-L, t] (prefix rows up to ``end``); 0 when a
+    block is empty or an information not positive. ``work``: (12, n, n) scratch.
+    """
+    rows = stamps[:end]
+    r0 = np.searchsorted(rows, stamp_ns - 3 * lag, 'right') - 1
+    r1 = np.searchsorted(rows, stamp_ns - 2 * lag, 'right') - 1
+    r2 = np.searchsorted(rows, stamp_ns - lag, 'right') - 1
+    r3 = np.searchsorted(rows, stamp_ns, 'right') - 1
+    if not (r1 > r0 and r3 > r2):
         return 0.0
-    return window_statistics(info, score, s0, s1, s2, y0, t1, counts, common, index, mass,
-                             linear)[0]
+    n = info.shape[1]
+    before_cov, after_cov, v = work[6], work[7], work[8]
+    before, after = work[9][0], work[9][1]
+    if not _block(info, score, s0, s1, s2, y0, t1, counts, r0, r1, mass, linear,
+                  before_cov, before, work[:6]):
+        return 0.0
+    if not _block(info, score, s0, s1, s2, y0, t1, counts, r2, r3, mass, linear,
+                  after_cov, after, work[:6]):
+        return 0.0
+    for i in range(n):
+        after[i] -= before[i]
+        for j in range(n):
+            v[i, j] = before_cov[i, j] + common[r1, i, j] + after_cov[i, j]
+    value = quadratic_form(v, common[r3], after, work[10], work[11][0])
+    return 0.0 if math.isnan(value) else value
 
 
 @njit(cache=True)
@@ -163,14 +293,13 @@ def update(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray, start:
     runs when ``blocks_on`` (a twist measured), ``blocks_ready`` (its excess noise
     known) and it holds four samples (MomentumBlocks.update's conditions).
     ``above``, ``inflation`` (2, windows): the filtered bank's row, the blocks'.
-    ``scratch`` (n + 2, n): the Cholesky factor, then two work vectors.
+    ``scratch`` (14, n, n): the block windows' work space (12), the filtered bank's
+    Cholesky factor, its two work vectors.
     """
-    n = mu.shape[0]
-    work = scratch[:n]
     count = lags.shape[0]
     covered = _filtered_bank(stamps, mu_ring, cov_ring, start, end, lags, stamp_ns,
-                             floor_ns, has_floor, mu, cov, rows, statistics, work,
-                             scratch[n], scratch[n + 1])
+                             floor_ns, has_floor, mu, cov, rows, statistics, scratch[12],
+                             scratch[13][0], scratch[13][1])
     best, value = -1, 0.0
     if covered > 0:
         for w in range(count):
@@ -205,11 +334,9 @@ def update(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray, start:
         slot = stamp_ns // grid[0, w]
         if slot != grid[1, w]:
             grid[1, w] = slot
-            try:
-                raw = _block_window(info, score, s0, s1, s2, y0, t1, counts, common,
-                                    block_stamps, block_end, lag, stamp_ns, mass, linear)
-            except Exception:  # noqa: B902 numba catches no narrower class (LinAlgError)
-                raw = 0.0
+            raw = _block_window(info, score, s0, s1, s2, y0, t1, counts, common,
+                                block_stamps, block_end, lag, stamp_ns, mass, linear,
+                                scratch[:12])
             if learn and raw > 0.0 and grid[2, w] > 0:
                 step = min(1.0, rate * grid[2, w])
                 above[1, w] += step * ((1.0 if raw > median else 0.0) - above[1, w])
