@@ -367,7 +367,7 @@ def update_with_sample(raw: np.ndarray, sample_mu: np.ndarray, sample_cov: np.nd
                        first: int, mass: float, linear: np.ndarray,
                        block_statistics: np.ndarray, grid: np.ndarray) -> tuple:
     """
-    Take one measured momentum into block row ``k`` (:func:`.blocks.add_sample`), then :func:`update`.
+    Take one measured momentum into block row ``k`` (blocks.add_sample), then :func:`update`.
 
     The update's common case (one twist per update, MomentumBlocks._add_compiled's
     conditions) in one call. Returns (whether the sample was added (False: its
