@@ -13,106 +13,36 @@
 # limitations under the License.
 
 """
-The multi-scale test's two banks per update in two compiled calls (core/bank_step.py).
+The multi-scale test's two banks per update in one compiled call (core/bank_step.update).
 
-:class:`_Separate` is MultiScaleTest's update as it was (main 0fcd9f2): the filtered
-test's store_window_changes and calibrated_best, then MomentumBlocks.update
-(bank_statistics), calibrate and np.argmax, each dispatched from Python. The fused
-update must give the same detections, statistics and calibration, bit for bit,
-through pushes, resets, events (not wanted), an unquiet null and singular
-covariances.
+The filtered bank: every window at every update (its T_L equal to the LU solve's to
+rounding: test_multiscale_kernels.py). The block bank: window L evaluated on a grid
+of stride L / GRID, its statistic what the block kernel (core/blocks.bank_statistics,
+the per-update code before: LAPACK inverses) gives at an evaluation to rounding,
+held between them, 0 while uncovered; its null learnt at evaluations with the same
+memory in seconds. Through pushes, resets, events (not wanted), an unquiet null and
+singular covariances.
 """
 
 import math
-from typing import Optional
 
 import numpy as np
 import pytest
-from reduced_dynamics.chi_square import chi2
-from scipy.special import chdtri
 
 from reduced_dynamics.estimator import multiscale
-from reduced_dynamics.estimator.core import impulse
-from reduced_dynamics.estimator.multiscale import (CALIBRATION_EVERY, ImpulseDetection,
-                                                   MultiScaleTest, PERIOD_TOLERANCE)
+from reduced_dynamics.estimator.core import bank_step, blocks
+from reduced_dynamics.estimator.multiscale import MultiScaleTest
 
 
-class _Separate(MultiScaleTest):
-    """MultiScaleTest.update and _filtered as they were: five dispatched calls."""
-
-    def update(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
-               measured: Optional[list] = None,
-               wanted: bool = True) -> Optional[ImpulseDetection]:
-        if not self.active:
-            return None
-        if measured:
-            if not self.blocks.active:
-                self._threshold_period = 0.0
-            for item in measured:
-                self.blocks.add(*item)
-        self._updates += 1
-        if not self._updates % CALIBRATION_EVERY:
-            p = np.clip(self._above, 0.5, 1.0 - 1e-3)
-            self.inflation = np.maximum(1.0, self._median / chdtri(self.n, p))
-        found = self._filtered_separately(stamp_ns, mu, cov)
-        if not self.blocks.active or self._period is None:
-            return found if wanted else None
-        best = self.blocks.update(stamp_ns, self.floor_ns)
-        if best >= 0:
-            self.blocks.statistics[:] = self._calibrate(1, self.blocks.statistics)
-            best = int(np.argmax(self.blocks.statistics))
-        if not wanted:
-            return None
-        if best < 0 or not self.blocks.statistics[best] > self.threshold:
-            return found
-        block = self.blocks.locate(stamp_ns, best, self.floor_ns)
-        return ImpulseDetection(block.start_ns, block.window, block.statistic,
-                                block.mu_before, block.cov_before, True)
-
-    def _filtered_separately(self, stamp_ns: int, mu: np.ndarray,
-                             cov: np.ndarray) -> Optional[ImpulseDetection]:
-        if self._end > self._start:
-            dt = (stamp_ns - int(self._stamps[self._end - 1])) * 1e-9
-            if dt > 0.0:
-                self._period = dt if self._period is None else \
-                    self._period + 0.01 * (dt - self._period)
-        if self._period is None:
-            self._store(stamp_ns, mu, cov)
-            return None
-        if self._end == self._capacity:
-            self._make_room(stamp_ns)
-        if abs(self._period - self._threshold_period) > \
-                PERIOD_TOLERANCE * self._threshold_period or not self._threshold_period:
-            self._threshold_period = self._period
-            self.threshold = float(chi2.isf(self.significance(self._period), self.n))
-        floor = self.floor_ns
-        try:
-            rows, d, solved = impulse.store_window_changes(
-                self._stamps, self._mu, self._cov, self._start, self._end, self._lags_ns,
-                stamp_ns, 0 if floor is None else floor, floor is not None, mu, cov)
-        except np.linalg.LinAlgError:
-            self._end += 1
-            self.statistics[:] = 0.0
-            return None
-        self._end += 1
-        if not len(d):
-            self.statistics[:] = 0.0
-            return None
-        rate, learn = self._calibration()
-        best, value = impulse.calibrated_best(
-            rows, np.einsum('ij,ij->i', d, solved), self.statistics, self._above[0],
-            self.inflation[0], self._median, rate, learn)
-        if not value > self.threshold:
-            return None
-        covered = rows >= 0
-        rows = rows[covered]
-        values = self.statistics[covered]
-        knee = int(np.flatnonzero(values >= 0.5 * values[best])[0])
-        longest = int(np.flatnonzero(values > self.threshold)[-1])
-        return ImpulseDetection(int(self._stamps[rows[knee]]),
-                                float(self.windows[np.flatnonzero(covered)[best]]),
-                                float(values[best]), self._mu[rows[longest]].copy(),
-                                self._cov[rows[longest]].copy())
+def _full_block_statistics(test: MultiScaleTest, stamp_ns: int) -> np.ndarray:
+    """Return every block window's raw T_L at ``stamp_ns`` (0: not covered)."""
+    measured = test.blocks
+    first = int(measured._stamps[0])
+    first = first if test.floor_ns is None else max(test.floor_ns, first)
+    found, values = blocks.bank_statistics(
+        *measured._arrays(), measured._common, measured._stamps, measured._end,
+        measured._lags_ns, stamp_ns, first, measured.mass, measured.linear)
+    return values if found else np.zeros(len(test.windows))
 
 
 def _inputs(n: int, d: int, seconds: float, rate: float, seed: int) -> list:
@@ -154,37 +84,83 @@ def _state(test: MultiScaleTest) -> list:
 
 
 @pytest.mark.parametrize('n,d', [(6, 3), (3, 2), (3, 0)])
-def test_the_fused_update_equals_the_separate_calls(n, d, monkeypatch) -> None:
-    """Detections of both banks, statistics, calibration and rings: the same bits."""
+def test_the_block_bank_is_evaluated_on_its_grid_and_held_between(n, d, monkeypatch) -> None:
+    """At an evaluation the block kernel's T_L (to rounding), between them the last one."""
     monkeypatch.setattr(multiscale, 'EXCESS_MINIMUM', 50)
-    fused, separate = MultiScaleTest(n, 50.0), _Separate(n, 50.0)
+    test = MultiScaleTest(n, 50.0)
     found = {'filtered': 0, 'blocks': 0}
-    formed = multiscale.bank_step.changes
-    unformed = []
-
-    def changes(*args):
-        out = formed(*args)
-        unformed.append(not out[0])
-        return out
-    monkeypatch.setattr(multiscale.bank_step, 'changes', changes)
-    for stamp, mu, cov, measured, wanted, quiet, reset, _ in _inputs(n, d, 8.0, 100.0, n):
-        for test in (fused, separate):
-            test.quiet = quiet
-            if reset:
-                test.reset(stamp - 10 ** 8)
-        mine = fused.update(stamp, mu, cov, measured, wanted)
-        expected = separate.update(stamp, mu, cov, measured, wanted)
-        assert (mine is None) == (expected is None), stamp
-        if expected is not None:
-            found['blocks' if expected.measured else 'filtered'] += 1
-            for a, b in zip(mine, expected):
-                np.testing.assert_array_equal(a, b)
-        for a, b in zip(_state(fused), _state(separate)):
-            np.testing.assert_array_equal(a, b)
+    evaluations = np.zeros(len(test.windows), dtype=int)
+    covered_updates = np.zeros(len(test.windows), dtype=int)
+    singular_seen = 0
+    inputs = _inputs(n, d, 8.0, 100.0, n)
+    for stamp, mu, cov, measured, wanted, quiet, reset, singular in inputs:
+        test.quiet = quiet
+        if reset:
+            test.reset(stamp - 10 ** 8)
+        slots = test._grid[1].copy()
+        held = test.blocks.statistics.copy()
+        out = test.update(stamp, mu, cov, measured, wanted)
+        inflation = test.inflation[1]  # recomputed before the banks every 256 updates
+        if out is not None:
+            found['blocks' if out.measured else 'filtered'] += 1
+        if singular:
+            # V_L = 0 for every window: not positive, no filtered statistic.
+            assert not test.statistics.any()
+            singular_seen += 1
+        if not (test.blocks.active and test.blocks.ready and test.blocks._end >= 4):
+            continue
+        full = _full_block_statistics(test, stamp)
+        evaluated = (test._grid[1] != slots) & (test._grid[1] >= 0)
+        live = test._grid[1] >= 0
+        if out is not None and out.measured:
+            # A detection reads every window at its sample (then located).
+            np.testing.assert_array_equal(test.blocks.statistics, full / inflation)  # numpy's
+            evaluations += evaluated
+            covered_updates += live
+            continue
+        np.testing.assert_allclose(test.blocks.statistics[evaluated],
+                                   full[evaluated] / inflation[evaluated], rtol=1e-9, atol=0.0)
+        np.testing.assert_array_equal(test.blocks.statistics[live & ~evaluated],
+                                      held[live & ~evaluated])
+        assert not test.blocks.statistics[~live].any()
+        evaluations += evaluated
+        covered_updates += live
     assert found['filtered'] and found['blocks'], found
-    assert sum(unformed) >= 2  # the singular V_L, caught as the Python caught it
-    assert fused.blocks.active and fused.blocks.ready
-    assert math.isfinite(fused.threshold)
+    assert singular_seen == 2
+    # Each window about once per stride of L / GRID (at 100 Hz the short ones every update).
+    stride_updates = np.maximum(1.0, test.windows / bank_step.GRID * 100.0)
+    covered = covered_updates > 0
+    assert covered.sum() >= 8
+    expected = covered_updates[covered] / stride_updates[covered]
+    assert np.all(evaluations[covered] <= expected + 12)
+    assert np.all(evaluations[covered] >= 0.5 * expected)
+    slow = covered & (stride_updates >= 4)
+    assert slow.any() and np.all(evaluations[slow] <= 0.5 * covered_updates[slow])
+    assert math.isfinite(test.threshold)
+
+
+def test_the_grid_learns_the_block_null_at_the_per_update_rate(monkeypatch) -> None:
+    """The learnt fraction above the median on the grid tracks learning at every update."""
+    monkeypatch.setattr(multiscale, 'EXCESS_MINIMUM', 50)
+    test = MultiScaleTest(6, 50.0, calibration_memory=1.0)
+    reference = np.full(len(test.windows), 0.5)
+    for stamp, mu, cov, measured, _, _, _, _ in _inputs(6, 3, 8.0, 100.0, 11):
+        if stamp > 10 ** 9 + 1.9e9:
+            break  # before the first push: no wrench, the null
+        test.quiet = True
+        test.update(stamp, mu, cov, measured, False)
+        if not (test.blocks.active and test.blocks.ready and test.blocks._end >= 4) or \
+                test._period is None:
+            continue
+        raw = _full_block_statistics(test, stamp)
+        rate = min(1.0, test._period / test.calibration_memory)
+        learn = raw > 0.0
+        reference[learn] += rate * ((raw[learn] > test._median) - reference[learn])
+    learnt = test._grid[1] >= 0
+    assert learnt.sum() >= 5
+    # Both moved off 0.5 by the same amount, to the sampling of the grid.
+    np.testing.assert_allclose(test._above[1][learnt], reference[learnt], atol=0.08)
+    assert np.abs(reference[learnt] - 0.5).max() > 0.2
 
 
 def test_no_detection_is_formed_when_the_caller_has_no_use_for_it(monkeypatch) -> None:

@@ -130,3 +130,22 @@ def test_replay_rows_against_rosbags(tiny_report):
         assert figure.baseline_median == generic.median
         assert figure.ratio is not None and 0.0 < figure.ratio < 10.0
         assert target in figure.target and figure.met is (figure.ratio >= float(target[3:]))
+
+
+def test_multiscale_row_times_the_updates_after_every_window_is_covered():
+    """A test updating at half the sample rate: the row times its late calls, not the epoch."""
+    n = 6
+    step_ns = 2_000_000  # 500 Hz: fewer calls than 1 kHz samples in the same span
+    steady = bench.multiscale_steady_ns()
+    count = steady // step_ns + 50
+    rng = np.random.default_rng(0)
+    calls = [('update', 10**9 + k * step_ns, 0.01 * rng.standard_normal(n), np.eye(n) * 1e-4,
+              None, True, True) for k in range(count)]
+    calls.insert(100, ('reset', calls[99][1]))
+    ticks = iter(range(10**6))
+    seconds, timed = bench.time_multiscale_calls(n, calls, clock=lambda: float(next(ticks)))
+    # The 50 calls from every window covered on, one clock tick between start and end.
+    assert timed == 50
+    assert seconds == 1.0 / 50
+    with pytest.raises(ValueError, match='cover'):
+        bench.time_multiscale_calls(n, calls[:1000])

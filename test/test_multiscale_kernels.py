@@ -46,8 +46,13 @@ def _numpy_statistics(test: MultiScaleTest, stamp_ns: int, mu: np.ndarray,
     return statistics / test.inflation[0]
 
 
-def test_the_compiled_window_statistics_equal_the_numpy_ones_bit_for_bit() -> None:
-    """Random momenta and covariances, a floor, events (not quiet), rate changes, ring wraps."""
+def test_the_compiled_window_statistics_equal_the_numpy_ones_to_rounding() -> None:
+    """
+    Random momenta and covariances, a floor, events (not quiet), rate changes, ring wraps.
+
+    The compiled T_L is a Cholesky factor's forward substitution (core/bank_step.py), the
+    numpy one an LU solve: equal to rounding, the learnt null the same.
+    """
     rng = np.random.default_rng(7)
     for n in (6, 3):
         test = MultiScaleTest(n, 1.0)
@@ -68,8 +73,8 @@ def test_the_compiled_window_statistics_equal_the_numpy_ones_bit_for_bit() -> No
             # The reference on the state the update computed with (this sample stored,
             # the period and the inflation as the update left them).
             expected = _numpy_statistics(test, stamp, mu, cov, above)
-            np.testing.assert_array_equal(test.statistics, expected)
-            np.testing.assert_array_equal(test._above[0], above)
+            np.testing.assert_allclose(test.statistics, expected, rtol=1e-10, atol=0.0)
+            np.testing.assert_allclose(test._above[0], above, rtol=1e-12, atol=0.0)
             compared += int(np.count_nonzero(expected))
         assert compared > 1000
 
@@ -252,7 +257,7 @@ def test_warm_up_loads_the_impulse_kernels_with_the_estimators_argument_types() 
             'from reduced_dynamics.robot.model import load_robot; '
             'from reduced_dynamics.bench import update_samples; '
             'from reduced_dynamics.estimator.pipeline import Estimator; '
-            'kernels = (s.changes, s.calibrated, i.calibrate, i.measured_momentum_se3); '
+            'kernels = (s.update, i.measured_momentum_se3); '
             'before = [len(k.signatures) for k in kernels]; '
             'robot = load_robot(); joints, bases = update_samples(robot, 300); '
             'e = Estimator(robot); '

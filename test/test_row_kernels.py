@@ -141,28 +141,33 @@ def test_the_event_windows_lookups_are_done_once_per_window_length() -> None:
 
 
 def test_a_measured_momentum_enters_the_block_test_in_one_compiled_call(bench_run) -> None:
-    """Per sample blocks.add_sample; the separate kernels only where add_sample cannot run."""
-    from reduced_dynamics.estimator.core import blocks
-    robot, messages = bench_run
-    calls = {'add_sample': 0, 'accumulate': 0, 'learn_excess': 0}
+    """
+    Per sample the measured momentum and both banks in one call (update_with_sample).
 
-    def counted(name):
-        function = getattr(blocks, name)
+    The separate kernels only where add_sample cannot run (MomentumBlocks.prepare).
+    """
+    from reduced_dynamics.estimator.core import bank_step, blocks
+    robot, messages = bench_run
+    calls = {'add_sample': 0, 'accumulate': 0, 'learn_excess': 0, 'update_with_sample': 0}
+
+    def counted(module, name):
+        function = getattr(module, name)
 
         def wrapper(*args):
             calls[name] += 1
             return function(*args)
-        return wrapper
+        return mock.patch.object(module, name, wrapper)
 
     estimator = _estimator(robot)
-    with mock.patch.object(blocks, 'add_sample', counted('add_sample')), \
-            mock.patch.object(blocks, 'accumulate', counted('accumulate')), \
-            mock.patch.object(blocks, 'learn_excess', counted('learn_excess')):
+    with counted(blocks, 'add_sample'), counted(blocks, 'accumulate'), \
+            counted(blocks, 'learn_excess'), counted(bank_step, 'update_with_sample'):
         estimator.add_samples(messages)
     # 400 measured momenta: the first (no difference yet), those where the excess
     # noise's eigen-decomposition is due (differences 1, 17, ..., 385 and 200: 26) and the
-    # one that finds the ring full (row 256: compacted) take the separate calls.
-    assert calls == {'add_sample': 400 - 1 - 27, 'accumulate': 1 + 27, 'learn_excess': 27}
+    # one that finds the ring full (row 256: compacted) take the separate calls; the
+    # others enter with the banks' update, one per row.
+    assert calls == {'add_sample': 0, 'accumulate': 1 + 27, 'learn_excess': 27,
+                     'update_with_sample': 400 - 1 - 27}
 
 
 def test_calibrated_best_equals_the_numpy_steps_it_replaces() -> None:
@@ -201,21 +206,21 @@ def test_calibrated_best_equals_the_numpy_steps_it_replaces() -> None:
         np.testing.assert_array_equal(value, values[best])
 
 
-def test_the_filtered_momentum_test_is_one_call_before_its_einsum(bench_run) -> None:
+def test_the_filtered_momentum_test_is_one_call_per_update() -> None:
     """
-    Per update: bank_step.changes and bank_step.calibrated, not the kernels they call.
+    Per update: bank_step.update, not the kernels it replaced.
 
-    (They were store_window_changes and calibrated_best from Python; the block test's
-    statistics and calibration joined them: core/bank_step.py, test_bank_step.py.)
+    (They were store_window_changes and calibrated_best from Python, then
+    bank_step.changes and calibrated with numpy's einsum between them.)
     """
     from reduced_dynamics.estimator.core import bank_step
     rng = np.random.default_rng(4)
     test = multiscale.MultiScaleTest(6, 1.0)
     calls = {'store_window_changes': 0, 'calibrated_best': 0, 'window_changes': 0,
-             'calibrate': 0, 'changes': 0, 'calibrated': 0}
+             'calibrate': 0, 'update': 0, 'update_with_sample': 0}
 
     def counted(name):
-        module = bank_step if name in ('changes', 'calibrated') else impulse
+        module = bank_step if name in ('update', 'update_with_sample') else impulse
         function = getattr(module, name)
 
         def wrapper(*args):
@@ -234,10 +239,10 @@ def test_the_filtered_momentum_test_is_one_call_before_its_einsum(bench_run) -> 
     finally:
         for patch in patches:
             patch.stop()
-    # The first update has no period yet (stored only); then each stores and computes in
-    # one call, and calibrates in one more (zeros until a window is covered: k >= 50).
+    # The first update has no period yet (stored only); then each stores, computes and
+    # calibrates in one call (zeros until a window is covered: k >= 50).
     assert calls == {'store_window_changes': 0, 'calibrated_best': 0, 'window_changes': 0,
-                     'calibrate': 0, 'changes': 299, 'calibrated': 299}
+                     'calibrate': 0, 'update': 299, 'update_with_sample': 0}
     assert test.statistics.any()
 
 

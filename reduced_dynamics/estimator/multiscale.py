@@ -70,8 +70,6 @@ EXCESS_SAMPLES = 2000
 #: statistic is above the chi2_n median), and updates between its inflation's updates.
 CALIBRATION_MEMORY = 600.0
 CALIBRATION_EVERY = 256
-#: the filtered test's products when no window's change was formed
-_NO_PRODUCTS = np.zeros(0)
 
 
 def window_bank(shortest: float = SHORTEST, longest: float = LONGEST,
@@ -138,6 +136,14 @@ class MultiScaleTest:
         self.inflation = np.ones((2, len(self.windows)))
         self._median = float(chi2.isf(0.5, n))
         self._updates = 0
+        # The compiled update's arrays (core/bank_step.py): each window's ring row, the
+        # Cholesky work space, and the block bank's grid (stride [ns], last slot, quiet
+        # updates since its last evaluation).
+        self._rows = np.full(len(self.windows), -1, dtype=np.int64)
+        self._scratch = np.zeros((14, n, n))
+        self._grid = np.zeros((3, len(self.windows)), dtype=np.int64)
+        self._grid[0] = np.maximum(1, self._lags_ns // bank_step.GRID)
+        self._grid[1] = -1
         #: whether no event is open (the detector sets it): only then is the null learnt
         self.quiet = True
 
@@ -195,19 +201,24 @@ class MultiScaleTest:
         """
         if not self.active:
             return None
+        sample = None
         if measured:
             if not self.blocks.active:
                 self._threshold_period = 0.0  # two tests now share the rate
-            for item in measured:
-                self.blocks.add(*item)
+            if len(measured) == 1 and self._period is not None:
+                # The common case: the sample and both banks in one compiled call.
+                sample = self.blocks.prepare(*measured[0])
+            if sample is None:
+                for item in measured:
+                    self.blocks.add(*item)
         self._updates += 1
         if not self._updates % CALIBRATION_EVERY:
             # T ~ lambda chi2_n above the median a fraction p of the time: lambda =
             # median / isf(p). Never below 1 (never looser than the noise model).
             p = np.clip(self._above, 0.5, 1.0 - 1e-3)
-            self.inflation = np.maximum(1.0, self._median / chdtri(self.n, p))
+            self.inflation[:] = np.maximum(1.0, self._median / chdtri(self.n, p))
         # Both banks (the block test's as MomentumBlocks.update, then calibrated).
-        found, best = self._filtered(stamp_ns, mu, cov, wanted)
+        found, best = self._filtered(stamp_ns, mu, cov, wanted, sample)
         if not self.blocks.active or self._period is None:
             return found if wanted else None
         if not wanted:
@@ -215,6 +226,16 @@ class MultiScaleTest:
             # once per sample it was most of the node's time while a push lasted.
             return None
         if best < 0 or not self.blocks.statistics[best] > self.threshold:
+            return found
+        # Between its evaluations a window's statistic is held (bank_step.update): the
+        # detection reads every window at this sample, as the knee of the filtered test
+        # does, so the window that dates the pulse is the one that fits it now.
+        best = self.blocks.update(stamp_ns, self.floor_ns)
+        if best < 0:
+            return found
+        self.blocks.statistics /= self.inflation[1]
+        best = int(np.argmax(self.blocks.statistics))
+        if not self.blocks.statistics[best] > self.threshold:
             return found
         block = self.blocks.locate(stamp_ns, best, self.floor_ns)
         return ImpulseDetection(block.start_ns, block.window, block.statistic,
@@ -226,14 +247,16 @@ class MultiScaleTest:
         return self.blocks.mean(lo_ns, hi_ns) if self.blocks.active else None
 
     def _filtered(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
-                  wanted: bool = True) -> tuple[Optional[ImpulseDetection], int]:
+                  wanted: bool = True,
+                  sample: Optional[tuple] = None) -> tuple[Optional[ImpulseDetection], int]:
         """
         Run the test on the filtered momentum (module doc) and the block test's update.
 
         Return the filtered test's detection (or None; None too when not ``wanted``:
         the caller would drop it) and the block test's best window (-1: none),
-        calibrated: two compiled calls (core/bank_step.py) with numpy's einsum
-        between them.
+        calibrated: one compiled call (core/bank_step.update) on preallocated arrays;
+        with ``sample`` (MomentumBlocks.prepare's arguments: the period is known, so the
+        call is made) the measured momentum is taken in the same call.
         """
         if self._end > self._start:
             dt = (stamp_ns - int(self._stamps[self._end - 1])) * 1e-9
@@ -254,27 +277,38 @@ class MultiScaleTest:
         measured = self.blocks
         # MomentumBlocks.update's conditions: it runs with a twist measured, and tests
         # from four samples with its excess noise known.
-        ready = measured.active and measured._end >= 4 and measured.ready
+        # MomentumBlocks.update's conditions but its four samples (the kernel counts them,
+        # this update's sample included).
+        ready = measured.active and measured._differences >= EXCESS_MINIMUM
         first = 0
-        if ready:
+        if measured._end:
             first = int(measured._stamps[0])
             first = first if floor is None else max(floor, first)
-        # One compiled call: the sample stored, each window's ring row, d_L and
-        # V_L^-1 d_L (core/impulse.py); then the block test's statistics.
-        formed, rows, d, solved, covered = bank_step.changes(
-            self._stamps, self._mu, self._cov, self._start, self._end, self._lags_ns,
-            stamp_ns, 0 if floor is None else floor, floor is not None, mu, cov,
-            measured.active, ready, *measured._arrays(), measured._common, measured._stamps,
-            measured._end, measured._lags_ns, first, measured.mass, measured.linear,
-            measured.statistics)
+        # _calibration, inlined (called per sample).
+        learn = self.quiet
+        rate = min(1.0, self._period / self.calibration_memory) if learn else 0.0
+        if sample is None:
+            # One compiled call: the sample stored, both banks' statistics, calibrated.
+            best, value, block_best = bank_step.update(
+                self._stamps, self._mu, self._cov, self._start, self._end, self._lags_ns,
+                stamp_ns, 0 if floor is None else floor, floor is not None, mu, cov,
+                self._rows, self.statistics, self._above, self.inflation, self._scratch,
+                self._median, rate, learn, measured.active, ready, *measured._arrays(),
+                measured._common, measured._stamps, measured._end, measured._lags_ns, first,
+                measured.mass, measured.linear, measured.statistics, self._grid)
+        else:
+            added, best, value, block_best = bank_step.update_with_sample(
+                *sample, self._stamps, self._mu, self._cov, self._start, self._end,
+                self._lags_ns, stamp_ns, 0 if floor is None else floor, floor is not None,
+                mu, cov, self._rows, self.statistics, self._above, self.inflation,
+                self._scratch, self._median, rate, learn, ready, *measured._arrays(),
+                measured._common, measured._stamps, measured._lags_ns, first, measured.mass,
+                measured.linear, measured.statistics, self._grid)
+            if added:
+                measured.added()
         self._end += 1
-        rate, learn = self._calibration()
-        products = np.einsum('ij,ij->i', d, solved) if formed and len(d) else _NO_PRODUCTS
-        best, value, block_best = bank_step.calibrated(
-            rows, products, self.statistics, self._above[0], self.inflation[0],
-            self._median, rate, learn, measured.statistics, self._above[1],
-            self.inflation[1], covered)
-        if not wanted or not len(products) or not value > self.threshold:
+        rows = self._rows
+        if not wanted or best < 0 or not value > self.threshold:
             return None, block_best
         covered = rows >= 0
         rows = rows[covered]
@@ -601,33 +635,53 @@ class MomentumBlocks:
         """
         Take the common sample in one compiled call (blocks.add_sample); False: not common.
 
-        Common: a sample after the first, with a last one to difference against, the
-        excess noise's eigen-decomposition not due, room in the ring, and a position
-        exactly when the test reads positions (all of :meth:`add` otherwise).
+        Common: see :meth:`prepare` (all of :meth:`add` otherwise).
+        """
+        args = self.prepare(stamp_ns, mu, cov, common, position)
+        if args is None:
+            return False
+        try:
+            blocks.add_sample(*args[:8], self._info, self._score, self._common, args[8],
+                              self._stamps, args[9], args[10], *self._positions, *args[11:])
+        except np.linalg.LinAlgError:
+            return True
+        self.added()
+        return True
+
+    def prepare(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
+                common: Optional[np.ndarray] = None,
+                position: Optional[tuple] = None) -> Optional[tuple]:
+        """
+        Return blocks.add_sample's per-sample arguments for a common sample; None: not common.
+
+        Common: a stamp after the last, a sample after the first with a last one to
+        difference against, the excess noise's eigen-decomposition not due, room in the
+        ring, and a position exactly when the test reads positions. The excess noise's
+        state is advanced (the sample is then differenced): the caller makes the
+        compiled call and, when it did not raise, calls :meth:`added`. Returns (raw,
+        mu, cov, last mu, last cov, divisor, excess, position covariance, common,
+        stamp, row, time, centre, with positions).
         """
         last, k, d = self._last, self._end, len(self.linear)
         differences = self._differences + 1
         if last is None or not k or k == self._capacity or differences % 16 == 1 \
                 or differences == EXCESS_MINIMUM or (position is None) != (not d) \
-                or (d and len(position[0]) != d):
-            return False
+                or (d and len(position[0]) != d) or stamp_ns <= self._stamps[k - 1]:
+            return None
         self._last = (mu, cov)
         self._differences = differences
-        try:
-            blocks.add_sample(
-                self._excess_raw, mu, cov, last[0], last[1],
+        return (self._excess_raw, mu, cov, last[0], last[1],
                 float(min(differences, EXCESS_SAMPLES)), self.excess,
-                self._no_position if position is None else position[1], self._info,
-                self._score, self._common, self._no_common if common is None else common,
-                self._stamps, stamp_ns, k, *self._positions,
+                self._no_position if position is None else position[1],
+                self._no_common if common is None else common, stamp_ns, k,
                 (stamp_ns - self._origin_ns) * 1e-9,
                 self._no_centre if position is None else np.asarray(position[0], float),
                 position is not None)
-        except np.linalg.LinAlgError:
-            return True
+
+    def added(self) -> None:
+        """Count the sample :meth:`prepare` gave, now in the ring."""
         self._end += 1
         self.active = True
-        return True
 
     def _compact(self, stamp_ns: int) -> None:
         """Drop samples older than three longest windows (and re-base the prefix sums)."""

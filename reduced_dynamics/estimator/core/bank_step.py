@@ -13,18 +13,23 @@
 # limitations under the License.
 
 """
-One update of the multi-scale test's two banks, in two compiled calls (numba).
+One update of the multi-scale test's two banks in one compiled call (numba).
 
-Per update :class:`~reduced_dynamics.estimator.multiscale.MultiScaleTest` stored
-the filtered momentum and formed each window's change
-(:func:`.impulse.store_window_changes`), then the block test's statistics
-(:func:`.blocks.bank_statistics`), calibrated both (:func:`.impulse.calibrated_best`,
-:func:`.impulse.calibrate`) and took the blocks' best window (``np.argmax``): five
-dispatched calls with Python between them. :func:`changes` makes the first two,
-:func:`calibrated` the rest; numpy's ``einsum`` of the changes stays between them
-(its summation order is the build's). The same kernels in the same order, each
-LinAlgError caught where the Python caught it: the same bits
-(test/test_bank_step.py).
+Per update :class:`~reduced_dynamics.estimator.multiscale.MultiScaleTest` stores
+the filtered momentum, forms each window's T_L, calibrates it and takes the best
+window; the block test on measured momenta does the same on its windows. Where
+that was two compiled calls with LAPACK solves per window and numpy between them
+(~35 us a sample at 1 kHz, every window covered), :func:`update` is one call on
+preallocated arrays:
+
+- the filtered bank's V_L = P_mu(t) + P_mu(t - L) is factored by Cholesky, its
+  T_L = ||L^-1 d_L||^2 (no LAPACK call, no allocation; equal to the LU solve's
+  to rounding, test_multiscale_kernels.py);
+- the block bank's window L is evaluated on a grid of stride L / :data:`GRID`
+  (its blocks are L long: a stride of L / 16 moves them by 1/16 of their length
+  between evaluations), its statistic held between them; its null calibration
+  learns at evaluations, weighted by the updates since the last, so its memory in
+  seconds is the same (docs/multiscale_events.md, "Cost").
 """
 
 import math
@@ -32,90 +37,353 @@ import math
 import numpy as np
 from numba import njit
 
-from reduced_dynamics.estimator.core.blocks import bank_statistics
-from reduced_dynamics.estimator.core.impulse import calibrate, calibrated_best, \
-    store_window_changes
+from reduced_dynamics.estimator.core.blocks import add_sample
+
+
+#: Evaluations of a block window per its length: window L is evaluated on a grid of
+#: stride L / GRID (docs/multiscale_events.md, "Cost").
+GRID = 16
 
 
 @njit(cache=True)
-def changes(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray, start: int,
-            end: int, lags: np.ndarray, stamp_ns: int, floor_ns: int, has_floor: bool,
-            mu: np.ndarray, cov: np.ndarray, blocks_on: bool, blocks_ready: bool,
-            info: np.ndarray, score: np.ndarray, s0: np.ndarray, s1: np.ndarray,
-            s2: np.ndarray, y0: np.ndarray, t1: np.ndarray, counts: np.ndarray,
-            common: np.ndarray, block_stamps: np.ndarray, block_end: int,
-            block_lags: np.ndarray, first: int, mass: float, linear: np.ndarray,
-            block_statistics: np.ndarray) -> tuple:
+def quadratic_form(a: np.ndarray, b: np.ndarray, d: np.ndarray, work: np.ndarray,
+                   y: np.ndarray) -> float:
     """
-    Store the sample and form the windows' changes; then the block statistics.
+    Return d^T (a + b)^-1 d by Cholesky (``work`` n x n, ``y`` n: scratch); NaN: not positive.
 
-    Returns (whether the changes were formed (False: a singular V_L; the sample is
-    stored), the ring rows, d_L, V_L^-1 d_L, windows the blocks cover (-1: the
-    block test did not run or raised)). ``blocks_on``: the block test runs
-    (its statistics zeroed, then written when covered); ``blocks_ready``: it has
-    enough samples and its excess noise (MomentumBlocks.update).
+    ||L^-1 d||^2 with a + b = L L^T: a factorisation and one forward substitution,
+    no inverse, no allocation (a LAPACK solve per window allocated and pivoted).
     """
+    n = d.shape[0]
+    for i in range(n):
+        for j in range(i + 1):
+            s = a[i, j] + b[i, j]
+            for k in range(j):
+                s -= work[i, k] * work[j, k]
+            if i == j:
+                if not s > 0.0:
+                    return math.nan
+                work[i, i] = math.sqrt(s)
+            else:
+                work[i, j] = s / work[j, j]
+    total = 0.0
+    for i in range(n):
+        s = d[i]
+        for k in range(i):
+            s -= work[i, k] * y[k]
+        y[i] = s / work[i, i]
+        total += y[i] * y[i]
+    return total
+
+
+@njit(cache=True)
+def _filtered_bank(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray,
+                   start: int, end: int, lags: np.ndarray, stamp_ns: int, floor_ns: int,
+                   has_floor: bool, mu: np.ndarray, cov: np.ndarray, rows: np.ndarray,
+                   raw: np.ndarray, work: np.ndarray, y: np.ndarray,
+                   d: np.ndarray) -> int:
+    """
+    Store the sample at ring row ``end``; write each window's row and raw T_L.
+
+    Returns the windows covered, or -1 when a V_L is not positive definite (then
+    every raw T_L is 0: :func:`.impulse.window_changes` raised there). Rows and
+    coverage as :func:`.impulse.window_changes`.
+    """
+    stamps[end] = stamp_ns
+    mu_ring[end] = mu
+    cov_ring[end] = cov
+    end += 1
     n = mu.shape[0]
-    rows = np.full(lags.shape[0], -1, dtype=np.int64)
-    d = np.empty((0, n))
-    solved = np.empty((0, n))
-    formed = True
-    try:
-        rows, d, solved = store_window_changes(stamps, mu_ring, cov_ring, start, end, lags,
-                                               stamp_ns, floor_ns, has_floor, mu, cov)
-    except Exception:  # noqa: B902 numba catches no narrower class (a LinAlgError here)
-        formed = False
-    found = -1
-    if blocks_on:
-        block_statistics[:] = 0.0
-        if blocks_ready:
-            values = np.empty(0)
-            try:
-                found, values = bank_statistics(info, score, s0, s1, s2, y0, t1, counts,
-                                                common, block_stamps, block_end, block_lags,
-                                                stamp_ns, first, mass, linear)
-            except Exception:  # noqa: B902 as above
-                found = -1
-            if found > 0:
-                block_statistics[:] = values
-    return formed, rows, d, solved, found
+    first = stamps[start]
+    lowest = max(floor_ns, first) if has_floor else first
+    covered = 0
+    for w in range(lags.shape[0]):
+        raw[w] = 0.0
+        index = np.searchsorted(stamps[start:end], stamp_ns - lags[w], 'right') - 1
+        rows[w] = -1
+        if index >= 0 and stamps[start + index] >= lowest:
+            rows[w] = start + index
+            covered += 1
+    for w in range(lags.shape[0]):
+        row = rows[w]
+        if row < 0:
+            continue
+        for i in range(n):
+            d[i] = mu[i] - mu_ring[row, i]
+        value = quadratic_form(cov, cov_ring[row], d, work, y)
+        if math.isnan(value) and not math.isnan(d.sum()):
+            raw[:] = 0.0
+            return -1
+        raw[w] = value
+    return covered
 
 
 @njit(cache=True)
-def _argmax(values: np.ndarray) -> int:
-    """Return ``np.argmax(values)``: the first largest, or the first NaN."""
-    best = 0
-    for w in range(values.shape[0]):
-        v = values[w]
-        if math.isnan(v):
-            return w
-        if v > values[best]:
-            best = w
-    return best
+def _cholesky(a: np.ndarray, out: np.ndarray) -> bool:
+    """Write the lower Cholesky factor of ``a`` into ``out``; False: ``a`` not positive."""
+    n = a.shape[0]
+    for i in range(n):
+        for j in range(i + 1):
+            s = a[i, j]
+            for k in range(j):
+                s -= out[i, k] * out[j, k]
+            if i == j:
+                if not s > 0.0:
+                    return False
+                out[i, i] = math.sqrt(s)
+            else:
+                out[i, j] = s / out[j, j]
+        for j in range(i + 1, n):
+            out[i, j] = 0.0
+    return True
 
 
 @njit(cache=True)
-def calibrated(rows: np.ndarray, products: np.ndarray, statistics: np.ndarray,
-               above: np.ndarray, inflation: np.ndarray, median: float, rate: float,
-               learn: bool, block_statistics: np.ndarray, block_above: np.ndarray,
-               block_inflation: np.ndarray, block_found: int) -> tuple[int, float, int]:
-    """
-    Calibrate both banks; return the filtered test's best (as calibrated_best), the blocks'.
+def _cholesky_solve(factor: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """Write ``a^-1 b`` (``factor``: a's lower Cholesky factor) into ``out`` (may be ``b``)."""
+    n = b.shape[0]
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= factor[i, k] * out[k]
+        out[i] = s / factor[i, i]
+    for i in range(n - 1, -1, -1):
+        s = out[i]
+        for k in range(i + 1, n):
+            s -= factor[k, i] * out[k]
+        out[i] = s / factor[i, i]
 
-    ``products``: d_L^T V_L^-1 d_L of the covered windows (empty: none covered or
-    not formed, the filtered statistics are then zeros and its best -1);
-    ``block_found``: windows the blocks cover (<= 0: their best is -1, nothing
-    calibrated).
+
+@njit(cache=True)
+def _block(info: np.ndarray, score: np.ndarray, s0: np.ndarray, s1: np.ndarray,
+           s2: np.ndarray, y0: np.ndarray, t1: np.ndarray, counts: np.ndarray, lo: int,
+           hi: int, mass: float, linear: np.ndarray, cov: np.ndarray, mean: np.ndarray,
+           work: np.ndarray) -> bool:
     """
+    Write the block (lo, hi]'s mean momentum and covariance (:func:`.blocks.block_mean`).
+
+    The same algebra by Cholesky factors on ``work`` ((6, n, n) scratch), no allocation:
+    the slope's information a2 - a1 a0^-1 a1 and score b1 - a1 a0^-1 b0 (a1 and a0
+    symmetric), then the inverse of the information. False: a factor not positive.
+    """
+    n = mean.shape[0]
+    lam, factor, inverse = work[0], work[1], work[2]
+    for i in range(n):
+        mean[i] = score[hi, i] - (score[lo, i] if lo >= 0 else 0.0)
+        for j in range(n):
+            lam[i, j] = info[hi, i, j] - (info[lo, i, j] if lo >= 0 else 0.0)
+    d = linear.shape[0]
+    count = counts[hi] - (counts[lo] if lo >= 0 else 0) if d else 0
+    if d and mass > 0.0 and count >= 2:
+        a0, a1, x = work[3][:d, :d], work[4][:d, :d], work[5][:d, :d]
+        chol0 = inverse[:d, :d]
+        b0, b1 = factor[0, :d], factor[1, :d]
+        for i in range(d):
+            b0[i] = y0[hi, i] - (y0[lo, i] if lo >= 0 else 0.0)
+            b1[i] = t1[hi, i] - (t1[lo, i] if lo >= 0 else 0.0)
+            for j in range(d):
+                a0[i, j] = s0[hi, i, j] - (s0[lo, i, j] if lo >= 0 else 0.0)
+                a1[i, j] = s1[hi, i, j] - (s1[lo, i, j] if lo >= 0 else 0.0)
+        if not _cholesky(a0, chol0):
+            return False
+        for j in range(d):
+            # x = a0^-1 a1, column by column; a1 a0^-1 = x^T.
+            for i in range(d):
+                x[i, j] = a1[i, j]
+            _cholesky_solve(chol0, x[:, j], x[:, j])
+        for i in range(d):
+            residual = b1[i]
+            for k in range(d):
+                residual -= x[k, i] * b0[k]
+            mean[linear[i]] += residual / mass
+        for i in range(d):
+            for j in range(d):
+                schur_ij = s2[hi, i, j] - (s2[lo, i, j] if lo >= 0 else 0.0)
+                schur_ji = s2[hi, j, i] - (s2[lo, j, i] if lo >= 0 else 0.0)
+                for k in range(d):
+                    schur_ij -= a1[i, k] * x[k, j]
+                    schur_ji -= a1[j, k] * x[k, i]
+                lam[linear[i], linear[j]] += 0.5 * (schur_ij + schur_ji) / (mass * mass)
+    if not _cholesky(lam, factor):
+        return False
+    _cholesky_solve(factor, mean, mean)
+    # cov = lam^-1 = L^-T L^-1: the inverse factor, then its product.
+    for j in range(n):
+        for i in range(n):
+            if i < j:
+                inverse[i, j] = 0.0
+                continue
+            s = 1.0 if i == j else 0.0
+            for k in range(j, i):
+                s -= factor[i, k] * inverse[k, j]
+            inverse[i, j] = s / factor[i, i]
+    for i in range(n):
+        for j in range(i + 1):
+            s = 0.0
+            for k in range(i, n):
+                s += inverse[k, i] * inverse[k, j]
+            cov[i, j] = s
+            cov[j, i] = s
+    return True
+
+
+@njit(cache=True)
+def _block_window(info: np.ndarray, score: np.ndarray, s0: np.ndarray, s1: np.ndarray,
+                  s2: np.ndarray, y0: np.ndarray, t1: np.ndarray, counts: np.ndarray,
+                  common: np.ndarray, stamps: np.ndarray, end: int, lag: int,
+                  stamp_ns: int, mass: float, linear: np.ndarray,
+                  work: np.ndarray) -> float:
+    """
+    Return window ``lag``'s block T_L (:func:`.blocks.window_statistics`); 0: not formed.
+
+    Before (t-3L, t-2L] against after (t-L, t] (prefix rows up to ``end``); 0 when a
+    block is empty or an information not positive. ``work``: (12, n, n) scratch.
+    """
+    rows = stamps[:end]
+    r0 = np.searchsorted(rows, stamp_ns - 3 * lag, 'right') - 1
+    r1 = np.searchsorted(rows, stamp_ns - 2 * lag, 'right') - 1
+    r2 = np.searchsorted(rows, stamp_ns - lag, 'right') - 1
+    r3 = np.searchsorted(rows, stamp_ns, 'right') - 1
+    if not (r1 > r0 and r3 > r2):
+        return 0.0
+    n = info.shape[1]
+    before_cov, after_cov, v = work[6], work[7], work[8]
+    before, after = work[9][0], work[9][1]
+    if not _block(info, score, s0, s1, s2, y0, t1, counts, r0, r1, mass, linear,
+                  before_cov, before, work[:6]):
+        return 0.0
+    if not _block(info, score, s0, s1, s2, y0, t1, counts, r2, r3, mass, linear,
+                  after_cov, after, work[:6]):
+        return 0.0
+    for i in range(n):
+        after[i] -= before[i]
+        for j in range(n):
+            v[i, j] = before_cov[i, j] + common[r1, i, j] + after_cov[i, j]
+    value = quadratic_form(v, common[r3], after, work[10], work[11][0])
+    return 0.0 if math.isnan(value) else value
+
+
+@njit(cache=True)
+def update(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray, start: int,
+           end: int, lags: np.ndarray, stamp_ns: int, floor_ns: int, has_floor: bool,
+           mu: np.ndarray, cov: np.ndarray, rows: np.ndarray, statistics: np.ndarray,
+           above: np.ndarray, inflation: np.ndarray, scratch: np.ndarray, median: float,
+           rate: float, learn: bool, blocks_on: bool, blocks_ready: bool,
+           info: np.ndarray, score: np.ndarray, s0: np.ndarray, s1: np.ndarray,
+           s2: np.ndarray, y0: np.ndarray, t1: np.ndarray, counts: np.ndarray,
+           common: np.ndarray, block_stamps: np.ndarray, block_end: int,
+           block_lags: np.ndarray, first: int, mass: float, linear: np.ndarray,
+           block_statistics: np.ndarray, grid: np.ndarray) -> tuple[int, float, int]:
+    """
+    One update of both banks in one call; return (filtered best, its value, blocks' best).
+
+    The filtered bank (every window, every update): the sample stored at ring row
+    ``end``, each window's row (``rows``, -1: not covered) and T_L by Cholesky
+    (:func:`quadratic_form`), calibrated into ``statistics``; its best as
+    :func:`.impulse.calibrated_best` (-1: none covered or a V_L not positive).
+
+    The block bank on a grid: window L is evaluated at the first update in each
+    slot of length L / GRID of the stamps (``grid`` (3, windows) int64: each window's
+    stride [ns], its last slot (-1: none since it was covered), the quiet updates
+    since its last evaluation); between evaluations its statistic holds. Its null
+    is learnt at evaluations only, at ``rate`` times the updates since the last one
+    (the same memory in seconds as learning at every update). A window the floor or
+    the data leave uncovered is 0 and evaluated as soon as it is covered again. The
+    blocks' best: the largest calibrated statistic (-1: none covered). The block test
+    runs when ``blocks_on`` (a twist measured), ``blocks_ready`` (its excess noise
+    known) and it holds four samples (MomentumBlocks.update's conditions).
+    ``above``, ``inflation`` (2, windows): the filtered bank's row, the blocks'.
+    ``scratch`` (14, n, n): the block windows' work space (12), the filtered bank's
+    Cholesky factor, its two work vectors.
+    """
+    count = lags.shape[0]
+    covered = _filtered_bank(stamps, mu_ring, cov_ring, start, end, lags, stamp_ns,
+                             floor_ns, has_floor, mu, cov, rows, statistics, scratch[12],
+                             scratch[13][0], scratch[13][1])
     best, value = -1, 0.0
-    if products.shape[0]:
-        best, value = calibrated_best(rows, products, statistics, above, inflation, median,
-                                      rate, learn)
-    else:
-        statistics[:] = 0.0
+    if covered > 0:
+        for w in range(count):
+            raw = statistics[w]
+            if learn and raw > 0.0:
+                above[0, w] += rate * ((1.0 if raw > median else 0.0) - above[0, w])
+            statistics[w] = raw / inflation[0, w]
+        k = 0
+        for w in range(count):
+            if rows[w] < 0:
+                continue
+            v = statistics[w]
+            if best < 0 or (not math.isnan(value) and (v > value or math.isnan(v))):
+                best, value = k, v
+            k += 1
     block_best = -1
-    if block_found > 0:
-        block_statistics[:] = calibrate(block_statistics, block_above, block_inflation,
-                                        median, rate, learn)
-        block_best = _argmax(block_statistics)
+    if not blocks_on:
+        return best, value, block_best
+    if not (blocks_ready and block_end >= 4):
+        block_statistics[:] = 0.0
+        grid[1] = -1
+        return best, value, block_best
+    for w in range(count):
+        lag = block_lags[w]
+        if stamp_ns - 3 * lag < first:
+            block_statistics[w] = 0.0
+            grid[1, w] = -1
+            grid[2, w] = 0
+            continue
+        if learn:
+            grid[2, w] += 1
+        slot = stamp_ns // grid[0, w]
+        if slot != grid[1, w]:
+            grid[1, w] = slot
+            raw = _block_window(info, score, s0, s1, s2, y0, t1, counts, common,
+                                block_stamps, block_end, lag, stamp_ns, mass, linear,
+                                scratch[:12])
+            if learn and raw > 0.0 and grid[2, w] > 0:
+                step = min(1.0, rate * grid[2, w])
+                above[1, w] += step * ((1.0 if raw > median else 0.0) - above[1, w])
+            grid[2, w] = 0
+            block_statistics[w] = raw / inflation[1, w]
+        if block_statistics[w] > 0.0 or math.isnan(block_statistics[w]):
+            if block_best < 0 or (not math.isnan(block_statistics[block_best]) and (
+                    block_statistics[w] > block_statistics[block_best]
+                    or math.isnan(block_statistics[w]))):
+                block_best = w
     return best, value, block_best
+
+
+@njit(cache=True)
+def update_with_sample(raw: np.ndarray, sample_mu: np.ndarray, sample_cov: np.ndarray,
+                       last_mu: np.ndarray, last_cov: np.ndarray, divisor: float,
+                       excess: np.ndarray, position_cov: np.ndarray, common_sample: np.ndarray,
+                       sample_stamp: int, k: int, t: float, centre: np.ndarray,
+                       with_positions: bool, stamps: np.ndarray, mu_ring: np.ndarray,
+                       cov_ring: np.ndarray, start: int, end: int, lags: np.ndarray,
+                       stamp_ns: int, floor_ns: int, has_floor: bool, mu: np.ndarray,
+                       cov: np.ndarray, rows: np.ndarray, statistics: np.ndarray,
+                       above: np.ndarray, inflation: np.ndarray, scratch: np.ndarray,
+                       median: float, rate: float, learn: bool, blocks_ready: bool,
+                       info: np.ndarray, score: np.ndarray, s0: np.ndarray, s1: np.ndarray,
+                       s2: np.ndarray, y0: np.ndarray, t1: np.ndarray, counts: np.ndarray,
+                       common: np.ndarray, block_stamps: np.ndarray, block_lags: np.ndarray,
+                       first: int, mass: float, linear: np.ndarray,
+                       block_statistics: np.ndarray, grid: np.ndarray) -> tuple:
+    """
+    Take one measured momentum into block row ``k`` (blocks.add_sample), then :func:`update`.
+
+    The update's common case (one twist per update, MomentumBlocks._add_compiled's
+    conditions) in one call. Returns (whether the sample was added (False: its
+    covariance singular, as add_sample raised), then :func:`update`'s three values).
+    """
+    added = True
+    try:
+        add_sample(raw, sample_mu, sample_cov, last_mu, last_cov, divisor, excess,
+                   position_cov, info, score, common, common_sample, block_stamps,
+                   sample_stamp, k, s0, s1, s2, y0, t1, counts, t, centre, with_positions)
+    except Exception:  # noqa: B902 numba catches no narrower class (a LinAlgError here)
+        added = False
+    block_end = k + 1 if added else k
+    best, value, block_best = update(
+        stamps, mu_ring, cov_ring, start, end, lags, stamp_ns, floor_ns, has_floor, mu, cov,
+        rows, statistics, above, inflation, scratch, median, rate, learn, True,
+        blocks_ready, info, score, s0, s1, s2, y0, t1, counts, common, block_stamps,
+        block_end, block_lags, first, mass, linear, block_statistics, grid)
+    return added, best, value, block_best
