@@ -26,7 +26,9 @@ step test's bank full), each as a multiple of one ``crba``:
 * ``filter step``: ``kernels.propagate_update`` (propagation + iterated update of
   the 18-state filter, structured: docs/structured_step.md) run in a compiled loop,
   i.e. without the interpreter, the same called from Python, and the dense step it
-  replaced (``core/reference.py``) on the same arguments, side by side;
+  replaced (``core/reference.py``) on the same arguments, side by side, and a
+  row's whole compiled call (``step_row.filter_step``, with the step test's share)
+  called from Python as the filter calls it;
 * ``step test``: the wrench-step test's compiled kernels (``absorb`` +
   ``evaluate`` over a full bank of onsets, one call: ``absorb_evaluate``), in a
   compiled loop;
@@ -80,7 +82,10 @@ def _capture(robot) -> dict:
     def separate(*args: Any) -> Any:
         # The filter's row step (step_row.filter_step) makes both calls inside one
         # compiled call; when it raises, the filter makes them from Python (the same
-        # bits, test_step_row.py), where they are captured.
+        # bits, test_step_row.py), where they are captured. Its own arguments are kept
+        # for the row-call figure.
+        captured['filter_step'] = tuple(a.copy() if isinstance(a, np.ndarray) else a
+                                        for a in args)
         raise np.linalg.LinAlgError('captured as separate calls')
 
     for (module, name), function in originals.items():
@@ -161,11 +166,12 @@ def measure_floor(robot, calls: int = 2000) -> dict:
 
     Keys: ``crba``, ``mechanics_streaming``, ``mechanics_batched``,
     ``filter_step_compiled``, ``filter_step_called``, ``filter_step_reference``,
+    ``row_step_called`` (``step_row.filter_step``, a row's one compiled call),
     ``step_test_compiled``, ``smoother_step`` and ``smoother_step_reference``,
     ``floor_streaming`` and ``floor_batched`` (the sums with the compiled parts).
     """
     from reduced_dynamics.bench import time_crba
-    from reduced_dynamics.estimator import step_kernels
+    from reduced_dynamics.estimator import step_kernels, step_row
     from reduced_dynamics.estimator.core import kernels, reference, smoother
     from reduced_dynamics.estimator.core import smoother_reference
     captured = _capture(robot)
@@ -182,6 +188,11 @@ def measure_floor(robot, calls: int = 2000) -> dict:
     out['filter_step_called'] = _seconds_per_call(lambda: kernels.propagate_update(*step),
                                                   calls)
     out['filter_step_reference'] = _looped(reference.propagate_update, step, calls)
+    # The whole compiled call of a row (the filter step and the step test's share) as
+    # the filter makes it, dispatch included; repeated on one state (the bank's arrays
+    # change in place, as in step_test_compiled).
+    row = captured['filter_step']
+    out['row_step_called'] = _seconds_per_call(lambda: step_row.filter_step(*row), calls)
     out['step_test_compiled'] = _looped(step_kernels.absorb_evaluate,
                                         captured['absorb_evaluate'], calls)
     backward = _smoother_args(robot)
@@ -206,6 +217,9 @@ FLOOR_ROWS = (
      'core/reference.py (main 6a526f4\'s algebra) on the same arguments, compiled loop'),
     ('filter_step_called', 'update floor: compiled filter step called from Python',
      'the same call with numba dispatch (arguments in, 18 results out)'),
+    ('row_step_called', 'update floor: a row\'s compiled call from Python (filter + step test)',
+     'step_row.filter_step as the filter calls it: propagate_update, the step test\'s '
+     'propagate and absorb_evaluate, numba dispatch (52 arguments in, 33 results out)'),
     ('step_test_compiled', 'update floor: step-test kernels (absorb + evaluate)',
      'a full bank of onsets, compiled loop'),
     ('mechanics_streaming', 'update floor: mechanics of one row (crba + chunk algebra)',

@@ -29,7 +29,10 @@ def test_floor_times_the_steady_state_calls_and_adds_them_up() -> None:
     assert captured['absorb_evaluate'][13] >= 10
     step = captured['propagate_update']
     assert step[2].shape == (3 * robot.n, 3 * robot.n) and step[11]  # an Odometry update
+    row = captured['filter_step']  # the row's one compiled call, as the filter made it
+    assert row[2].shape == step[2].shape and row[10] and row[28] >= 10
     floor = bench_floor.measure_floor(robot, calls=50)
+    assert 'row_step_called' in floor
     assert all(math.isfinite(v) and v > 0.0 for v in floor.values())
     compiled = floor['filter_step_compiled'] + floor['step_test_compiled']
     assert math.isclose(floor['floor_streaming'], floor['mechanics_streaming'] + compiled)

@@ -172,6 +172,39 @@ def test_a_row_is_one_compiled_filter_call() -> None:
     assert calls == {'filter_step': 100, 'propagate_update': 0, 'absorb_evaluate': 0}
 
 
+def test_an_accepted_row_is_taken_without_the_general_measure_path() -> None:
+    """Steady state: _measure, _update, _stamp_noise not called; Psi, Omega, beta in place."""
+    from reduced_dynamics.bench import update_samples
+    from reduced_dynamics.estimator.config import EstimatorConfig
+    from reduced_dynamics.estimator.filter import MomentumFilter
+    from reduced_dynamics.estimator.pipeline import Estimator
+    from reduced_dynamics.robot.model import load_robot
+    robot = load_robot()
+    joints, bases = update_samples(robot, 1300)
+    estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0))
+    messages = [m for pair in zip(joints, bases) for m in pair]
+    estimator.add_samples(messages[:2400])
+    test = estimator.filter.step_test
+    assert test.onsets
+    arrays = (test._psi, test._omega, test._beta)
+    calls = {'_measure': 0, '_update': 0, '_stamp_noise': 0}
+
+    def counted(name):
+        function = getattr(MomentumFilter, name)
+
+        def wrapper(self, *args, **kwargs):
+            calls[name] += 1
+            return function(self, *args, **kwargs)
+        return mock.patch.object(MomentumFilter, name, wrapper)
+
+    before = estimator.filter.steps_taken
+    with counted('_measure'), counted('_update'), counted('_stamp_noise'):
+        estimator.add_samples(messages[2400:])
+    assert estimator.filter.steps_taken == before and not estimator.filter.gated
+    assert calls == {'_measure': 0, '_update': 0, '_stamp_noise': 0}
+    assert all(a is b for a, b in zip(arrays, (test._psi, test._omega, test._beta)))
+
+
 def test_warm_up_loads_the_row_step_with_the_estimators_argument_types() -> None:
     """A fresh process: after warm_up, an estimator's run compiles no new signature."""
     from filter_helpers import fresh_process_words

@@ -624,12 +624,9 @@ class MomentumFilter:
                 and stamp_ns > self.stamp_ns:
             burst = self.stalls.in_burst(measurement.stamp_ns) \
                 and measurement.stamp_sigma is None
-            if not burst and before is not None and self.step_test.active:
-                fused = self._row_step(stamp_ns, before, measurement, lin)
-                if fused is not None:
-                    self._measure(stamp_ns, fused[3], measurement, lin, output, gated,
-                                  burst=False, fused=fused)
-                    return
+            if not burst and before is not None and self.step_test.active \
+                    and self._row_measured(stamp_ns, before, measurement, lin, output, gated):
+                return
             if step is None:
                 step = between(before, lin, 0.5)
             if not burst:
@@ -654,36 +651,114 @@ class MomentumFilter:
         dt = 0.0 if last is None else max(stamp_ns - last, 0) * 1e-9
         return sigma, min(1.0, dt / STAMP_TWIST_TIME)
 
-    def _row_step(self, stamp_ns: int, before: Linearisation, measurement: Measurement,
-                  lin: Linearisation) -> Optional[tuple]:
+    def _row_measured(self, stamp_ns: int, before: Linearisation, measurement: Measurement,
+                      lin: Linearisation, output: bool, gated: list) -> bool:
         """
-        Run ``step_row.filter_step``: :meth:`_fused_step` and the step test's share.
+        Run ``step_row.filter_step`` (:meth:`_fused_step` and the step test's share) and measure.
 
-        Return its results (``kernels.propagate_update``'s first), or None when it
-        raised (nothing changed: the caller takes the separate calls).
+        The common outcome (accepted into a healthy covariance, the step test's bank
+        open) is taken here with :meth:`_update`'s bookkeeping in the same order; any
+        other goes on to :meth:`_measure` with the call's results, as before. Return
+        False when the call raised (nothing changed: the caller takes the separate calls).
         """
         twist = measurement.twist
         with_twist = twist is not None
-        values = _EMPTY if twist is None else np.asarray(twist, dtype=float)
-        sigma, weight = self._stamp_noise(stamp_ns, measurement)
+        size = 2 * self.n if with_twist else self.n
+        noise = self.noise
+        if noise.pose_stamp > 0.0:
+            # _stamp_noise's arithmetic, inline (a row's hot path).
+            sigma = noise.pose_stamp if measurement.stamp_sigma is None \
+                else measurement.stamp_sigma
+            last = self._stamp_twist_ns
+            dt = 0.0 if last is None else max(stamp_ns - last, 0) * 1e-9
+            weight = min(1.0, dt / STAMP_TWIST_TIME)
+        else:
+            sigma, weight = 0.0, -1.0
         test = self.step_test
         try:
             fused = step_row.filter_step(
                 self._g, self.x, self.p, lin.locked, before.locked_inverse,
                 before.connection_qd, (stamp_ns - self.stamp_ns) * 1e-9, self._jerk_var,
-                np.ascontiguousarray(measurement.pose.homogeneous), values, with_twist,
+                np.ascontiguousarray(measurement.pose.homogeneous),
+                _EMPTY if twist is None else np.asarray(twist, dtype=float), with_twist,
                 lin.locked_inverse, lin.connection_qd, lin.joint_cov, self._pose_var,
-                self._stamp_twist, sigma, self._twist_var,
-                self._gates[2 * self.n if with_twist else self.n], weight, self._basis,
-                self._pinv, self._whole, self._ad_rows, self._form_rows, self._h_pose,
-                stamp_ns, *test.compiled_state(2 * self.n if with_twist else self.n))
+                self._stamp_twist, sigma, self._twist_var, self._gates[size], weight,
+                self._basis, self._pinv, self._whole, self._ad_rows, self._form_rows,
+                self._h_pose, stamp_ns, *test.compiled_state(size))
         except (np.linalg.LinAlgError, ZeroDivisionError):
-            return None
-        self._g, self.x, self.p = fused[0], fused[1], fused[2]
+            return False
+        (g0, x0, p0, phi, accepted, nis, logdet, nu, _, g1, x1, p1, h, s, gain, health,
+         averaged, wrench_test, test_dt, count, psi, omega, beta, since, since_identity,
+         tested, evidence, nis_scale, elapsed, best, statistic, top, evaluated) = fused
         self.stamp_ns = stamp_ns
-        self._fused_significance = (fused[11], fused[10], fused[17])
-        test.take_propagated(stamp_ns, *fused[18:25])
-        return fused
+        self._fused_significance = (p1, x1, wrench_test)
+        test.take_propagated(stamp_ns, test_dt, count, psi, omega, beta, since, since_identity)
+        if not (accepted and health == 0 and tested):
+            # Gated, a broken covariance or no onset open: the general path.
+            self._g, self.x, self.p = g0, x0, p0
+            self._measure(stamp_ns, phi, measurement, lin, output, gated, burst=False,
+                          fused=fused)
+            return True
+        # _update's bookkeeping of an accepted fused update, in its order.
+        self.last_nis = nis
+        self.log_likelihood -= 0.5 * (nis + logdet + size * LOG_2PI)
+        self.nis_sum += nis
+        self.nis_dof += size
+        self._gated_run = 0
+        self._gated_residuals = []
+        self._g, self.x, self.p = g1, x1, p1
+        if noise.pose_stamp > 0.0:
+            self._stamp_twist_ns = stamp_ns
+            self._stamp_twist = averaged
+        cause = None
+        try:
+            detection = test.take_compiled(h if with_twist else self._h_pose, s, gain, nu,
+                                           evidence, nis_scale, elapsed, best, statistic,
+                                           top, evaluated)
+            if detection is not None:
+                self._take_step(detection)
+                cause = self._health_cause()
+        except (np.linalg.LinAlgError, ZeroDivisionError) as error:
+            cause = 'covariance not finite' if not np.isfinite(self.p).all() \
+                else f'singular matrix ({error})'
+        if cause is not None:
+            self._restart(stamp_ns, cause, measurement, lin, output)
+        elif self.record:
+            self.steps.append(FilterStep(stamp_ns, phi, g0, x0, p0, self._g, self.x, self.p,
+                                         lin.locked_inverse, output, self._held_command()))
+        return True
+
+    def _take_step(self, detection: StepDetection) -> None:
+        """Take a detected wrench step (Willsky-Jones compensation); forget the hypotheses."""
+        # A wrench step (thruster on/off: a jump, not a random walk): take its
+        # maximum-likelihood size and its uncertainty.
+        self._g, self.x, self.p = kernels.compensate(
+            self._g, self.x, self.p, detection.correction, detection.covariance,
+            self._basis, self._whole)
+        self.step_test.reset()
+        self.step_detected = detection
+        self.steps_taken += 1
+
+    def _health_cause(self) -> Optional[str]:
+        """Return why the covariance is unusable (a restart's cause), or None."""
+        if not np.isfinite(self.p).all():
+            return 'covariance not finite'
+        if not (np.diag(self.p) >= 0.0).all():
+            return 'negative variance'
+        return None
+
+    def _restart(self, stamp_ns: int, cause: str, measurement: Measurement,
+                 lin: Linearisation, output: bool) -> None:
+        """Start again from ``measurement``: the last resort, logged and counted by cause."""
+        # The update keeps P positive semi-definite (measured over long runs,
+        # docs/structured_step.md), so this takes a covariance corrupted before the
+        # update (a non-finite input, an overflow), or an S that is not positive definite.
+        self.diverged += 1
+        self.restart_causes[cause] += 1
+        LOG.warning('momentum filter restarted at %d ns: %s (restart %d)',
+                    stamp_ns, cause, self.diverged)
+        self.initialise(stamp_ns, measurement.pose, lin, measurement.twist, output,
+                        measurement.noise)
 
     def _fused_step(self, stamp_ns: int, step: Linearisation, measurement: Measurement,
                     lin: Linearisation) -> Optional[tuple]:
@@ -750,25 +825,14 @@ class MomentumFilter:
                 if fused is not None and self.p is fused[11]:
                     # The compiled call checked this covariance already.
                     cause = _HEALTH_CAUSES[fused[15]]
-                elif not np.isfinite(self.p).all():
-                    cause = 'covariance not finite'
-                elif not (np.diag(self.p) >= 0.0).all():
-                    cause = 'negative variance'
+                else:
+                    cause = self._health_cause()
             except (np.linalg.LinAlgError, ZeroDivisionError) as error:
                 accepted = False
                 cause = 'covariance not finite' if not np.isfinite(self.p).all() \
                     else f'singular matrix ({error})'
             if cause is not None:
-                # Last resort: the update keeps P positive semi-definite (measured over
-                # long runs, docs/structured_step.md), so this takes a covariance corrupted
-                # before the update (a non-finite input, an overflow), or an S that is
-                # not positive definite. Start again from the measurement.
-                self.diverged += 1
-                self.restart_causes[cause] += 1
-                LOG.warning('momentum filter restarted at %d ns: %s (restart %d)',
-                            stamp_ns, cause, self.diverged)
-                self.initialise(stamp_ns, measurement.pose, lin, measurement.twist, output,
-                                measurement.noise)
+                self._restart(stamp_ns, cause, measurement, lin, output)
                 return
             if not accepted:
                 gated.append((measurement.stamp_ns, self.last_nis))
@@ -889,14 +953,7 @@ class MomentumFilter:
             detection = self.step_test.update(self._h_pose if not with_twist else h, s,
                                               gain, nu)
         if detection is not None:
-            # A wrench step (thruster on/off: a jump, not a random walk): take its
-            # maximum-likelihood size and its uncertainty (Willsky-Jones compensation).
-            self._g, self.x, self.p = kernels.compensate(
-                self._g, self.x, self.p, detection.correction, detection.covariance,
-                self._basis, self._whole)
-            self.step_test.reset()
-            self.step_detected = detection
-            self.steps_taken += 1
+            self._take_step(detection)
         if self.command:
             self._constrain_gains()
         return True

@@ -55,11 +55,13 @@ def test_propagate(stamp_ns: int, last_stamp: int, transition: np.ndarray, count
     Return WrenchStepTest.propagate's state after one step (``last_stamp`` < 0: none yet).
 
     Returns (dt, count, psi, omega, beta, since, since still the identity); the
-    onset arrays are changed in place.
+    onset arrays, Psi, Omega and beta are changed in place (and returned).
     """
     dt = 0.0 if last_stamp < 0 else max(stamp_ns - last_stamp, 0) * 1e-9
     if count:
-        psi = transition @ psi
+        # In place (the step test's own arrays; absorb works on them in place too): a
+        # returned input array goes back to Python as itself, without a new object.
+        psi[:] = transition @ psi
     if recent:
         # The first step since a measurement: Phi itself (no product with 1).
         since = transition if since_identity else transition @ since
@@ -86,10 +88,11 @@ def test_propagate(stamp_ns: int, last_stamp: int, transition: np.ndarray, count
         j0[count] = 0.0
         bounded[count] = False
         count += 1
-        dim = psi.shape[0]
-        psi = np.eye(dim)
-        omega = np.zeros((dim, dim))
-        beta = np.zeros(dim)
+        psi[:] = 0.0
+        for i in range(psi.shape[0]):
+            psi[i, i] = 1.0
+        omega[:] = 0.0
+        beta[:] = 0.0
     return dt, count, psi, omega, beta, since, since_identity
 
 

@@ -27,11 +27,12 @@ import numpy as np
 from numba import njit
 
 from reduced_dynamics.estimator.core.kernels import (
-    _GAUSS_NODES, _GAUSS_WEIGHTS, covariance_health, form, pose_noise, propagate_mean,
+    _GAUSS_NODES, _GAUSS_WEIGHTS, converged, covariance_health, form, pose_noise, propagate_mean,
     significance, symmetric, transition_commanded, twist, twist_measurement)
 from reduced_dynamics.estimator.core.lie import adjoint, compose, group_exp, group_log, inverse
 
-#: Re-linearisations of an update with a twist, as on main 6a526f4.
+#: Re-linearisations of an update with a twist, as on main 6a526f4 (at most: the
+#: structured step's convergence stop, kernels.converged, applies here too).
 ITERATIONS = 2
 
 
@@ -211,7 +212,8 @@ def correct(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
     s = np.empty((0, 0))
     if with_twist:
         x_len = x.shape[0]
-        for _ in range(ITERATIONS):
+        for iteration in range(ITERATIONS):
+            previous = dx
             g_i = compose(g, group_exp(dx[:n], basis, whole))
             x_i = x + dx[n:n + x_len]
             h, nu_i = twist_measurement(g_i, x_i, pose, measured, inverse_locked,
@@ -220,6 +222,9 @@ def correct(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
             s = symmetric(h @ ph + r)
             gain = np.linalg.solve(s, ph.T).T.copy()
             dx = gain @ (nu_i + h @ dx)
+            # The structured step's stop (kernels.converged), so both take the same branch.
+            if iteration + 1 < ITERATIONS and converged(previous, dx, p):
+                break
     else:
         s = symmetric(p[:n, :n] + r)
     g1 = compose(g, group_exp(dx[:n], basis, whole))
