@@ -45,6 +45,8 @@ from reduced_dynamics.estimator.prediction_covariance import StartUncertainty
 from reduced_dynamics.messages.samples import JointTrajectorySample
 
 NS = 1_000_000_000
+#: The filter's coast cap in ns (a row further from its last step restarts it).
+COAST_NS = int(MAX_COAST_S * NS)
 
 
 class RowChunk:
@@ -114,7 +116,7 @@ class ChunkProcessing:
         commands = chunk.commands if self.commanded_wrench else None
         disturbance = None if commands is None else np.empty((count, n))
         lagged, fixed_lag, events = self.fixed_lag, {}, {}
-        coast_ns = int(MAX_COAST_S * NS)
+        coast_ns = COAST_NS
         for k in range(count):
             stamp = stamp_list[k]
             prior = None
