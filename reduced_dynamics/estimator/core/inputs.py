@@ -16,10 +16,12 @@
 The filter's inputs from a chunk's mass matrices, compiled (numba).
 
 Per row: the locked inertia I, I^-1, A qbar_dot with A = I^-1 B (5.29) and the
-encoder noise A Sigma A^T. In numpy these were six stacked calls; a streaming
-chunk is one row, where the calls' overhead was most of the cost. numba's solve
-and BLAS products in the same order give numpy's results bit for bit
-(test_filter_inputs_kernel.py).
+encoder noise A Sigma A^T; with pbar (5.35) and the base rotations in
+:func:`chunk_terms`; after the filter, the drift and energy (:func:`drift_energy`)
+and, for a one-row chunk, the running mu statistics (:func:`welford_row`). In numpy
+these were a dozen stacked calls; a streaming chunk is one row, where the calls'
+overhead was most of the cost. numba's solve and BLAS products in the same order
+give numpy's results bit for bit (test_filter_inputs_kernel.py, docs/streaming_path.md).
 """
 
 import numpy as np
