@@ -17,7 +17,7 @@
 import numpy as np
 
 from reduced_dynamics.estimator.core import inputs
-from reduced_dynamics.estimator.kernel import UpdateKernel
+from reduced_dynamics.estimator.kernel import rotations, UpdateKernel
 from reduced_dynamics.robot.model import load_robot
 
 
@@ -60,3 +60,52 @@ def test_filter_inputs_of_the_paper_robot_equal_the_numpy_ones() -> None:
         for mine, reference in zip((result.locked, result.inverse, result.connection_qd,
                                     result.joint_cov), expected):
             np.testing.assert_array_equal(mine, reference)
+
+
+def _numpy_chunk(mass: np.ndarray, n: int, qbar_dot: np.ndarray, connection_qd: np.ndarray,
+                 inverse: np.ndarray, pi: np.ndarray) -> tuple:
+    """pbar, the drift and the energy as the stacked numpy calls gave them (main 32c72ab)."""
+    shape_qd = np.matmul(mass[:, n:, n:], qbar_dot[:, :, None])[:, :, 0]
+    pbar = shape_qd - np.matmul(connection_qd[:, None, :], mass[:, :n, n:])[:, 0]
+    drift = np.matmul(inverse, pi[:, :, None])[:, :, 0]
+    energy = 0.5 * (np.matmul(pi[:, None, :], drift[:, :, None])[:, 0, 0]
+                    + np.matmul(qbar_dot[:, None, :], pbar[:, :, None])[:, 0, 0])
+    return pbar, drift, energy
+
+
+def test_chunk_terms_and_drift_energy_equal_the_stacked_numpy_calls() -> None:
+    """The shape momentum pbar (4+ joints), rotations, drift, energy: rows and chunks."""
+    rng = np.random.default_rng(2)
+    for n in (6, 3):
+        for m in (0, 1, 2, 3, 4, 6, 7, 24):
+            for count in (1, 3, 40):
+                root = rng.standard_normal((count, n + m, n + m))
+                mass = root @ np.swapaxes(root, 1, 2) + (n + m) * np.eye(n + m)
+                qbar_dot = rng.standard_normal((count, m))
+                bases = rng.standard_normal((count, 13))
+                bases[:, 3:7] /= np.linalg.norm(bases[:, 3:7], axis=1)[:, None]
+                pi = rng.standard_normal((count, n))
+                _, inverse, connection_qd, _, pbar, rotation = inputs.chunk_terms(
+                    mass, n, qbar_dot, bases[:, 3:7], 1e-4, m >= 4)
+                expected = _numpy_chunk(mass, n, qbar_dot, connection_qd, inverse, pi)
+                if m < 4:
+                    pbar = expected[0]  # the kernel leaves thin products to numpy
+                drift, energy = inputs.drift_energy(inverse, pi, qbar_dot, pbar)
+                for mine, reference in zip((pbar, drift, energy), expected):
+                    np.testing.assert_array_equal(mine, reference)
+                np.testing.assert_array_equal(rotation, rotations(bases[:, 3:7]))
+
+
+def test_welford_row_equals_the_numpy_update() -> None:
+    """The streaming path's running mu statistics, compiled, are numpy's bits."""
+    rng = np.random.default_rng(3)
+    mean, m2 = np.zeros(6), np.zeros(6)
+    ref_mean, ref_m2 = np.zeros(6), np.zeros(6)
+    for total in range(1, 200):
+        mu = rng.standard_normal(6) * 1e3
+        inputs.welford_row(mean, m2, mu, total)
+        delta = mu - ref_mean
+        ref_mean += delta / total
+        ref_m2 += delta * (mu - ref_mean)
+        np.testing.assert_array_equal(mean, ref_mean)
+        np.testing.assert_array_equal(m2, ref_m2)

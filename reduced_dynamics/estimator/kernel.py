@@ -159,7 +159,8 @@ class UpdateKernel:
     """Momenta, drift and energy of a chunk of synchronised samples for one robot."""
 
     __slots__ = ('robot', 'n', 'm', 'nv', '_model', '_data', '_base_q', '_nq_base',
-                 '_mirror', '_lift', '_restrict', '_embed', '_coords', '_stack', '_spatial')
+                 '_mirror', '_lift', '_restrict', '_embed', '_coords', '_stack', '_spatial',
+                 '_q', '_thin')
 
     def __init__(self, robot: RobotModel) -> None:
         """Precompute what does not change between samples."""
@@ -186,6 +187,10 @@ class UpdateKernel:
         self._mirror = None if np.array_equal(probe, probe.T) \
             else np.tril_indices(self.nv, -1)
         self._stack = np.empty((0, self.nv, self.nv))
+        self._q = np.empty((0, self._model.nq))
+        # pbar of 1 to 3 shape joints: numpy's matmul takes other BLAS paths for such
+        # thin products than core/inputs.py's; numpy computes it then (same bits).
+        self._thin = 0 < self.m < 4
 
     @property
     def projects_twists(self) -> bool:
@@ -209,10 +214,11 @@ class UpdateKernel:
         count = len(qbar)
         if len(self._stack) < count:
             self._stack = np.empty((count, self.nv, self.nv))
-        stack = self._stack[:count]
-        q = np.empty((count, self._model.nq))
-        q[:, :self._nq_base] = self._base_q
-        q[:, self._nq_base:] = qbar
+            # Configurations: the base part (identity) is written once, here.
+            self._q = np.empty((count, self._model.nq))
+            self._q[:, :self._nq_base] = self._base_q
+        stack, q = self._stack[:count], self._q
+        q[:count, self._nq_base:] = qbar
         model, data, crba = self._model, self._data, pin.crba
         for k in range(count):
             stack[k] = crba(model, data, q[k])
@@ -252,15 +258,16 @@ class UpdateKernel:
         n = self.n
         mass = self.mass_matrices(qbar)
         # I (a copy: the stack of mass matrices is reused by the next chunk), I^-1,
-        # A qbar_dot and A Sigma A^T in one compiled call (core/inputs.py).
-        locked, inverse, connection_qd, joint_cov = inputs.connection_terms(
-            mass, n, qbar_dot, joint_variance)
-        coupling = mass[:, :n, n:]
-        shape_qd = np.matmul(mass[:, n:, n:], qbar_dot[:, :, None])[:, :, 0]
-        pbar = shape_qd - np.matmul(connection_qd[:, None, :], coupling)[:, 0]
-        return FilterInputs(locked, inverse, connection_qd, joint_cov, pbar,
-                            rotations(bases[:, 3:7]), bases[:, :3],
-                            self.coordinates(bases[:, 7:]), mass)
+        # A qbar_dot, A Sigma A^T, pbar and the rotations in one compiled call
+        # (core/inputs.py): a streaming chunk is one row, where numpy's calls cost most.
+        thin = self._thin
+        locked, inverse, connection_qd, joint_cov, pbar, rotation = inputs.chunk_terms(
+            mass, n, qbar_dot, bases[:, 3:7], joint_variance, not thin)
+        if thin:
+            shape_qd = np.matmul(mass[:, n:, n:], qbar_dot[:, :, None])[:, :, 0]
+            pbar = shape_qd - np.matmul(connection_qd[:, None, :], mass[:, :n, n:])[:, 0]
+        return FilterInputs(locked, inverse, connection_qd, joint_cov, pbar, rotation,
+                            bases[:, :3], self.coordinates(bases[:, 7:]), mass)
 
     def evaluate(self, qbar: np.ndarray, qbar_dot: np.ndarray,
                  bases: np.ndarray) -> KernelResult:

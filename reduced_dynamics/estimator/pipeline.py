@@ -372,7 +372,8 @@ class Estimator(InputIntake, Timing, ChunkProcessing, Reporting, Smoothing,
         return self._take_done()
 
     def _close_streaming(self) -> list[EstimatorOutput]:
-        self._process_chunk()
+        if self._chunk.rows:  # a joint state that waits for its base state: none
+            self._process_chunk()
         done = self._done
         if not done:
             return []

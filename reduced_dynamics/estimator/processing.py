@@ -34,6 +34,7 @@ import numpy as np
 import pinocchio as pin
 
 from reduced_dynamics.estimator.base_motion import BaseMotionAnswer, predict_base_motion
+from reduced_dynamics.estimator.core.inputs import drift_energy
 from reduced_dynamics.estimator.covariance import NoisyRow
 from reduced_dynamics.estimator.cyclic import CyclicColumns
 from reduced_dynamics.estimator.filter import Command, Linearisation, MAX_COAST_S, Measurement
@@ -44,6 +45,8 @@ from reduced_dynamics.estimator.prediction_covariance import StartUncertainty
 from reduced_dynamics.messages.samples import JointTrajectorySample
 
 NS = 1_000_000_000
+#: The filter's coast cap in ns (a row further from its last step restarts it).
+COAST_NS = int(MAX_COAST_S * NS)
 
 
 class RowChunk:
@@ -113,7 +116,7 @@ class ChunkProcessing:
         commands = chunk.commands if self.commanded_wrench else None
         disturbance = None if commands is None else np.empty((count, n))
         lagged, fixed_lag, events = self.fixed_lag, {}, {}
-        coast_ns = int(MAX_COAST_S * NS)
+        coast_ns = COAST_NS
         for k in range(count):
             stamp = stamp_list[k]
             prior = None
@@ -169,11 +172,10 @@ class ChunkProcessing:
             # Predictions assume mu constant: none starts while an event is under way
             # (not while an ended event's record waits out its horizon: in_event).
             quiet.append(not detector.in_event)
-        # Drift twist I^-1 pi, stacked (the same kernel per row, whatever the chunk).
-        drift = np.matmul(inverse, pi[:, :, None])[:, :, 0]
-        # Reduced energy (5.36) from the filtered momentum: 1/2 pi.I^-1 pi + 1/2 pbar.qbar_dot.
-        energy = 0.5 * (np.matmul(pi[:, None, :], drift[:, :, None])[:, 0, 0]
-                        + np.matmul(qbar_dot[:, None, :], result.pbar[:, :, None])[:, 0, 0])
+        # Drift twist I^-1 pi and the reduced energy (5.36) from the filtered momentum,
+        # 1/2 pi.I^-1 pi + 1/2 pbar.qbar_dot: one compiled call, the same per row whatever
+        # the chunk (core/inputs.py).
+        drift, energy = drift_energy(inverse, pi, qbar_dot, result.pbar)
         if self.robot.has_potential:
             energy += [self.robot.potential_energy(row) for row in qbar]
         extras: dict = {}

@@ -27,6 +27,7 @@ from typing import Optional
 
 import numpy as np
 
+from reduced_dynamics.estimator.core.inputs import welford_row
 from reduced_dynamics.estimator.events import MomentumEvent
 from reduced_dynamics.estimator.outputs import event_samples
 from reduced_dynamics.geometry.isotropy import isotropy_algebra
@@ -56,9 +57,8 @@ class Reporting:
         self.processed = total = before + count
         if count == 1:
             # No cancellation for a near-constant mu.
-            delta = mu[0] - self._mu_mean
-            self._mu_mean += delta / total
-            self._mu_m2 += delta * (mu[0] - self._mu_mean)
+            # One compiled call (the streaming path's row): the same IEEE operations.
+            welford_row(self._mu_mean, self._mu_m2, mu[0], total)
             return
         mean = mu.mean(axis=0)
         m2 = np.square(mu - mean).sum(axis=0)

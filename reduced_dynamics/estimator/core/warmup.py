@@ -110,6 +110,11 @@ def warm_up() -> None:
     # The filter's inputs from a chunk's mass matrices (core/inputs.py).
     from reduced_dynamics.estimator.core import inputs
     inputs.connection_terms(np.tile(np.eye(8), (2, 1, 1)), 6, np.zeros((2, 2)), 1e-4)
+    bases = np.zeros((2, 13))
+    _, inverse, _, _, pbar, _ = inputs.chunk_terms(np.tile(np.eye(12), (2, 1, 1)), 6,
+                                                   np.zeros((2, 6)), bases[:, 3:7], 1e-4, True)
+    inputs.drift_energy(inverse, np.zeros((2, 6)), np.zeros((2, 6)), pbar)
+    inputs.welford_row(np.zeros(6), np.zeros(6), np.zeros(6), 1)
     # The re-timer's window fit (core/envelope.py): the strided columns it is given (a
     # window of one point is contiguous: another signature).
     from reduced_dynamics.estimator.core import envelope
