@@ -86,12 +86,19 @@ def warm_up() -> None:
         blocks.update(15 * 10_000_000, None)
         blocks.update(15 * 10_000_000, 0)
         blocks.mean(0, 15 * 10_000_000)
-    # The multi-scale test's window statistics (core/impulse.py): through its update.
+    # The multi-scale test's banks (core/bank_step.py): through its update, without a
+    # measured twist (bank_step.update) and with one per update, centre of mass
+    # included (bank_step.update_with_sample from the third on).
     from reduced_dynamics.estimator.multiscale import MultiScaleTest
-    for n in (6, 3):
-        multiscale = MultiScaleTest(n, 1.0)
-        for k in range(4):
-            multiscale.update(k * 100_000_000, np.full(n, 1e-3 * k), np.eye(n))
+    for n, d in ((6, 3), (3, 2)):
+        for twist in (False, True):
+            multiscale = MultiScaleTest(n, 1.0)
+            for k in range(4):
+                stamp = k * 100_000_000
+                measured = None if not twist else [(
+                    stamp, np.full(n, 1e-3 * k), np.eye(n), np.eye(n) * 1e-6,
+                    (np.zeros(d), np.eye(d), 2.0, tuple(range(d))))]
+                multiscale.update(stamp, np.full(n, 1e-3 * k), np.eye(n), measured)
     # Measured momenta and centre of mass (core/impulse.py); the pose covariance is a
     # block of the filter's, a strided view.
     from reduced_dynamics.estimator.core import impulse
