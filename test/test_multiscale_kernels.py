@@ -264,3 +264,63 @@ def test_warm_up_loads_the_impulse_kernels_with_the_estimators_argument_types() 
             'e.add_samples([m for pair in zip(joints, bases) for m in pair]); '
             'print(min(before) > 0, before == [len(k.signatures) for k in kernels])')
     assert fresh_process_words(code) == ['True', 'True']
+
+
+def _fit_grid(rng: np.random.Generator, samples: int) -> tuple[np.ndarray, ...]:
+    """Return sample times and the (start, end) pairs MomentumBlocks.locate fits."""
+    times = (np.cumsum(rng.integers(900_000, 1_100_000, samples)) - 1_000_000 * samples) * 1e-9
+    times = times - times[-1]
+    times[-1] = 0.0 * 1e-9  # the newest sample: its own stamp minus itself
+    grid = np.unique(np.linspace(0, samples - 1, 40).round().astype(int))
+    starts, ends = np.meshgrid(times[grid], times[grid], indexing='ij')
+    keep = ends > starts
+    return times, starts[keep], ends[keep]
+
+
+def test_the_pulse_fits_ramps_are_numpys_bit_for_bit() -> None:
+    """The ramps of locate and _position_rows, compiled, are the numpy expressions' bits."""
+    rng = np.random.default_rng(7)
+    for samples in (5, 77, 400):
+        times, starts, ends = _fit_grid(rng, samples)
+        ramp, square = np.empty((2, len(starts), len(times)))
+        blocks.pulse_ramps(times, starts, ends, ramp, square)
+        expected = np.clip((times[None, :] - starts[:, None]) / (ends - starts)[:, None],
+                           0.0, 1.0)
+        assert ramp.tobytes() == expected.tobytes()
+        assert square.tobytes() == (expected ** 2).tobytes()
+        # The positions' ramp integral, as _position_rows computed it.
+        span = (ends - starts)[:, None]
+        during = np.clip(times[None, :] - starts[:, None], 0.0, span)
+        integral = during ** 2 / (2.0 * span) + np.maximum(times[None, :] - ends[:, None], 0.0)
+        ramp, timed, squared = np.empty((3, len(starts), len(times)))
+        blocks.position_ramps(times, starts, ends, ramp, timed, squared)
+        assert ramp.tobytes() == integral.tobytes()
+        assert timed.tobytes() == (integral * times[None, :]).tobytes()
+        assert squared.tobytes() == (integral ** 2).tobytes()
+
+
+def _detection_fields(detection: tuple) -> bytes:
+    """Return a BlockDetection's fields as bytes (bit-for-bit comparison)."""
+    return b''.join(np.asarray(field, dtype=float).tobytes() for field in detection)
+
+
+def test_locate_keeps_its_ramps_work_space_without_changing_a_bit(monkeypatch) -> None:
+    """A pulse fit in the kept work space (dirty from the last) equals one in fresh arrays."""
+    from reduced_dynamics.estimator import multiscale
+    rng = np.random.default_rng(3)
+    test = MomentumBlocks(6, multiscale.window_bank())
+    mu = np.zeros(6)
+    for k in range(700):
+        stamp = 1_000_000_000 + k * 1_000_000 + int(rng.integers(-50_000, 50_000))
+        if 500 <= k < 560:  # a push: the momentum ramps
+            mu = mu + np.array([0.02, -0.01, 0.0, 0.0, 0.005, 0.0])
+        centre = np.array([0.001 * k, 0.0, 0.5]) + 1e-4 * rng.standard_normal(3)
+        test.add(stamp, mu + 1e-3 * rng.standard_normal(6), 1e-6 * np.eye(6),
+                 1e-8 * np.eye(6), (centre, 1e-8 * np.eye(3), 12.0, (0, 1, 2)))
+    stamp = int(test._stamps[test._end - 1])
+    kept = [_detection_fields(test.locate(stamp, window, None)) for window in (1, 2, 1)]
+    assert test._fit_scratch is not None  # these fits used the kept work space
+    monkeypatch.setattr(multiscale, 'FIT_SCRATCH', 0)
+    fresh = [_detection_fields(test.locate(stamp, window, None)) for window in (1, 2, 1)]
+    assert kept == fresh
+    assert kept[0] == kept[2] and kept[0] != kept[1]

@@ -70,6 +70,9 @@ EXCESS_SAMPLES = 2000
 #: statistic is above the chi2_n median), and updates between its inflation's updates.
 CALIBRATION_MEMORY = 600.0
 CALIBRATION_EVERY = 256
+#: Elements [float64] of the work space MomentumBlocks.locate keeps between detections
+#: (8 MiB, allocated at the first): the pulse fits' ramps of windows up to ~0.15 s at 1 kHz.
+FIT_SCRATCH = 1 << 20
 
 
 def window_bank(shortest: float = SHORTEST, longest: float = LONGEST,
@@ -549,6 +552,7 @@ class MomentumBlocks:
         self._no_position = np.zeros((0, 0))
         self._no_common = np.zeros((n, n))
         self._no_centre = np.zeros(0)
+        self._fit_scratch: Optional[np.ndarray] = None
 
     @staticmethod
     def _position_arrays(capacity: int, d: int) -> list[np.ndarray]:
@@ -767,11 +771,13 @@ class MomentumBlocks:
         starts, ends = np.meshgrid(times[grid], times[grid], indexing='ij')
         keep = ends > starts
         starts, ends = starts[keep], ends[keep]
-        ramp = np.clip((times[None, :] - starts[:, None]) / (ends - starts)[:, None], 0.0, 1.0)
+        # clip((t - s) / (e - s), 0, 1) and its square, compiled (numpy's bits).
+        ramp, ramp_square, _ = self._fit_arrays(len(starts), len(times))
+        blocks.pulse_ramps(times, starts, ends, ramp, ramp_square)
         flat_info = info_k.reshape(len(index), n * n)
         total = flat_info.sum(axis=0).reshape(n, n)
         cross = (ramp @ flat_info).reshape(-1, n, n)           # sum r Lambda
-        square = ((ramp ** 2) @ flat_info).reshape(-1, n, n)   # sum r^2 Lambda
+        square = (ramp_square @ flat_info).reshape(-1, n, n)   # sum r^2 Lambda
         score_j = ramp @ score_k                                 # sum r Lambda y
         score_mu = score_k.sum(axis=0)
         # Unknowns (mu0, c0, J): the twists' rows, then the positions' (_position_rows).
@@ -809,6 +815,22 @@ class MomentumBlocks:
         return BlockDetection(start, end, float(self.windows[window]), float(values[best]),
                               before, cov + self._common[max(lo, 0)])
 
+    def _fit_arrays(self, fits: int, samples: int) -> list[np.ndarray]:
+        """
+        Return three (fits, samples) arrays for the pulse fits' ramps (contents undefined).
+
+        Fresh arrays of a few MB cost mostly their page faults (~0.5 ms per MB here, more
+        than filling them): up to FIT_SCRATCH elements they are views of one buffer kept
+        between detections; larger fits (long windows) allocate as numpy did.
+        """
+        size = fits * samples
+        if 3 * size > FIT_SCRATCH:
+            return [np.empty((fits, samples)) for _ in range(3)]
+        if self._fit_scratch is None:
+            self._fit_scratch = np.empty(FIT_SCRATCH)
+        return [self._fit_scratch[k * size:(k + 1) * size].reshape(fits, samples)
+                for k in range(3)]
+
     def _position_rows(self, index: np.ndarray, previous: np.ndarray, times: np.ndarray,
                        starts: np.ndarray, ends: np.ndarray, normal: np.ndarray,
                        rhs: np.ndarray) -> None:
@@ -834,13 +856,14 @@ class MomentumBlocks:
         lam, weighted, t = lam[present], weighted[present], times[present]
         c = np.linalg.solve(lam, weighted[..., None])[..., 0]
         c = c - c.mean(axis=0)
-        span = (ends - starts)[:, None]
-        during = np.clip(t[None, :] - starts[:, None], 0.0, span)
-        ramp = during ** 2 / (2.0 * span) + np.maximum(t[None, :] - ends[:, None], 0.0)
+        # R, R t and R^2 per fit and sample, compiled (numpy's expressions' bits), in
+        # the arrays locate's ramps used (no longer needed).
+        ramp, timed, squared = self._fit_arrays(len(starts), len(t))
+        blocks.position_ramps(t, starts, ends, ramp, timed, squared)
         flat = lam.reshape(len(t), d * d)
         mass, n = self.mass, self.n
         sums = {name: (weights @ flat).reshape(-1, d, d) for name, weights in (
-            ('R', ramp), ('tR', ramp * t[None, :]), ('RR', ramp ** 2))}
+            ('R', ramp), ('tR', timed), ('RR', squared))}
         p0, p1, p2 = (((t ** j)[None, :] @ flat).reshape(d, d) for j in range(3))
         pc = np.einsum('kij,kj->ki', lam, c)
         select = np.zeros((d, n))
@@ -851,8 +874,9 @@ class MomentumBlocks:
         normal[:, mu0, c0] += st @ p1 / mass
         normal[:, c0, mu0] += p1 @ select / mass
         normal[:, c0, c0] += p0
-        normal[:, mu0, jj] += st @ sums['tR'] @ select / mass ** 2
-        normal[:, jj, mu0] += st @ sums['tR'] @ select / mass ** 2
+        coupling = st @ sums['tR'] @ select / mass ** 2  # the same products for both
+        normal[:, mu0, jj] += coupling
+        normal[:, jj, mu0] += coupling
         normal[:, c0, jj] += sums['R'] @ select / mass
         normal[:, jj, c0] += st @ sums['R'] / mass
         normal[:, jj, jj] += st @ sums['RR'] @ select / mass ** 2

@@ -243,3 +243,57 @@ def add_sample(raw: np.ndarray, mu: np.ndarray, cov: np.ndarray, last_mu: np.nda
     accumulate(info, score, k, sample_info, mu)
     if with_positions:
         accumulate_position(s0, s1, s2, y0, t1, counts, k, lam, t, c, True)
+
+
+
+@njit(cache=True)
+def pulse_ramps(times: np.ndarray, starts: np.ndarray, ends: np.ndarray, ramp: np.ndarray,
+                square: np.ndarray) -> None:
+    """
+    Write the ramps r (fits x samples) of MomentumBlocks.locate's pulse fits, and r^2.
+
+    r = clip((t - s) / (e - s), 0, 1), numpy's expression element by element in one
+    pass into the caller's arrays (numpy made ~5 passes over fresh (fits, samples)
+    arrays, mostly page faults): the same IEEE operations in the same order, so the
+    bits are numpy's (test_multiscale_kernels.py).
+    """
+    for i in range(starts.shape[0]):
+        start, span = starts[i], ends[i] - starts[i]
+        for k in range(times.shape[0]):
+            r = (times[k] - start) / span
+            # np.clip(r, 0, 1): NaN kept, -0.0 made 0.0, as numpy's max then min.
+            if r <= 0.0:
+                r = 0.0
+            if r >= 1.0:
+                r = 1.0
+            ramp[i, k] = r
+            square[i, k] = r * r
+
+
+@njit(cache=True)
+def position_ramps(times: np.ndarray, starts: np.ndarray, ends: np.ndarray, ramp: np.ndarray,
+                   timed: np.ndarray, square: np.ndarray) -> None:
+    """
+    Write the ramp integrals R (fits x samples) of MomentumBlocks._position_rows, R t, R^2.
+
+    R = clip(t - s, 0, e - s)^2 / (2 (e - s)) + max(t - e, 0), numpy's expression
+    element by element in one pass (the same operations in the same order).
+    """
+    for i in range(starts.shape[0]):
+        start, end = starts[i], ends[i]
+        span = end - start
+        twice = 2.0 * span
+        for k in range(times.shape[0]):
+            t = times[k]
+            during = t - start
+            if during <= 0.0:  # np.clip(during, 0, span), as above
+                during = 0.0
+            if during >= span:
+                during = span
+            after = t - end
+            if after < 0.0:  # np.maximum(after, 0): NaN and -0.0 kept
+                after = 0.0
+            r = during * during / twice + after
+            ramp[i, k] = r
+            timed[i, k] = r * t
+            square[i, k] = r * r
