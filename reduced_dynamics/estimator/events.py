@@ -291,11 +291,12 @@ class EventDetector:
         sample (multiscale.twist_momenta; None: none), for the block test and the
         impulse's ends.
         """
-        self.multiscale.quiet = not self.in_event
+        # in_event once: the multi-scale test does not touch the events.
+        quiet = self.multiscale.quiet = not self.in_event
         # A pulse is used only outside an event: inside one it is not located.
         pulse = None if mu_cov is None else \
-            self.multiscale.update(stamp_ns, mu, mu_cov, measured, not self.in_event)
-        event = self.events[-1] if self.in_event else None
+            self.multiscale.update(stamp_ns, mu, mu_cov, measured, quiet)
+        event = None if quiet else self.events[-1]
         if event is None and not step:
             # A step within SETTLE re-opens the last event: final only after that.
             self._finalise(stamp_ns, False)

@@ -131,7 +131,7 @@ class MultiScaleTest:
         self._moving_thresholds: dict[int, float] = {}
         # Per window length asked for: the bank windows it covers and their threshold
         # (still_moving), the nearest bank window (window_statistic).
-        self._moving_windows: dict[float, tuple[np.ndarray, float]] = {}
+        self._moving_windows: dict[float, tuple[Any, float]] = {}
         self._nearest: dict[float, int] = {}
         #: per test (filtered momentum, blocks) and window: the running fraction of
         #: quiet updates above the chi2_n median, and the inflation of T it implies
@@ -307,8 +307,9 @@ class MultiScaleTest:
                 self._scratch, self._median, rate, learn, ready, *measured._arrays(),
                 measured._common, measured._stamps, measured._lags_ns, first, measured.mass,
                 measured.linear, measured.statistics, self._grid)
-            if added:
-                measured.added()
+            if added:  # measured.added(), inlined (called per sample)
+                measured._end += 1
+                measured.active = True
         self._end += 1
         rows = self._rows
         if not wanted or best < 0 or not value > self.threshold:
@@ -365,9 +366,12 @@ class MultiScaleTest:
             count = int(short.sum())
             if count not in self._moving_thresholds:
                 self._moving_thresholds[count] = float(chi2.isf(0.01 / count, self.n))
-            known = self._moving_windows[window] = (short, self._moving_thresholds[count])
+            # An ascending bank (the default): those windows are its first ``count``,
+            # a slice (no boolean indexing per call).
+            selector = slice(0, count) if short[:count].all() else short
+            known = self._moving_windows[window] = (selector, self._moving_thresholds[count])
         short, threshold = known
-        return bool(np.any(self.blocks.statistics[short] > threshold))
+        return bool((self.blocks.statistics[short] > threshold).any())
 
     def window_statistic(self, window: float) -> float:
         """Return the last statistic of the bank window nearest ``window`` s."""
@@ -424,6 +428,18 @@ def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stam
         if measurement is None or measurement.twist is None or \
                 measurement.stamp_ns in gated:
             continue
+        if se3 and measurement.noise is None and \
+                not (span and measurement.stamp_ns < stamp_ns):
+            # The common sample (at the row, the filter's noise): the general case
+            # below with nothing to interpolate and no noise of its own, looked up once.
+            pose = measurement.pose
+            mu, white, common, world, cov, mass = impulse.measured_momentum_se3(
+                ad_inverse, lin.locked, measurement.twist, lin.connection_qd, flt._r_twist,
+                lin.joint_cov, pose_cov, flt.group.structure_constants, lin.locked,
+                pose.rotation, pose.translation, flt._r_pose)
+            out.append((measurement.stamp_ns, mu, white, common,
+                        (world, cov, mass, _LINEAR_SE3)))
+            continue
         connection = lin.connection_qd
         if span and measurement.stamp_ns < stamp_ns:
             fraction = (measurement.stamp_ns - start_ns) / span
@@ -456,6 +472,7 @@ def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stam
 #: The algebra coordinates of the linear momentum, per base group whose measured
 #: centre of mass the block test reads (world x, y, z; x, y in the plane).
 LINEAR = {'SE(3)': (0, 1, 2), 'SE(2)': (0, 1)}
+_LINEAR_SE3 = LINEAR['SE(3)']
 
 
 def centre_of_mass(group: str, pose: Any, locked: np.ndarray, pose_cov: np.ndarray
