@@ -324,3 +324,31 @@ def test_locate_keeps_its_ramps_work_space_without_changing_a_bit(monkeypatch) -
     fresh = [_detection_fields(test.locate(stamp, window, None)) for window in (1, 2, 1)]
     assert kept == fresh
     assert kept[0] == kept[2] and kept[0] != kept[1]
+
+
+def test_a_sample_due_for_the_excess_decomposition_takes_the_compiled_path() -> None:
+    """Every 16th sample (the excess re-decomposed) is common too, with add's bits."""
+    from reduced_dynamics.estimator import multiscale
+    rng = np.random.default_rng(5)
+    compiled = MomentumBlocks(6, multiscale.window_bank())
+    reference = MomentumBlocks(6, multiscale.window_bank())
+    reference.prepare = lambda *args, **kwargs: None  # add's own steps, one by one
+    taken = []
+    for k in range(EXCESS_MINIMUM + 40):
+        stamp = 1_000_000_000 + k * 1_000_000
+        centre = np.array([0.001 * k, 0.0, 0.5]) + 1e-4 * rng.standard_normal(3)
+        cov = 1e-6 * (np.eye(6) + 0.1 * np.diag(rng.random(6)))
+        sample = (stamp, 1e-3 * rng.standard_normal(6), cov, 1e-8 * np.eye(6),
+                  (centre, 1e-8 * np.eye(3), 12.0, (0, 1, 2)))
+        due = compiled._differences + 1
+        if compiled._end and (due % 16 == 1 or due == EXCESS_MINIMUM):
+            taken.append(compiled._add_compiled(*sample))
+        else:
+            compiled.add(*sample)
+        reference.add(*sample)
+    assert taken and all(taken)  # prepare gave those samples to the compiled call
+    for name in ('_info', '_score', '_common', '_stamps', 'excess', '_excess_raw'):
+        assert getattr(compiled, name).tobytes() == getattr(reference, name).tobytes(), name
+    for ours, theirs in zip(compiled._positions, reference._positions):
+        assert ours.tobytes() == theirs.tobytes()
+    assert compiled._end == reference._end

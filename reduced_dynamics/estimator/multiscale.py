@@ -676,23 +676,30 @@ class MomentumBlocks:
         Return blocks.add_sample's per-sample arguments for a common sample; None: not common.
 
         Common: a stamp after the last, a sample after the first with a last one to
-        difference against, the excess noise's eigen-decomposition not due, room in the
-        ring, and a position exactly when the test reads positions. The excess noise's
-        state is advanced (the sample is then differenced): the caller makes the
+        difference against, room in the ring, and a position exactly when the test reads
+        positions. The excess noise's state is advanced (the sample is then differenced,
+        and the excess decomposed when due): the caller makes the
         compiled call and, when it did not raise, calls :meth:`added`. Returns (raw,
         mu, cov, last mu, last cov, divisor, excess, position covariance, common,
         stamp, row, time, centre, with positions).
         """
         last, k, d = self._last, self._end, len(self.linear)
         differences = self._differences + 1
-        if last is None or not k or k == self._capacity or differences % 16 == 1 \
-                or differences == EXCESS_MINIMUM or (position is None) != (not d) \
+        if last is None or not k or k == self._capacity or (position is None) != (not d) \
                 or (d and len(position[0]) != d) or stamp_ns <= self._stamps[k - 1]:
             return None
         self._last = (mu, cov)
         self._differences = differences
-        return (self._excess_raw, mu, cov, last[0], last[1],
-                float(min(differences, EXCESS_SAMPLES)), self.excess,
+        divisor = float(min(differences, EXCESS_SAMPLES))
+        if differences % 16 == 1 or differences == EXCESS_MINIMUM:
+            # The excess noise's eigen-decomposition is due (_learn_excess): of the raw
+            # mean as the compiled call will leave it (the same kernel on a copy), so
+            # that call takes the sample with this excess, as add does.
+            raw = self._excess_raw.copy()
+            blocks.learn_excess(raw, mu, cov, last[0], last[1], divisor)
+            values, vectors = np.linalg.eigh(raw)
+            self.excess = (vectors * np.maximum(values, 0.0)) @ vectors.T
+        return (self._excess_raw, mu, cov, last[0], last[1], divisor, self.excess,
                 self._no_position if position is None else position[1],
                 self._no_common if common is None else common, stamp_ns, k,
                 (stamp_ns - self._origin_ns) * 1e-9,
