@@ -162,12 +162,13 @@ def test_a_measured_momentum_enters_the_block_test_in_one_compiled_call(bench_ru
     with counted(blocks, 'add_sample'), counted(blocks, 'accumulate'), \
             counted(blocks, 'learn_excess'), counted(bank_step, 'update_with_sample'):
         estimator.add_samples(messages)
-    # 400 measured momenta: the first (no difference yet), those where the excess
-    # noise's eigen-decomposition is due (differences 1, 17, ..., 385 and 200: 26) and the
-    # one that finds the ring full (row 256: compacted) take the separate calls; the
-    # others enter with the banks' update, one per row.
-    assert calls == {'add_sample': 0, 'accumulate': 1 + 27, 'learn_excess': 27,
-                     'update_with_sample': 400 - 1 - 27}
+    # 400 measured momenta: the first (no difference yet) and the one that finds the
+    # ring full (row 256: compacted) take the separate calls; the second comes before
+    # the update period is known (add_sample alone); the others enter with the banks'
+    # update, one per row, those where the excess noise's eigen-decomposition is due
+    # (differences 1, 17, ..., 385 and 200: 26) too, learn_excess run first on a copy.
+    assert calls == {'add_sample': 1, 'accumulate': 2, 'learn_excess': 26 + 1,
+                     'update_with_sample': 400 - 3}
 
 
 def test_calibrated_best_equals_the_numpy_steps_it_replaces() -> None:
