@@ -119,6 +119,8 @@ class ChunkProcessing:
         lagged, fixed_lag, events = self.fixed_lag, {}, {}
         coast_ns = COAST_NS
         filter_measurements = self._filter_measurements
+        # Ad_g on the subalgebra: the whole algebra's is the pose's action (filter._adjoint).
+        whole = flt._whole
         for k in range(count):
             stamp = stamp_list[k]
             prior = None
@@ -128,18 +130,18 @@ class ChunkProcessing:
                 # The common row: one base sample, at the row's own stamp, no stamp sigma
                 # and no message noise (what _filter_measurements gives, without its loop).
                 measurements = [None]
-                self._row_stamp_sigma = self._row_noise = None
+                sigma = noise = None
                 at_row = True
             else:
                 measurements = filter_measurements(samples, stamp)
                 at_row = bool(measurements) and measurements[-1] is None
+                sigma, noise = (self._row_stamp_sigma, self._row_noise) if at_row \
+                    else (None, None)
             if at_row or flt._g is None or stamp - flt.stamp_ns > coast_ns:
                 # The base state at the row's stamp (a measurement there, the start, or
                 # a restart after a coast beyond the filter's cap).
                 prior = Measurement(stamp, pin.SE3(rotation[k], translation[k]),
-                                    None if twists is None else twists[k],
-                                    self._row_stamp_sigma if at_row else None,
-                                    self._row_noise if at_row else None)
+                                    None if twists is None else twists[k], sigma, noise)
                 if at_row:
                     measurements[-1] = prior
             gated_at, before, start_ns = [], flt._lin, flt.stamp_ns
@@ -161,7 +163,7 @@ class ChunkProcessing:
             x, p = flt.x, flt.p
             mu[k] = x[:n]
             # ndarray.dot: the same BLAS call as @ (the same bits), a third of its dispatch.
-            pi[k] = adjoint(g).T.dot(x[:n])
+            pi[k] = (g.action if whole else adjoint(g)).T.dot(x[:n])
             mu_cov[k] = p[n:2 * n, n:2 * n]
             if disturbance is None:
                 rate[k] = peak = x[n:]
