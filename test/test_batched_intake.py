@@ -17,6 +17,8 @@
 import numpy as np
 import pinocchio as pin
 
+from reduced_dynamics.estimator.core import envelope
+from reduced_dynamics.estimator.retiming import FrameRetimer
 from reduced_dynamics.estimator.sync import BaseBuffer
 
 
@@ -55,3 +57,30 @@ def test_ndarray_dot_gives_the_bits_of_matmul_for_the_row_products() -> None:
         assert np.array_equal(action.T.dot(x[:6]), action.T @ x[:6])
         w = x[6:]
         assert float(w.dot(w)) == float(w @ w)
+
+
+def test_retimer_window_arrays_equal_the_window_of_points() -> None:
+    # The re-timer keeps its window as int64 pairs as they come (retiming.py _push); a fit
+    # must read exactly the (index, stamp) columns envelope.window_arrays made of the
+    # points, through drops, outages (restarts), lost-frame shifts and a clock jump.
+    from test_retiming import _polled
+
+    for seed, drop, outage in ((3, 0.0, 0.0), (5, 0.05, 0.0), (7, 0.02, 0.01)):
+        _, stamps, _ = _polled(duration=20.0, drop_rate=drop, seed=seed, outage_rate=outage)
+        stamps = stamps.tolist()
+        half = len(stamps) // 2
+        stamps = stamps[:half] + [s - 3 * 10 ** 9 for s in stamps[half:]]
+        for mode in ('auto', 'on'):
+            retimer = FrameRetimer(mode)
+            previous = None
+            for stamp in stamps:
+                if previous is not None and stamp <= previous:
+                    retimer.restart()
+                previous = stamp
+                retimer.retime(stamp)
+                index, stamp_column = retimer._window_arrays()
+                expected = envelope.window_arrays(retimer._points)
+                assert np.array_equal(index, expected[0])
+                assert np.array_equal(stamp_column, expected[1])
+                assert index.dtype == expected[0].dtype and index.strides == expected[0].strides
+            assert retimer.kept + retimer.retimed == len(stamps)
