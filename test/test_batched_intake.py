@@ -14,10 +14,12 @@
 
 """The batched path's per-message shortcuts give what the general code gives."""
 
+import math
+
 import numpy as np
 import pinocchio as pin
 
-from reduced_dynamics.estimator.core import envelope
+from reduced_dynamics.estimator.core import envelope, stalls
 from reduced_dynamics.estimator.retiming import FrameRetimer
 from reduced_dynamics.estimator.sync import BaseBuffer
 
@@ -84,3 +86,51 @@ def test_retimer_window_arrays_equal_the_window_of_points() -> None:
                 assert np.array_equal(stamp_column, expected[1])
                 assert index.dtype == expected[0].dtype and index.strides == expected[0].strides
             assert retimer.kept + retimer.retimed == len(stamps)
+
+
+class _ReferenceStalls:
+    """StallDetector.in_burst as it was written before its clamp was spelled out."""
+
+    def __init__(self) -> None:
+        self.interval = None
+        self._first: list = []
+        self._last_ns = None
+        self.stall_from_ns = None
+
+    def in_burst(self, stamp_ns: int) -> bool:
+        last, self._last_ns = self._last_ns, stamp_ns
+        if last is None or stamp_ns <= last:
+            return False
+        gap = (stamp_ns - last) * 1e-9
+        nominal = self.interval
+        if nominal is None:
+            self._first.append(gap)
+            if len(self._first) == stalls.FIRST_GAPS:
+                self.interval = float(np.median(self._first))
+            return False
+        stall = gap > stalls.STALL_PERIODS * nominal
+        if stall:
+            self.stall_from_ns = last
+        elif gap >= stalls.BUNCHED * nominal:
+            self.stall_from_ns = None
+        if self.stall_from_ns is None or stall:
+            pull = min(max(math.log(gap / nominal), -stalls.LOG_4), stalls.LOG_4)
+            self.interval = nominal * math.exp(stalls.INTERVAL_WEIGHT * pull)
+        return self.stall_from_ns is not None
+
+
+def test_stall_detector_matches_its_reference_bit_for_bit() -> None:
+    rng = np.random.default_rng(6)
+    for _ in range(20):
+        detector, reference = stalls.StallDetector(), _ReferenceStalls()
+        stamp = 10 ** 18
+        for _ in range(3000):
+            kind = rng.random()
+            # Regular frames, jitter, stalls of 0.1-1 s, bursts within 1 ms, repeats.
+            step = (int(rng.uniform(0.1e9, 1e9)) if kind < 0.01 else
+                    int(rng.uniform(0, 1e6)) if kind < 0.1 else
+                    0 if kind < 0.12 else int(8.3e6 * rng.uniform(0.2, 3.0)))
+            stamp += step
+            assert detector.in_burst(stamp) == reference.in_burst(stamp)
+            assert detector.interval == reference.interval
+            assert detector.stall_from_ns == reference.stall_from_ns
