@@ -98,8 +98,9 @@ class ChunkProcessing:
         result = self.kernel.filter_inputs(qbar, qbar_dot, bases,
                                            self.config.joint_velocity_noise ** 2)
         inverse = result.inverse
-        lins = [Linearisation(*row) for row in zip(result.locked, inverse, result.connection_qd,
-                                                   result.joint_cov)]
+        # (map over the four row iterators: no zip tuple to unpack per row)
+        lins = list(map(Linearisation, result.locked, inverse, result.connection_qd,
+                        result.joint_cov))
         # The recursion, one sample at a time (the same code whatever the chunk).
         flt, detector, adjoint = self.filter, self.detector, self.filter._adjoint
         twists = result.xi if self.use_odometry else None
@@ -117,18 +118,30 @@ class ChunkProcessing:
         disturbance = None if commands is None else np.empty((count, n))
         lagged, fixed_lag, events = self.fixed_lag, {}, {}
         coast_ns = COAST_NS
+        filter_measurements = self._filter_measurements
+        # Ad_g on the subalgebra: the whole algebra's is the pose's action (filter._adjoint).
+        whole = flt._whole
         for k in range(count):
             stamp = stamp_list[k]
             prior = None
-            measurements = self._filter_measurements(measured[k], stamp)
-            at_row = bool(measurements) and measurements[-1] is None
+            samples = measured[k]
+            if len(samples) == 1 and samples[0][0] == stamp and len(samples[0]) == 2 \
+                    and samples[0][1].__class__ is not NoisyRow:
+                # The common row: one base sample, at the row's own stamp, no stamp sigma
+                # and no message noise (what _filter_measurements gives, without its loop).
+                measurements = [None]
+                sigma = noise = None
+                at_row = True
+            else:
+                measurements = filter_measurements(samples, stamp)
+                at_row = bool(measurements) and measurements[-1] is None
+                sigma, noise = (self._row_stamp_sigma, self._row_noise) if at_row \
+                    else (None, None)
             if at_row or flt._g is None or stamp - flt.stamp_ns > coast_ns:
                 # The base state at the row's stamp (a measurement there, the start, or
                 # a restart after a coast beyond the filter's cap).
                 prior = Measurement(stamp, pin.SE3(rotation[k], translation[k]),
-                                    None if twists is None else twists[k],
-                                    self._row_stamp_sigma if at_row else None,
-                                    self._row_noise if at_row else None)
+                                    None if twists is None else twists[k], sigma, noise)
                 if at_row:
                     measurements[-1] = prior
             gated_at, before, start_ns = [], flt._lin, flt.stamp_ns
@@ -149,7 +162,8 @@ class ChunkProcessing:
                 fixed_lag[k] = lagged.take()
             x, p = flt.x, flt.p
             mu[k] = x[:n]
-            pi[k] = adjoint(g).T @ x[:n]
+            # ndarray.dot: the same BLAS call as @ (the same bits), a third of its dispatch.
+            pi[k] = (g.action if whole else adjoint(g)).T.dot(x[:n])
             mu_cov[k] = p[n:2 * n, n:2 * n]
             if disturbance is None:
                 rate[k] = peak = x[n:]
@@ -159,7 +173,7 @@ class ChunkProcessing:
                 # beyond the command (a commanded firing is expected, not an event).
                 rate[k], w_cov[k] = flt.total_wrench()
                 disturbance[k] = peak = flt.wrench
-            detector.update(stamp, mu[k], math.sqrt(float(peak @ peak)),
+            detector.update(stamp, mu[k], math.sqrt(float(peak.dot(peak))),
                             flt.wrench_significance(), flt.step_detected is not None,
                             # mu moves by the commanded impulses too: no window test.
                             mu_cov[k] if disturbance is None else None, measured_mu)

@@ -67,6 +67,8 @@ from collections import deque
 import math
 from typing import Optional
 
+import numpy as np
+
 from reduced_dynamics.estimator.core import envelope
 
 NS = 1_000_000_000
@@ -116,6 +118,12 @@ class FrameRetimer:
         self.retimed_sigma = retimed_sigma
         self._previous: Optional[int] = None
         self._points: deque[tuple[int, int]] = deque(maxlen=WINDOW)
+        # The same points as interleaved int64 (index, stamp), written as they come: a
+        # fit reads its window from here (converting 2 x WINDOW Python ints at every
+        # refit cost more than the rest of the per-sample re-timing). Its last
+        # len(_points) pairs end at _end.
+        self._flat = np.empty(4 * WINDOW, np.int64)
+        self._end = 0
         self._line: Optional[tuple[int, int, float]] = None
         self._index = 0
         self._last_out: Optional[int] = None
@@ -146,8 +154,29 @@ class FrameRetimer:
         self._forget()
         self._last_out = self._previous = None
 
+    def _push(self, index: int, stamp: int) -> None:
+        """Append a point to the window (both copies)."""
+        self._points.append((index, stamp))
+        end = self._end
+        flat = self._flat
+        if 2 * end == flat.size:
+            # Full: the held points move to the front (once every WINDOW points or more).
+            held = len(self._points) - 1
+            flat[:2 * held] = flat[2 * (end - held):2 * end]
+            end = held
+        flat[2 * end] = index
+        flat[2 * end + 1] = stamp
+        self._end = end + 1
+
+    def _window_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return the window's (index, stamp) columns (envelope.window_arrays' layout)."""
+        end = self._end
+        flat = self._flat[2 * (end - len(self._points)):2 * end]
+        return flat[0::2], flat[1::2]
+
     def _forget(self) -> None:
         self._points.clear()
+        self._end = 0
         self._line = None
         self._index = 0
         self._since_fit = 0
@@ -159,7 +188,7 @@ class FrameRetimer:
     def _fit(self) -> None:
         self._since_fit = 0
         points = self._points
-        index, stamp = envelope.window_arrays(points)
+        index, stamp = self._window_arrays()
         line = envelope.optional_line(*envelope.lower_line(index, stamp))
         if line is None or line[2] <= 0.0:
             self._line, self._locked, self.period_ns = None, False, None
@@ -184,7 +213,7 @@ class FrameRetimer:
             newest = points[-1]
             self._forget()
             self.restarts += 1
-            points.append((0, newest[1]))
+            self._push(0, newest[1])
             return
         self._locked = self.mode == 'on' or int(bursts) >= max(BURST_COUNT,
                                                                BURST_FRACTION * len(points))
@@ -248,7 +277,7 @@ class FrameRetimer:
             self._forget()
             index = 0
         self._index = index
-        points.append((index, stamp))
+        self._push(index, stamp)
         self._since_fit += 1
         if self._line is None or self._since_fit >= REFIT:
             self._fit()
@@ -284,4 +313,5 @@ class FrameRetimer:
         points = self._points
         for _ in range(min(count, len(points) - 1)):
             points.pop()
+            self._end -= 1
         self._since_fit = REFIT

@@ -221,7 +221,11 @@ class StampGate:
             if 0 < step <= self._cadence and (
                     receive is None or rx is None
                     or abs(step - (receive - rx)) <= self.tolerance_ns):
-                self._step(step)
+                # _step, inlined (every accepted message passes here).
+                self._steps.append(step)
+                self._since_cadence += 1
+                if self._since_cadence >= 4 or len(self._steps) < 4:
+                    self._refresh_cadence()
                 self.last_ns, self.last_receive_ns = stamp, receive
                 if receive is not None:
                     self._latencies.append(receive - stamp)

@@ -99,8 +99,15 @@ class BaseBuffer:
     def between(self, after_ns: Optional[int], until_ns: int) -> tuple:
         """Return the held samples (stamp_ns, row) with after_ns < stamp <= until_ns, in order."""
         stamps = self._stamps
-        if not stamps or (after_ns is not None and stamps[-1] <= after_ns):
+        if not stamps:
             return ()
+        newest = stamps[-1]
+        if after_ns is not None:
+            if newest <= after_ns:
+                return ()
+            if newest == until_ns and (len(stamps) == 1 or stamps[-2] <= after_ns):
+                # The common row: just the newest sample, at the row's stamp (no search).
+                return ((newest, self._rows[-1]),)
         first = 0 if after_ns is None else bisect_right(stamps, after_ns)
         last = bisect_right(stamps, until_ns)
         if first >= last:

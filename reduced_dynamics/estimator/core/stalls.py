@@ -75,7 +75,14 @@ class StallDetector:
             self.stall_from_ns = last
         elif gap >= BUNCHED * nominal:
             self.stall_from_ns = None
-        if self.stall_from_ns is None or stall:
-            pull = min(max(math.log(gap / nominal), -LOG_4), LOG_4)
+        stalled = self.stall_from_ns
+        if stalled is None or stall:
+            # min(max(log, -LOG_4), LOG_4) spelled out (the same operand returned, fewer
+            # calls: this runs at every measurement).
+            pull = math.log(gap / nominal)
+            if -LOG_4 > pull:
+                pull = -LOG_4
+            if LOG_4 < pull:
+                pull = LOG_4
             self.interval = nominal * math.exp(INTERVAL_WEIGHT * pull)
-        return self.stall_from_ns is not None
+        return stalled is not None
