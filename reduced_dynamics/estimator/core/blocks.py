@@ -245,7 +245,6 @@ def add_sample(raw: np.ndarray, mu: np.ndarray, cov: np.ndarray, last_mu: np.nda
         accumulate_position(s0, s1, s2, y0, t1, counts, k, lam, t, c, True)
 
 
-
 @njit(cache=True)
 def pulse_ramps(times: np.ndarray, starts: np.ndarray, ends: np.ndarray, ramp: np.ndarray,
                 square: np.ndarray) -> None:
