@@ -46,7 +46,7 @@ def test_mass_matrices_reuse_their_buffers_across_chunk_lengths() -> None:
 
 
 def test_streaming_outputs_hold_the_samples_trusted_sample_builds() -> None:
-    """Per-sample outputs, built inline: the same instance dicts as trusted_sample's."""
+    """Per-sample outputs hold the samples trusted_sample builds (the same instance dicts)."""
     robot = load_robot()
     joints, bases = bench.update_samples(robot, 60)
     estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0))

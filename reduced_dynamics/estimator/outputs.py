@@ -168,28 +168,16 @@ class OutputChunk:
                    momentum[:, :3], momentum[:, 3:], body[:, :3], body[:, 3:],
                    *shape_columns, rate[:, :3], rate[:, 3:],
                    drift[:, :3], drift[:, 3:])
-        # trusted_sample's objects, built inline (five per sample on the node's path):
-        # the same instance dicts, without a call and a zip each.
-        new = object.__new__
         for k, (stamp, energy, mu, force, torque, body_force, body_torque, qbar, qbar_dot,
                 pbar, rate_force, rate_torque, linear, angular) in enumerate(rows):
-            momentum_sample = new(wrench)
-            momentum_sample.__dict__.update(stamp_ns=stamp, frame_id=world, force=force,
-                                            torque=torque)
-            body_sample = new(wrench)
-            body_sample.__dict__.update(stamp_ns=stamp, frame_id=base, force=body_force,
-                                        torque=body_torque)
-            shape_sample = new(joint)
-            shape_sample.__dict__.update(stamp_ns=stamp, frame_id='', names=names,
-                                         position=qbar, velocity=qbar_dot, effort=pbar)
-            rate_sample = new(wrench)
-            rate_sample.__dict__.update(stamp_ns=stamp, frame_id=world, force=rate_force,
-                                        torque=rate_torque)
-            drift_sample = new(twist)
-            drift_sample.__dict__.update(stamp_ns=stamp, frame_id=base, linear=linear,
-                                         angular=angular)
-            output = EstimatorOutput(stamp, momentum_sample, body_sample, shape_sample,
-                                     rate_sample, drift_sample, mu, energy)
+            output = EstimatorOutput(
+                stamp,
+                trusted_sample(wrench, stamp, world, force, torque),
+                trusted_sample(wrench, stamp, base, body_force, body_torque),
+                trusted_sample(joint, stamp, '', names, qbar, qbar_dot, pbar),
+                trusted_sample(wrench, stamp, world, rate_force, rate_torque),
+                trusted_sample(twist, stamp, base, linear, angular),
+                mu, energy)
             extra = extras.get(k) if extras else None
             if extra:
                 output.prediction, output.prediction_path, output.diagnostics = extra[:3]
