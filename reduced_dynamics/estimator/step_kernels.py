@@ -26,23 +26,7 @@ import math
 from numba import njit
 import numpy as np
 
-
-@njit(cache=True)
-def _cholesky(a: np.ndarray, low: np.ndarray) -> bool:
-    """Write the Cholesky factor of the symmetric ``a`` into ``low``; False if not definite."""
-    n = a.shape[0]
-    for r in range(n):
-        for c in range(r + 1):
-            acc = a[r, c]
-            for k in range(c):
-                acc -= low[r, k] * low[c, k]
-            if r == c:
-                if not acc > 0.0:
-                    return False
-                low[r, r] = math.sqrt(acc)
-            else:
-                low[r, c] = acc / low[c, c]
-    return True
+from reduced_dynamics.estimator.core.cholesky import lower_factor
 
 
 @njit(cache=True)
@@ -72,7 +56,7 @@ def _quadratic(j: np.ndarray, b: np.ndarray) -> float:
     """Return b^T j^-1 b; NaN when j is not positive definite."""
     n = len(b)
     low = np.zeros((n, n))
-    if not _cholesky(j, low):
+    if not lower_factor(j, low):
         return math.nan
     quad = 0.0
     y = np.empty(n)
@@ -127,7 +111,7 @@ def absorb(h: np.ndarray, s: np.ndarray, gain: np.ndarray, nu: np.ndarray,
             for c in range(dim):
                 psi[r, c] -= f * lower[k, c]
     low = np.zeros((m, m))
-    if not _cholesky(s, low):
+    if not lower_factor(s, low):
         return math.nan
     solved = np.empty((m, dim + 1))      # S^-1 [L, nu]
     for r in range(m):
@@ -231,7 +215,7 @@ def fold(c: np.ndarray, b0: np.ndarray, j0: np.ndarray, bound_inv: np.ndarray,
             for a in range(n):
                 c[i, r, a] = moved[r, i * n + a]
         # J0^-1 for the bound (S8); none while J0 is singular (no evidence yet).
-        bounded[i] = _cholesky(j0[i], low)
+        bounded[i] = lower_factor(j0[i], low)
         if bounded[i]:
             inverse = np.eye(n)
             _solve_in_place(low, inverse)

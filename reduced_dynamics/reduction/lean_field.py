@@ -43,6 +43,7 @@ import numpy as np
 from numba import njit
 import pinocchio as pin
 
+from reduced_dynamics.estimator.core.cholesky import solve_factor
 from reduced_dynamics.estimator.core.lie import exp6_coefficients
 
 _crba = pin.crba
@@ -233,21 +234,6 @@ def _cholesky_upper(mass: np.ndarray, factor: np.ndarray) -> bool:
 
 
 @njit(cache=True)
-def _solve_factor(factor: np.ndarray, size: int, rhs: np.ndarray) -> None:
-    """Solve (L L^T) x = rhs in place with the leading size x size block of L."""
-    for i in range(size):
-        total = rhs[i]
-        for p in range(i):
-            total -= factor[i, p] * rhs[p]
-        rhs[i] = total / factor[i, i]
-    for i in range(size - 1, -1, -1):
-        total = rhs[i]
-        for p in range(i + 1, size):
-            total -= factor[p, i] * rhs[p]
-        rhs[i] = total / factor[i, i]
-
-
-@njit(cache=True)
 def _exp_times(twist: np.ndarray, g: np.ndarray, out: np.ndarray, s3: np.ndarray) -> None:
     """
     Write exp6(twist) g into out (``pin.exp6``'s closed form, in loops: no BLAS).
@@ -325,17 +311,17 @@ def momenta_kernel(q1: np.ndarray, pbar: np.ndarray, mass: np.ndarray,
         return False
     drift[:] = 0.0
     drift[:n] = pi
-    _solve_factor(factor, n, drift)
+    solve_factor(factor, n, drift)
     if with_connection:
         column = np.empty(n)
         for j in range(size - n):
             for i in range(n):
                 column[i] = mass[i, n + j]
-            _solve_factor(factor, n, column)
+            solve_factor(factor, n, column)
             connection[:, j] = column
     v[:n] = 0.0
     v[n:] = pbar
-    _solve_factor(factor, size, v)
+    solve_factor(factor, size, v)
     for i in range(n):
         v[i] += drift[i]
     return True

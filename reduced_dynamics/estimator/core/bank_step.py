@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit
 
 from reduced_dynamics.estimator.core.blocks import add_sample
+from reduced_dynamics.estimator.core.cholesky import lower_factor, solve_factor
 
 
 #: Evaluations of a block window per its length: window L is evaluated on a grid of
@@ -119,42 +120,6 @@ def _filtered_bank(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray
 
 
 @njit(cache=True)
-def _cholesky(a: np.ndarray, out: np.ndarray) -> bool:
-    """Write the lower Cholesky factor of ``a`` into ``out``; False: ``a`` not positive."""
-    n = a.shape[0]
-    for i in range(n):
-        for j in range(i + 1):
-            s = a[i, j]
-            for k in range(j):
-                s -= out[i, k] * out[j, k]
-            if i == j:
-                if not s > 0.0:
-                    return False
-                out[i, i] = math.sqrt(s)
-            else:
-                out[i, j] = s / out[j, j]
-        for j in range(i + 1, n):
-            out[i, j] = 0.0
-    return True
-
-
-@njit(cache=True)
-def _cholesky_solve(factor: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    """Write ``a^-1 b`` (``factor``: a's lower Cholesky factor) into ``out`` (may be ``b``)."""
-    n = b.shape[0]
-    for i in range(n):
-        s = b[i]
-        for k in range(i):
-            s -= factor[i, k] * out[k]
-        out[i] = s / factor[i, i]
-    for i in range(n - 1, -1, -1):
-        s = out[i]
-        for k in range(i + 1, n):
-            s -= factor[k, i] * out[k]
-        out[i] = s / factor[i, i]
-
-
-@njit(cache=True)
 def _block(info: np.ndarray, score: np.ndarray, s0: np.ndarray, s1: np.ndarray,
            s2: np.ndarray, y0: np.ndarray, t1: np.ndarray, counts: np.ndarray, lo: int,
            hi: int, mass: float, linear: np.ndarray, cov: np.ndarray, mean: np.ndarray,
@@ -184,13 +149,13 @@ def _block(info: np.ndarray, score: np.ndarray, s0: np.ndarray, s1: np.ndarray,
             for j in range(d):
                 a0[i, j] = s0[hi, i, j] - (s0[lo, i, j] if lo >= 0 else 0.0)
                 a1[i, j] = s1[hi, i, j] - (s1[lo, i, j] if lo >= 0 else 0.0)
-        if not _cholesky(a0, chol0):
+        if not lower_factor(a0, chol0):
             return False
         for j in range(d):
             # x = a0^-1 a1, column by column; a1 a0^-1 = x^T.
             for i in range(d):
                 x[i, j] = a1[i, j]
-            _cholesky_solve(chol0, x[:, j], x[:, j])
+            solve_factor(chol0, d, x[:, j])
         for i in range(d):
             residual = b1[i]
             for k in range(d):
@@ -204,9 +169,9 @@ def _block(info: np.ndarray, score: np.ndarray, s0: np.ndarray, s1: np.ndarray,
                     schur_ij -= a1[i, k] * x[k, j]
                     schur_ji -= a1[j, k] * x[k, i]
                 lam[linear[i], linear[j]] += 0.5 * (schur_ij + schur_ji) / (mass * mass)
-    if not _cholesky(lam, factor):
+    if not lower_factor(lam, factor):
         return False
-    _cholesky_solve(factor, mean, mean)
+    solve_factor(factor, n, mean)
     # cov = lam^-1 = L^-T L^-1: the inverse factor, then its product.
     for j in range(n):
         for i in range(n):
