@@ -535,49 +535,100 @@ def test_sigterm_while_messages_flow_exits_0(install, client):
     assert 'processed' in output  # the summary line made it out while the context lived
 
 
+#: Seconds a service call may stay unanswered before it is sent again. A client's
+#: ``service_is_ready`` says its requests reach the server, not that the server's
+#: answers reach the client yet (DDS matches the two topics apart): a call made in
+#: between is answered into the void, and waiting PATIENCE for it hung CI 10 minutes
+#: (twice in one run, stop 24). A late first answer is still taken.
+RESEND_AFTER = 15.0
+
+
+def answer(executor, client_, request, proc, settled=None):
+    """
+    Return the service's answer to ``request``, sent again while unanswered.
+
+    ``settled()`` (a transition's goal state reached, asked by the caller) tells a
+    request the server carried out whose answer was lost: then the return is None, and
+    the request is not sent again (a transition is not idempotent).
+    """
+    futures = []
+    end = time.monotonic() + PATIENCE
+    while time.monotonic() < end:
+        futures.append(client_.call_async(request))
+        spin_until(executor, lambda: any(f.done() for f in futures)
+                   or proc.poll() is not None, RESEND_AFTER)
+        done = [f for f in futures if f.done()]
+        if done:
+            return done[0].result()
+        assert proc.poll() is None, 'no answer: the node died'
+        if settled is not None and settled():
+            return None
+    raise AssertionError(f'no answer to {type(request).__name__} in {PATIENCE} s')
+
+
+class LifecycleClient:
+    """The node's get_state and change_state services, answered despite lost answers."""
+
+    def __init__(self, client, proc):
+        """Create both clients on the test client's node; wait until both are ready."""
+        from lifecycle_msgs.srv import ChangeState, GetState
+        self._node, self._executor = client
+        self._proc = proc
+        self._get = self._node.create_client(GetState, '/reduced_dynamics/get_state')
+        self._change = self._node.create_client(ChangeState,
+                                                '/reduced_dynamics/change_state')
+        assert spin_until(self._executor, lambda: self._get.service_is_ready()
+                          and self._change.service_is_ready(), PATIENCE)
+
+    def state(self):
+        """Return the node's lifecycle state id."""
+        from lifecycle_msgs.srv import GetState
+        return answer(self._executor, self._get, GetState.Request(),
+                      self._proc).current_state.id
+
+    def transition(self, transition_id, goal=None):
+        """Return whether the node took it (``goal``: the state it ends in)."""
+        from lifecycle_msgs.msg import Transition
+        from lifecycle_msgs.srv import ChangeState
+        settled = None if goal is None else (lambda: self.state() == goal)
+        result = answer(self._executor, self._change,
+                        ChangeState.Request(transition=Transition(id=transition_id)),
+                        self._proc, settled)
+        return True if result is None else result.success
+
+
 # ------------------------------------------------------------------ lifecycle
 def test_lifecycle_transitions_through_the_real_services(install, client):
     from lifecycle_msgs.msg import State, Transition
-    from lifecycle_msgs.srv import ChangeState, GetState
     node, executor = client
     proc = start_node(install, '-p', f'urdf_path:={paper_robot_urdf()}',
                       executable='reduced_dynamics_lifecycle_node')
     try:
-        get_state = node.create_client(GetState, '/reduced_dynamics/get_state')
-        change = node.create_client(ChangeState, '/reduced_dynamics/change_state')
-        assert spin_until(executor, lambda: get_state.service_is_ready()
-                          and change.service_is_ready(), PATIENCE)
+        lifecycle = LifecycleClient(client, proc)
+        state = lifecycle.state
 
-        def call(client_, request):
-            future = client_.call_async(request)
-            assert spin_until(executor, future.done, PATIENCE)
-            return future.result()
-
-        def state():
-            return call(get_state, GetState.Request()).current_state.id
-
-        def transition(transition_id):
-            return call(change, ChangeState.Request(
-                transition=Transition(id=transition_id))).success
+        def transition(transition_id, goal):
+            return lifecycle.transition(transition_id, goal)
 
         assert state() == State.PRIMARY_STATE_UNCONFIGURED
         assert node.count_subscribers('/joint_states') == 0
-        assert transition(Transition.TRANSITION_CONFIGURE)
+        assert transition(Transition.TRANSITION_CONFIGURE, State.PRIMARY_STATE_INACTIVE)
         assert state() == State.PRIMARY_STATE_INACTIVE
-        assert transition(Transition.TRANSITION_ACTIVATE)
+        assert transition(Transition.TRANSITION_ACTIVATE, State.PRIMARY_STATE_ACTIVE)
         assert state() == State.PRIMARY_STATE_ACTIVE
         assert spin_until(executor, lambda: node.count_subscribers('/joint_states') == 1,
                           PATIENCE)
         assert spin_until(executor,
                           lambda: node.count_publishers('/reduced_dynamics/momentum') == 1,
                           PATIENCE)
-        assert transition(Transition.TRANSITION_DEACTIVATE)
+        assert transition(Transition.TRANSITION_DEACTIVATE, State.PRIMARY_STATE_INACTIVE)
         assert state() == State.PRIMARY_STATE_INACTIVE
         assert spin_until(executor, lambda: node.count_subscribers('/joint_states') == 0,
                           PATIENCE)
-        assert transition(Transition.TRANSITION_CLEANUP)
+        assert transition(Transition.TRANSITION_CLEANUP, State.PRIMARY_STATE_UNCONFIGURED)
         assert state() == State.PRIMARY_STATE_UNCONFIGURED
-        assert transition(Transition.TRANSITION_UNCONFIGURED_SHUTDOWN)
+        assert transition(Transition.TRANSITION_UNCONFIGURED_SHUTDOWN,
+                          State.PRIMARY_STATE_FINALIZED)
         assert state() == State.PRIMARY_STATE_FINALIZED
         code, output = stop(proc)
     finally:
@@ -588,22 +639,13 @@ def test_lifecycle_transitions_through_the_real_services(install, client):
 
 def test_lifecycle_configure_fails_on_an_unusable_model(install, client):
     from lifecycle_msgs.msg import State, Transition
-    from lifecycle_msgs.srv import ChangeState, GetState
-    node, executor = client
     proc = start_node(install, '-p', 'urdf_path:=/nonexistent/robot.urdf',
                       executable='reduced_dynamics_lifecycle_node')
     try:
-        get_state = node.create_client(GetState, '/reduced_dynamics/get_state')
-        change = node.create_client(ChangeState, '/reduced_dynamics/change_state')
-        assert spin_until(executor, lambda: change.service_is_ready()
-                          and get_state.service_is_ready(), PATIENCE)
-        future = change.call_async(ChangeState.Request(
-            transition=Transition(id=Transition.TRANSITION_CONFIGURE)))
-        assert spin_until(executor, future.done, PATIENCE)
-        assert not future.result().success
-        future = get_state.call_async(GetState.Request())
-        assert spin_until(executor, future.done, PATIENCE)
-        assert future.result().current_state.id == State.PRIMARY_STATE_UNCONFIGURED
+        lifecycle = LifecycleClient(client, proc)
+        # A failed configure leaves the node unconfigured: sent again, it fails again.
+        assert not lifecycle.transition(Transition.TRANSITION_CONFIGURE)
+        assert lifecycle.state() == State.PRIMARY_STATE_UNCONFIGURED
         code, output = stop(proc)
     finally:
         if proc.poll() is None:
@@ -647,32 +689,17 @@ def test_bad_qos_override_exits_2_with_one_line(install):
 def test_invalid_lifecycle_transition_is_refused_and_the_node_stays(install, client):
     """Issue 21.4: `ros2 lifecycle set /reduced_dynamics activate` while unconfigured."""
     from lifecycle_msgs.msg import State, Transition
-    from lifecycle_msgs.srv import ChangeState, GetState
-    node, executor = client
     proc = start_node(install, '-p', f'urdf_path:={paper_robot_urdf()}',
                       executable='reduced_dynamics_lifecycle_node')
     try:
-        get_state = node.create_client(GetState, '/reduced_dynamics/get_state')
-        change = node.create_client(ChangeState, '/reduced_dynamics/change_state')
-        assert spin_until(executor, lambda: get_state.service_is_ready()
-                          and change.service_is_ready(), PATIENCE)
-
-        def call(client_, request):
-            future = client_.call_async(request)
-            assert spin_until(executor, lambda: future.done() or proc.poll() is not None,
-                              PATIENCE) and future.done(), 'no answer: the node died'
-            return future.result()
-
-        def transition(transition_id):
-            return call(change, ChangeState.Request(
-                transition=Transition(id=transition_id))).success
-
-        assert not transition(Transition.TRANSITION_ACTIVATE)
-        assert not transition(Transition.TRANSITION_DEACTIVATE)
-        assert call(get_state, GetState.Request()).current_state.id == \
-            State.PRIMARY_STATE_UNCONFIGURED
-        assert transition(Transition.TRANSITION_CONFIGURE)
-        assert transition(Transition.TRANSITION_ACTIVATE)
+        lifecycle = LifecycleClient(client, proc)
+        # Refused, the node stays unconfigured: a refusal sent again is refused again.
+        assert not lifecycle.transition(Transition.TRANSITION_ACTIVATE)
+        assert not lifecycle.transition(Transition.TRANSITION_DEACTIVATE)
+        assert lifecycle.state() == State.PRIMARY_STATE_UNCONFIGURED
+        assert lifecycle.transition(Transition.TRANSITION_CONFIGURE,
+                                    State.PRIMARY_STATE_INACTIVE)
+        assert lifecycle.transition(Transition.TRANSITION_ACTIVATE, State.PRIMARY_STATE_ACTIVE)
         assert proc.poll() is None
         code, output = stop(proc)
     finally:
