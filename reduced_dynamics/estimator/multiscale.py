@@ -204,16 +204,25 @@ class MultiScaleTest:
         """
         if not self.active:
             return None
-        sample = None
+        sample = twist = None
         if measured:
             if not self.blocks.active:
                 self._threshold_period = 0.0  # two tests now share the rate
             if len(measured) == 1 and self._period is not None:
-                # The common case: the sample and both banks in one compiled call.
-                sample = self.blocks.prepare(*measured[0])
-            if sample is None:
+                # The common case: the sample and both banks in one compiled call (a
+                # twist not yet turned into a momentum: that too).
+                item = measured[0]
+                if item.__class__ is TwistSample:
+                    twist = self.blocks.prepare_twist(item)
+                    if twist is None:
+                        item = item.momentum()
+                        measured = [item]
+                if twist is None:
+                    sample = self.blocks.prepare(*item)
+            if sample is None and twist is None:
                 for item in measured:
-                    self.blocks.add(*item)
+                    self.blocks.add(*(item.momentum() if item.__class__ is TwistSample
+                                      else item))
         self._updates += 1
         if not self._updates % CALIBRATION_EVERY:
             # T ~ lambda chi2_n above the median a fraction p of the time: lambda =
@@ -221,7 +230,7 @@ class MultiScaleTest:
             p = np.clip(self._above, 0.5, 1.0 - 1e-3)
             self.inflation[:] = np.maximum(1.0, self._median / chdtri(self.n, p))
         # Both banks (the block test's as MomentumBlocks.update, then calibrated).
-        found, best = self._filtered(stamp_ns, mu, cov, wanted, sample)
+        found, best = self._filtered(stamp_ns, mu, cov, wanted, sample, twist)
         if not self.blocks.active or self._period is None:
             return found if wanted else None
         if not wanted:
@@ -250,8 +259,8 @@ class MultiScaleTest:
         return self.blocks.mean(lo_ns, hi_ns) if self.blocks.active else None
 
     def _filtered(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
-                  wanted: bool = True,
-                  sample: Optional[tuple] = None) -> tuple[Optional[ImpulseDetection], int]:
+                  wanted: bool = True, sample: Optional[tuple] = None,
+                  twist: Optional[tuple] = None) -> tuple[Optional[ImpulseDetection], int]:
         """
         Run the test on the filtered momentum (module doc) and the block test's update.
 
@@ -259,7 +268,8 @@ class MultiScaleTest:
         the caller would drop it) and the block test's best window (-1: none),
         calibrated: one compiled call (core/bank_step.update) on preallocated arrays;
         with ``sample`` (MomentumBlocks.prepare's arguments: the period is known, so the
-        call is made) the measured momentum is taken in the same call.
+        call is made) the measured momentum is taken in the same call; with ``twist``
+        (MomentumBlocks.prepare_twist's) the measured twist is turned into it there too.
         """
         if self._end > self._start:
             dt = (stamp_ns - int(self._stamps[self._end - 1])) * 1e-9
@@ -290,7 +300,7 @@ class MultiScaleTest:
         # _calibration, inlined (called per sample).
         learn = self.quiet
         rate = min(1.0, self._period / self.calibration_memory) if learn else 0.0
-        if sample is None:
+        if sample is None and twist is None:
             # One compiled call: the sample stored, both banks' statistics, calibrated.
             best, value, block_best = bank_step.update(
                 self._stamps, self._mu, self._cov, self._start, self._end, self._lags_ns,
@@ -300,13 +310,15 @@ class MultiScaleTest:
                 measured._common, measured._stamps, measured._end, measured._lags_ns, first,
                 measured.mass, measured.linear, measured.statistics, self._grid)
         else:
-            added, best, value, block_best = bank_step.update_with_sample(
-                *sample, self._stamps, self._mu, self._cov, self._start, self._end,
-                self._lags_ns, stamp_ns, 0 if floor is None else floor, floor is not None,
-                mu, cov, self._rows, self.statistics, self._above, self.inflation,
-                self._scratch, self._median, rate, learn, ready, *measured._arrays(),
-                measured._common, measured._stamps, measured._lags_ns, first, measured.mass,
-                measured.linear, measured.statistics, self._grid)
+            added, best, value, block_best = (
+                bank_step.update_with_sample if twist is None else bank_step.update_with_twist)(
+                *(sample if twist is None else twist), self._stamps, self._mu, self._cov,
+                self._start, self._end, self._lags_ns, stamp_ns,
+                0 if floor is None else floor, floor is not None, mu, cov, self._rows,
+                self.statistics, self._above, self.inflation, self._scratch, self._median,
+                rate, learn, ready, *measured._arrays(), measured._common, measured._stamps,
+                measured._lags_ns, first, measured.mass, measured.linear, measured.statistics,
+                self._grid)
             if added:  # measured.added(), inlined (called per sample)
                 measured._end += 1
                 measured.active = True
@@ -402,10 +414,47 @@ def twist_momentum(ad_inverse: np.ndarray, locked: np.ndarray, connection_qd: np
                                   kirillov(pi))
 
 
+class TwistSample(NamedTuple):
+    """
+    One measured twist of an SE(3) base at its row, not yet turned into a momentum.
+
+    The arguments of :func:`.impulse.measured_momentum_se3` (the row's locked inertia
+    for the momentum and the centre of mass). :class:`MultiScaleTest` turns it into
+    the momentum inside the banks' compiled call (core/bank_step.update_with_twist);
+    :meth:`momentum` gives the (stamp, mu, white, common, position) tuple
+    :func:`twist_momenta` gives for other samples, the same bits.
+    """
+
+    stamp_ns: int
+    ad_inverse: np.ndarray
+    locked: np.ndarray
+    twist: np.ndarray
+    connection_qd: np.ndarray
+    twist_cov: np.ndarray
+    joint_cov: np.ndarray
+    pose_cov: np.ndarray
+    structure: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+    com_pose_cov: np.ndarray
+
+    def momentum(self) -> tuple:
+        """Return (stamp, mu, white covariance, common covariance, position)."""
+        mu, white, common, world, cov, mass = impulse.measured_momentum_se3(
+            self.ad_inverse, self.locked, self.twist, self.connection_qd, self.twist_cov,
+            self.joint_cov, self.pose_cov, self.structure, self.locked, self.rotation,
+            self.translation, self.com_pose_cov)
+        return self.stamp_ns, mu, white, common, (world, cov, mass, _LINEAR_SE3)
+
+
 def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stamp_ns: int,
                   measurements: list, gated: list, g: Any = None) -> list[tuple]:
     """
     Return (stamp, mu, covariance) of a row's accepted twist measurements.
+
+    The common one (an SE(3) base, at the row, the filter's noise) as a
+    :class:`TwistSample`: the multi-scale test computes its momentum in its own
+    compiled call.
 
     ``before``, ``lin``: the linearisations of the previous row (at ``start_ns``)
     and of this one (at ``stamp_ns``); A qbar_dot is interpolated to each
@@ -431,14 +480,13 @@ def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stam
         if se3 and measurement.noise is None and \
                 not (span and measurement.stamp_ns < stamp_ns):
             # The common sample (at the row, the filter's noise): the general case
-            # below with nothing to interpolate and no noise of its own, looked up once.
+            # below with nothing to interpolate and no noise of its own, its momentum
+            # computed in the banks' compiled call (TwistSample).
             pose = measurement.pose
-            mu, white, common, world, cov, mass = impulse.measured_momentum_se3(
-                ad_inverse, lin.locked, measurement.twist, lin.connection_qd, flt._r_twist,
-                lin.joint_cov, pose_cov, flt.group.structure_constants, lin.locked,
-                pose.rotation, pose.translation, flt._r_pose)
-            out.append((measurement.stamp_ns, mu, white, common,
-                        (world, cov, mass, _LINEAR_SE3)))
+            out.append(TwistSample(measurement.stamp_ns, ad_inverse, lin.locked,
+                                   measurement.twist, lin.connection_qd, flt._r_twist,
+                                   lin.joint_cov, pose_cov, flt.group.structure_constants,
+                                   pose.rotation, pose.translation, flt._r_pose))
             continue
         connection = lin.connection_qd
         if span and measurement.stamp_ns < stamp_ns:
@@ -566,6 +614,9 @@ class MomentumBlocks:
         self._excess_raw = np.zeros((n, n))
         self._differences = 0
         self._last: Optional[tuple[np.ndarray, np.ndarray]] = None
+        # Where bank_step.update_with_twist leaves its sample's momentum and white
+        # covariance (the next successive difference's last sample).
+        self._keep = (np.zeros(n), np.zeros((n, n)))
         self._no_position = np.zeros((0, 0))
         self._no_common = np.zeros((n, n))
         self._no_centre = np.zeros(0)
@@ -705,6 +756,28 @@ class MomentumBlocks:
                 (stamp_ns - self._origin_ns) * 1e-9,
                 self._no_centre if position is None else np.asarray(position[0], float),
                 position is not None)
+
+    def prepare_twist(self, sample: TwistSample) -> Optional[tuple]:
+        """
+        Return bank_step.update_with_twist's per-sample arguments; None: not common.
+
+        :meth:`prepare`'s common sample with a position, the centre of mass already
+        read (``linear`` set), and no excess decomposition due (:meth:`prepare` does
+        that one). The excess noise's state is advanced; the call leaves the sample's
+        momentum and white covariance in ``_keep`` (the next difference's last sample).
+        """
+        last, k = self._last, self._end
+        differences = self._differences + 1
+        if last is None or not k or k == self._capacity or len(self.linear) != 3 \
+                or sample.stamp_ns <= self._stamps[k - 1] or differences % 16 == 1 \
+                or differences == EXCESS_MINIMUM:
+            return None
+        self._last = self._keep
+        self._differences = differences
+        stamp_ns = sample.stamp_ns
+        return (*sample[1:], self._excess_raw, last[0], last[1], self._keep[0],
+                self._keep[1], float(min(differences, EXCESS_SAMPLES)), self.excess,
+                stamp_ns, k, (stamp_ns - self._origin_ns) * 1e-9)
 
     def added(self) -> None:
         """Count the sample :meth:`prepare` gave, now in the ring."""
