@@ -101,6 +101,10 @@ class ImpulseDetection(NamedTuple):
     measured: bool = False
 
 
+#: MultiScaleTest._update_twist's answer when the update is not its common one.
+_UNCOMMON = object()
+
+
 class MultiScaleTest:
     """GLR of a constant-wrench pulse over each window of a geometric bank (module doc)."""
 
@@ -204,25 +208,23 @@ class MultiScaleTest:
         """
         if not self.active:
             return None
-        sample = twist = None
+        if measured is not None and len(measured) == 1 and \
+                measured[0].__class__ is TwistSample:
+            out = self._update_twist(stamp_ns, mu, cov, measured[0], wanted)
+            if out is not _UNCOMMON:
+                return out
+        sample = None
         if measured:
             if not self.blocks.active:
                 self._threshold_period = 0.0  # two tests now share the rate
+            measured = [item.momentum() if item.__class__ is TwistSample else item
+                        for item in measured]
             if len(measured) == 1 and self._period is not None:
-                # The common case: the sample and both banks in one compiled call (a
-                # twist not yet turned into a momentum: that too).
-                item = measured[0]
-                if item.__class__ is TwistSample:
-                    twist = self.blocks.prepare_twist(item)
-                    if twist is None:
-                        item = item.momentum()
-                        measured = [item]
-                if twist is None:
-                    sample = self.blocks.prepare(*item)
-            if sample is None and twist is None:
+                # The common case: the sample and both banks in one compiled call.
+                sample = self.blocks.prepare(*measured[0])
+            if sample is None:
                 for item in measured:
-                    self.blocks.add(*(item.momentum() if item.__class__ is TwistSample
-                                      else item))
+                    self.blocks.add(*item)
         self._updates += 1
         if not self._updates % CALIBRATION_EVERY:
             # T ~ lambda chi2_n above the median a fraction p of the time: lambda =
@@ -230,13 +232,18 @@ class MultiScaleTest:
             p = np.clip(self._above, 0.5, 1.0 - 1e-3)
             self.inflation[:] = np.maximum(1.0, self._median / chdtri(self.n, p))
         # Both banks (the block test's as MomentumBlocks.update, then calibrated).
-        found, best = self._filtered(stamp_ns, mu, cov, wanted, sample, twist)
+        found, best = self._filtered(stamp_ns, mu, cov, wanted, sample)
         if not self.blocks.active or self._period is None:
             return found if wanted else None
         if not wanted:
             # The fit below costs ~ points^2 x the window's samples (MomentumBlocks.locate):
             # once per sample it was most of the node's time while a push lasted.
             return None
+        return self._block_detection(stamp_ns, found, best)
+
+    def _block_detection(self, stamp_ns: int, found: Optional[ImpulseDetection],
+                         best: int) -> Optional[ImpulseDetection]:
+        """Return the block test's detection at ``stamp_ns`` (best window ``best``) or ``found``."""
         if best < 0 or not self.blocks.statistics[best] > self.threshold:
             return found
         # Between its evaluations a window's statistic is held (bank_step.update): the
@@ -253,14 +260,80 @@ class MultiScaleTest:
         return ImpulseDetection(block.start_ns, block.window, block.statistic,
                                 block.mu_before, block.cov_before, True)
 
+    def _update_twist(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
+                      sample: 'TwistSample', wanted: bool) -> Any:
+        """
+        Run :meth:`update` on the common update in one compiled call; _UNCOMMON: not common.
+
+        Common: the update period known, the block test running on positions, and
+        ``sample`` a common sample (:meth:`MomentumBlocks.prepare_twist`'s conditions,
+        checked before anything moves). The same steps as :meth:`update` with
+        :meth:`_filtered`, in the same order, with the state read once (per update).
+        """
+        blocks, period, end = self.blocks, self._period, self._end
+        last, k = blocks._last, blocks._end
+        differences = blocks._differences + 1
+        sample_ns = sample[0]
+        if period is None or last is None or not k or k == blocks._capacity or \
+                len(blocks.linear) != 3 or sample_ns <= blocks._stamps[k - 1] or \
+                differences % 16 == 1 or differences == EXCESS_MINIMUM or \
+                not blocks.active or end <= self._start:
+            return _UNCOMMON
+        # MomentumBlocks.prepare_twist, inlined (called per sample).
+        keep = blocks._last = blocks._keep
+        blocks._differences = differences
+        self._updates += 1
+        if not self._updates % CALIBRATION_EVERY:
+            # As in update.
+            p = np.clip(self._above, 0.5, 1.0 - 1e-3)
+            self.inflation[:] = np.maximum(1.0, self._median / chdtri(self.n, p))
+        # _filtered: the period, the threshold when it moved, room in the ring.
+        dt = (stamp_ns - int(self._stamps[end - 1])) * 1e-9
+        if dt > 0.0:
+            period = self._period = period + 0.01 * (dt - period)
+        if end == self._capacity:
+            self._make_room(stamp_ns)
+            end = self._end
+        threshold_period = self._threshold_period
+        if abs(period - threshold_period) > PERIOD_TOLERANCE * threshold_period or \
+                not threshold_period:
+            self._threshold_period = period
+            self.threshold = float(chi2.isf(self.significance(period), self.n))
+        floor = self.floor_ns
+        first = int(blocks._stamps[0])
+        if floor is not None and floor > first:
+            first = floor
+        learn = self.quiet
+        added, best, value, block_best = bank_step.update_with_twist(
+            *sample[1:], blocks._excess_raw, last[0], last[1], keep[0], keep[1],
+            float(min(differences, EXCESS_SAMPLES)), blocks.excess, sample_ns, k,
+            (sample_ns - blocks._origin_ns) * 1e-9, self._stamps, self._mu, self._cov,
+            self._start, end, self._lags_ns, stamp_ns, 0 if floor is None else floor,
+            floor is not None, mu, cov, self._rows, self.statistics, self._above,
+            self.inflation, self._scratch, self._median,
+            min(1.0, period / self.calibration_memory) if learn else 0.0, learn,
+            differences >= EXCESS_MINIMUM, blocks._info, blocks._score, *blocks._positions,
+            blocks._common,
+            blocks._stamps, blocks._lags_ns, first, blocks.mass, blocks.linear,
+            blocks.statistics, self._grid)
+        if added:
+            blocks._end = k + 1
+        self._end = end + 1
+        found = None
+        if wanted and best >= 0 and value > self.threshold:
+            found = self._detection(best)
+        if not wanted:
+            return None
+        return self._block_detection(stamp_ns, found, block_best)
+
     def measured_mean(self, lo_ns: int, hi_ns: int
                       ) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """Return the mean measured momentum over (lo_ns, hi_ns] (None: no twist)."""
         return self.blocks.mean(lo_ns, hi_ns) if self.blocks.active else None
 
     def _filtered(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
-                  wanted: bool = True, sample: Optional[tuple] = None,
-                  twist: Optional[tuple] = None) -> tuple[Optional[ImpulseDetection], int]:
+                  wanted: bool = True,
+                  sample: Optional[tuple] = None) -> tuple[Optional[ImpulseDetection], int]:
         """
         Run the test on the filtered momentum (module doc) and the block test's update.
 
@@ -268,8 +341,8 @@ class MultiScaleTest:
         the caller would drop it) and the block test's best window (-1: none),
         calibrated: one compiled call (core/bank_step.update) on preallocated arrays;
         with ``sample`` (MomentumBlocks.prepare's arguments: the period is known, so the
-        call is made) the measured momentum is taken in the same call; with ``twist``
-        (MomentumBlocks.prepare_twist's) the measured twist is turned into it there too.
+        call is made) the measured momentum is taken in the same call (a twist too:
+        :meth:`_update_twist`).
         """
         if self._end > self._start:
             dt = (stamp_ns - int(self._stamps[self._end - 1])) * 1e-9
@@ -300,7 +373,7 @@ class MultiScaleTest:
         # _calibration, inlined (called per sample).
         learn = self.quiet
         rate = min(1.0, self._period / self.calibration_memory) if learn else 0.0
-        if sample is None and twist is None:
+        if sample is None:
             # One compiled call: the sample stored, both banks' statistics, calibrated.
             best, value, block_best = bank_step.update(
                 self._stamps, self._mu, self._cov, self._start, self._end, self._lags_ns,
@@ -310,22 +383,24 @@ class MultiScaleTest:
                 measured._common, measured._stamps, measured._end, measured._lags_ns, first,
                 measured.mass, measured.linear, measured.statistics, self._grid)
         else:
-            added, best, value, block_best = (
-                bank_step.update_with_sample if twist is None else bank_step.update_with_twist)(
-                *(sample if twist is None else twist), self._stamps, self._mu, self._cov,
-                self._start, self._end, self._lags_ns, stamp_ns,
-                0 if floor is None else floor, floor is not None, mu, cov, self._rows,
-                self.statistics, self._above, self.inflation, self._scratch, self._median,
-                rate, learn, ready, *measured._arrays(), measured._common, measured._stamps,
-                measured._lags_ns, first, measured.mass, measured.linear, measured.statistics,
-                self._grid)
+            added, best, value, block_best = bank_step.update_with_sample(
+                *sample, self._stamps, self._mu, self._cov, self._start, self._end,
+                self._lags_ns, stamp_ns, 0 if floor is None else floor, floor is not None,
+                mu, cov, self._rows, self.statistics, self._above, self.inflation,
+                self._scratch, self._median, rate, learn, ready, *measured._arrays(),
+                measured._common, measured._stamps, measured._lags_ns, first, measured.mass,
+                measured.linear, measured.statistics, self._grid)
             if added:  # measured.added(), inlined (called per sample)
                 measured._end += 1
                 measured.active = True
         self._end += 1
-        rows = self._rows
         if not wanted or best < 0 or not value > self.threshold:
             return None, block_best
+        return self._detection(best), block_best
+
+    def _detection(self, best: int) -> ImpulseDetection:
+        """Return the filtered test's detection, its window ``best`` among those covered."""
+        rows = self._rows
         covered = rows >= 0
         rows = rows[covered]
         values = self.statistics[covered]
@@ -339,7 +414,7 @@ class MultiScaleTest:
         return ImpulseDetection(int(self._stamps[rows[knee]]),
                                 float(self.windows[np.flatnonzero(covered)[best]]),
                                 float(values[best]), self._mu[rows[longest]].copy(),
-                                self._cov[rows[longest]].copy()), block_best
+                                self._cov[rows[longest]].copy())
 
     def _calibration(self) -> tuple[float, bool]:
         """Return the null calibration's learning rate per update and whether it learns."""
@@ -483,10 +558,13 @@ def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stam
             # below with nothing to interpolate and no noise of its own, its momentum
             # computed in the banks' compiled call (TwistSample).
             pose = measurement.pose
-            out.append(TwistSample(measurement.stamp_ns, ad_inverse, lin.locked,
-                                   measurement.twist, lin.connection_qd, flt._r_twist,
-                                   lin.joint_cov, pose_cov, flt.group.structure_constants,
-                                   pose.rotation, pose.translation, flt._r_pose))
+            # tuple.__new__: the fields as they are (the NamedTuple's own __new__ is a
+            # Python function, ~0.5 us a row).
+            out.append(tuple.__new__(TwistSample, (
+                measurement.stamp_ns, ad_inverse, lin.locked, measurement.twist,
+                lin.connection_qd, flt._r_twist, lin.joint_cov, pose_cov,
+                flt.group.structure_constants, pose.rotation, pose.translation,
+                flt._r_pose)))
             continue
         connection = lin.connection_qd
         if span and measurement.stamp_ns < stamp_ns:
@@ -756,28 +834,6 @@ class MomentumBlocks:
                 (stamp_ns - self._origin_ns) * 1e-9,
                 self._no_centre if position is None else np.asarray(position[0], float),
                 position is not None)
-
-    def prepare_twist(self, sample: TwistSample) -> Optional[tuple]:
-        """
-        Return bank_step.update_with_twist's per-sample arguments; None: not common.
-
-        :meth:`prepare`'s common sample with a position, the centre of mass already
-        read (``linear`` set), and no excess decomposition due (:meth:`prepare` does
-        that one). The excess noise's state is advanced; the call leaves the sample's
-        momentum and white covariance in ``_keep`` (the next difference's last sample).
-        """
-        last, k = self._last, self._end
-        differences = self._differences + 1
-        if last is None or not k or k == self._capacity or len(self.linear) != 3 \
-                or sample.stamp_ns <= self._stamps[k - 1] or differences % 16 == 1 \
-                or differences == EXCESS_MINIMUM:
-            return None
-        self._last = self._keep
-        self._differences = differences
-        stamp_ns = sample.stamp_ns
-        return (*sample[1:], self._excess_raw, last[0], last[1], self._keep[0],
-                self._keep[1], float(min(differences, EXCESS_SAMPLES)), self.excess,
-                stamp_ns, k, (stamp_ns - self._origin_ns) * 1e-9)
 
     def added(self) -> None:
         """Count the sample :meth:`prepare` gave, now in the ring."""
