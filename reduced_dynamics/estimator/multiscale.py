@@ -243,7 +243,7 @@ class MultiScaleTest:
 
     def _block_detection(self, stamp_ns: int, found: Optional[ImpulseDetection],
                          best: int) -> Optional[ImpulseDetection]:
-        """Return the block test's detection at ``stamp_ns`` (best window ``best``) or ``found``."""
+        """Return the block test's detection (its best window ``best``), or ``found``."""
         if best < 0 or not self.blocks.statistics[best] > self.threshold:
             return found
         # Between its evaluations a window's statistic is held (bank_step.update): the
