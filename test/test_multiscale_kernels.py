@@ -257,7 +257,7 @@ def test_warm_up_loads_the_impulse_kernels_with_the_estimators_argument_types() 
             'from reduced_dynamics.robot.model import load_robot; '
             'from reduced_dynamics.bench import update_samples; '
             'from reduced_dynamics.estimator.pipeline import Estimator; '
-            'kernels = (s.update, s.update_with_sample, s.update_with_twist, '
+            'kernels = (s.update, s.update_with_sample, s.twist_step, '
             'i.measured_momentum_se3); '
             'before = [len(k.signatures) for k in kernels]; '
             'robot = load_robot(); joints, bases = update_samples(robot, 300); '

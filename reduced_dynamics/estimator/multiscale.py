@@ -153,6 +153,8 @@ class MultiScaleTest:
         self._grid[1] = -1
         #: whether no event is open (the detector sets it): only then is the null learnt
         self.quiet = True
+        # bank_step.twist_step's arrays that stay between updates (_kept_arrays).
+        self._kept: Optional[tuple] = None
 
     @property
     def active(self) -> bool:
@@ -266,56 +268,45 @@ class MultiScaleTest:
         Run :meth:`update` on the common update in one compiled call; _UNCOMMON: not common.
 
         Common: the update period known, the block test running on positions, and
-        ``sample`` a common sample (:meth:`MomentumBlocks.prepare_twist`'s conditions,
-        checked before anything moves). The same steps as :meth:`update` with
-        :meth:`_filtered`, in the same order, with the state read once (per update).
+        ``sample`` a common sample (:meth:`MomentumBlocks.prepare`'s conditions, no
+        excess decomposition due; checked before anything moves). The same steps as
+        :meth:`update` with :meth:`_filtered`, in the same order: the period, the block
+        test's first stamp and the calibration's rate in the call
+        (core/bank_step.twist_step), the arrays that stay passed as one kept tuple.
         """
         blocks, period, end = self.blocks, self._period, self._end
         last, k = blocks._last, blocks._end
         differences = blocks._differences + 1
-        sample_ns = sample[0]
         if period is None or last is None or not k or k == blocks._capacity or \
-                len(blocks.linear) != 3 or sample_ns <= blocks._stamps[k - 1] or \
+                len(blocks.linear) != 3 or sample[0] <= blocks._stamps[k - 1] or \
                 differences % 16 == 1 or differences == EXCESS_MINIMUM or \
                 not blocks.active or end <= self._start:
             return _UNCOMMON
-        # MomentumBlocks.prepare_twist, inlined (called per sample).
-        keep = blocks._last = blocks._keep
+        # MomentumBlocks.prepare's state, advanced (called per sample).
+        blocks._last = blocks._keep
         blocks._differences = differences
         self._updates += 1
         if not self._updates % CALIBRATION_EVERY:
             # As in update.
             p = np.clip(self._above, 0.5, 1.0 - 1e-3)
             self.inflation[:] = np.maximum(1.0, self._median / chdtri(self.n, p))
-        # _filtered: the period, the threshold when it moved, room in the ring.
-        dt = (stamp_ns - int(self._stamps[end - 1])) * 1e-9
-        if dt > 0.0:
-            period = self._period = period + 0.01 * (dt - period)
         if end == self._capacity:
+            # (_filtered takes the period from the last stamp first: it stays the last.)
             self._make_room(stamp_ns)
             end = self._end
+        floor = self.floor_ns
+        added, period, best, value, block_best = bank_step.twist_step(
+            *sample, stamp_ns, mu, cov, 0 if floor is None else floor, floor is not None,
+            self.quiet, period, self.calibration_memory, differences >= EXCESS_MINIMUM,
+            float(min(differences, EXCESS_SAMPLES)), last[0], last[1], self._start, end, k,
+            blocks._origin_ns, *self._kept_arrays())
+        # _filtered: the threshold when the period moved (the call does not read it).
+        self._period = period
         threshold_period = self._threshold_period
         if abs(period - threshold_period) > PERIOD_TOLERANCE * threshold_period or \
                 not threshold_period:
             self._threshold_period = period
             self.threshold = float(chi2.isf(self.significance(period), self.n))
-        floor = self.floor_ns
-        first = int(blocks._stamps[0])
-        if floor is not None and floor > first:
-            first = floor
-        learn = self.quiet
-        added, best, value, block_best = bank_step.update_with_twist(
-            *sample[1:], blocks._excess_raw, last[0], last[1], keep[0], keep[1],
-            float(min(differences, EXCESS_SAMPLES)), blocks.excess, sample_ns, k,
-            (sample_ns - blocks._origin_ns) * 1e-9, self._stamps, self._mu, self._cov,
-            self._start, end, self._lags_ns, stamp_ns, 0 if floor is None else floor,
-            floor is not None, mu, cov, self._rows, self.statistics, self._above,
-            self.inflation, self._scratch, self._median,
-            min(1.0, period / self.calibration_memory) if learn else 0.0, learn,
-            differences >= EXCESS_MINIMUM, blocks._info, blocks._score, *blocks._positions,
-            blocks._common,
-            blocks._stamps, blocks._lags_ns, first, blocks.mass, blocks.linear,
-            blocks.statistics, self._grid)
         if added:
             blocks._end = k + 1
         self._end = end + 1
@@ -325,6 +316,26 @@ class MultiScaleTest:
         if not wanted:
             return None
         return self._block_detection(stamp_ns, found, block_best)
+
+    def _kept_arrays(self) -> tuple:
+        """
+        Return the arrays bank_step.twist_step takes that stay between updates, as one tuple.
+
+        Built again when one of them was replaced (a ring grown or compacted, the block
+        test's positions started, a new excess): the identities checked are those.
+        """
+        blocks = self.blocks
+        kept = self._kept
+        if kept is not None and kept[0] is self._stamps and kept[1] is blocks._stamps and \
+                kept[2] is blocks._positions and kept[3] is blocks.excess:
+            return kept[4]
+        arrays = (blocks._excess_raw, *blocks._keep, blocks.excess, self._stamps, self._mu,
+                  self._cov, self._lags_ns, self._rows, self.statistics, self._above,
+                  self.inflation, self._scratch, self._median, blocks._info, blocks._score,
+                  *blocks._positions, blocks._common, blocks._stamps, blocks._lags_ns,
+                  blocks.mass, blocks.linear, blocks.statistics, self._grid)
+        self._kept = (self._stamps, blocks._stamps, blocks._positions, blocks.excess, arrays)
+        return arrays
 
     def measured_mean(self, lo_ns: int, hi_ns: int
                       ) -> Optional[tuple[np.ndarray, np.ndarray]]:
@@ -495,7 +506,7 @@ class TwistSample(NamedTuple):
 
     The arguments of :func:`.impulse.measured_momentum_se3` (the row's locked inertia
     for the momentum and the centre of mass). :class:`MultiScaleTest` turns it into
-    the momentum inside the banks' compiled call (core/bank_step.update_with_twist);
+    the momentum inside the banks' compiled call (core/bank_step.twist_step);
     :meth:`momentum` gives the (stamp, mu, white, common, position) tuple
     :func:`twist_momenta` gives for other samples, the same bits.
     """
@@ -692,7 +703,7 @@ class MomentumBlocks:
         self._excess_raw = np.zeros((n, n))
         self._differences = 0
         self._last: Optional[tuple[np.ndarray, np.ndarray]] = None
-        # Where bank_step.update_with_twist leaves its sample's momentum and white
+        # Where bank_step.twist_step leaves its sample's momentum and white
         # covariance (the next successive difference's last sample).
         self._keep = (np.zeros(n), np.zeros((n, n)))
         self._no_position = np.zeros((0, 0))

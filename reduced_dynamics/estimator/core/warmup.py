@@ -100,7 +100,7 @@ def warm_up() -> None:
                     (np.zeros(d), np.eye(d), 2.0, tuple(range(d))))]
                 multiscale.update(stamp, np.full(n, 1e-3 * k), np.eye(n), measured)
     # The same with an SE(3) base's twist turned into its momentum in the banks' call
-    # (multiscale.TwistSample: bank_step.update_with_twist from the third on), in the
+    # (multiscale.TwistSample: bank_step.twist_step from the third on), in the
     # layouts of a run (Pinocchio's poses, a strided block of the filter's covariance).
     from reduced_dynamics.estimator.multiscale import TwistSample
     multiscale = MultiScaleTest(6, 1.0)
