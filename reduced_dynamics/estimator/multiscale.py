@@ -36,8 +36,9 @@ is compared with the chi2_n quantile of ``R dt / 3600 / windows``. That is
 conservative twice (the bound; V_L above the true variance), which the measured
 rates in the docs show.
 
-Cost per update: one ``searchsorted`` over the ring of past estimates and a
-stacked n x n solve per window.
+Cost per update: one compiled call for both banks (core/bank_step.py; with a
+measured twist its momentum too: :class:`TwistSample`; docs/multiscale_events.md,
+"Cost").
 
 The filtered momentum's covariance is set mostly by the filter's random-walk
 wrench, so this test cannot see a slow push below ~sqrt(threshold 2 P_mu)
