@@ -625,8 +625,9 @@ def bench_multiscale(report: Report, robot, settings: Settings) -> None:
         [t / u for t, u in zip(alone, updates)],
         note='the test alone on one run\'s recorded calls (the filtered '
              'momentum\'s windows and the compiled block test on measured twists and centre '
-             'of mass), from 9 s on (every window of both banks covered); ratio: its share '
-             'of a streaming update (1 kHz pose + twist)'))
+             'of mass, the twists\' momenta computed in its call), from 9 s on (every window '
+             'of both banks covered); ratio: its share of a streaming update (1 kHz pose + '
+             'twist)'))
 
 
 # --------------------------------------------------------------------------- 2. prediction

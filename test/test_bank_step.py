@@ -178,3 +178,85 @@ def test_no_detection_is_formed_when_the_caller_has_no_use_for_it(monkeypatch) -
         assert test.update(stamp, mu, cov, measured, wanted=False) is None
         above += bool(test.statistics.max() > test.threshold)
     assert above > 10 and not formed
+
+
+def _twist_samples(seconds: float, rate: float, seed: int) -> list:
+    """Return per update (stamp, mu, cov, [TwistSample], wanted, quiet, reset): an SE(3) base."""
+    import pinocchio as pin
+    from reduced_dynamics.geometry.lie_group import SUBGROUPS
+    rng = np.random.default_rng(seed)
+    structure = SUBGROUPS['SE(3)'].structure_constants
+    locked = pin.Inertia(16.0, np.array([0.05, -0.02, 0.1]),
+                         np.diag([0.4, 0.5, 0.6])).matrix()
+    twist_cov, pose_noise = np.diag(np.full(6, 1e-4)), np.diag(np.full(6, 1e-6))
+    joint_cov = np.diag(np.full(6, 1e-5))
+    root = rng.standard_normal((6, 6)) * 1e-3
+    fixed = root @ root.T + 1e-6 * np.eye(6)
+    xi_true = np.zeros(6)
+    out = []
+    for k in range(int(seconds * rate)):
+        stamp = 10 ** 9 + int(round(k * 1e9 / rate))
+        t = k / rate
+        if 2.0 <= t < 2.6 or 5.0 <= t < 5.1:
+            xi_true = xi_true + 0.2 / rate  # pushes: a long one and a short one
+        g = pin.exp6(pin.Motion(xi_true * t + rng.standard_normal(6) * 1e-4))
+        p = rng.standard_normal((18, 18)) * 1e-3
+        p = p @ p.T + 1e-8 * np.eye(18)
+        sample = multiscale.TwistSample(
+            stamp, g.actionInverse, locked + rng.standard_normal((6, 6)) * 1e-6,
+            xi_true + rng.standard_normal(6) * 1e-2, rng.standard_normal(6) * 1e-3,
+            twist_cov, joint_cov, p[:6, :6], structure, g.rotation, g.translation,
+            pose_noise)
+        mu = locked @ xi_true + rng.standard_normal(6) * 1e-3
+        out.append((stamp, mu, fixed, [sample], k % 50 < 35, (k // 200) % 3 != 1,
+                    k in (450, 900)))
+    return out
+
+
+def _blocks_state(test: MultiScaleTest) -> list:
+    """Return the block test's arrays (rings to their end, excess, last sample)."""
+    b = test.blocks
+    return [b._stamps[:b._end].copy(), *(a[:b._end].copy() for a in b._arrays()),
+            b._common[:b._end].copy(), b._excess_raw.copy(), b.excess.copy(),
+            np.array([b._end, b._differences, b.mass, b._origin_ns]),
+            *(np.array(a, copy=True) for a in (b._last or ()))]
+
+
+def test_the_fused_twist_call_gives_the_bits_of_the_calls_it_replaces(monkeypatch) -> None:
+    """
+    bank_step.twist_step = TwistSample.momentum, prepare and update_with_sample.
+
+    Two tests fed the same updates, one the twists (the momentum computed in the banks'
+    call), one their momenta computed from Python (the calls before): every statistic,
+    ring, calibration and detection bit for bit, through pushes, resets, open events
+    (not wanted), an unquiet null, ring growth and the excess decompositions.
+    """
+    monkeypatch.setattr(multiscale, 'EXCESS_MINIMUM', 50)
+    calls = {'twist_step': 0}
+    # (Only the outermost kernel is wrapped: a kernel compiled while one it calls is a
+    # Python wrapper could not be.)
+
+    def counted(*args, _function=bank_step.twist_step):
+        calls['twist_step'] += 1
+        return _function(*args)
+    monkeypatch.setattr(bank_step, 'twist_step', counted)
+    fused, separate = MultiScaleTest(6, 50.0), MultiScaleTest(6, 50.0)
+    found = 0
+    for stamp, mu, cov, measured, wanted, quiet, reset in _twist_samples(8.0, 100.0, 5):
+        outs = []
+        for test, items in ((fused, measured), (separate, [m.momentum() for m in measured])):
+            test.quiet = quiet
+            if reset:
+                test.reset(stamp - 10 ** 8)
+            outs.append(test.update(stamp, mu, cov, items, wanted))
+        assert (outs[0] is None) == (outs[1] is None)
+        if outs[0] is not None:
+            found += 1
+            for mine, want in zip(outs[0], outs[1]):
+                np.testing.assert_array_equal(mine, want)
+        for mine, want in zip(_state(fused) + _blocks_state(fused),
+                              _state(separate) + _blocks_state(separate)):
+            np.testing.assert_array_equal(mine, want)
+    assert found
+    # The fused call took most samples (not the first two, the decompositions due).
+    assert calls['twist_step'] > 700 and fused.blocks._capacity > 256

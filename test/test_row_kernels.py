@@ -95,9 +95,15 @@ def test_the_compiled_kirillov_form_equals_the_einsum_bit_for_bit() -> None:
 
 
 def test_a_measured_twist_is_one_compiled_call_per_row(bench_run) -> None:
-    """An SE(3) row with a twist: its momentum and centre of mass come from one call."""
+    """
+    An SE(3) row with a twist: its momentum and centre of mass come from one call.
+
+    The banks' (bank_step.twist_step) where the sample is common, else
+    impulse.measured_momentum_se3 from Python (TwistSample.momentum).
+    """
+    from reduced_dynamics.estimator.core import bank_step
     robot, messages = bench_run
-    calls = {'fused': 0, 'twist_momentum': 0, 'centre_of_mass_se3': 0}
+    calls = {'fused': 0, 'twist_momentum': 0, 'centre_of_mass_se3': 0, 'banks': 0}
 
     def counted(name, function):
         def wrapper(*args):
@@ -111,11 +117,17 @@ def test_a_measured_twist_is_one_compiled_call_per_row(bench_run) -> None:
             mock.patch.object(impulse, 'twist_momentum',
                               counted('twist_momentum', impulse.twist_momentum)), \
             mock.patch.object(impulse, 'centre_of_mass_se3',
-                              counted('centre_of_mass_se3', impulse.centre_of_mass_se3)):
+                              counted('centre_of_mass_se3', impulse.centre_of_mass_se3)), \
+            mock.patch.object(bank_step, 'twist_step',
+                              counted('banks', bank_step.twist_step)):
         estimator.add_samples(messages)
     assert estimator.processed == 400
     # Every row measures a twist (the first one's starts the filter and is one too).
-    assert calls == {'fused': 400, 'twist_momentum': 0, 'centre_of_mass_se3': 0}
+    # From Python: the first two (no update period yet), the one that finds the ring
+    # full, and the 25 others whose excess decomposition is due (MomentumBlocks.prepare:
+    # differences 1, 17, ..., 385 and 200; difference 1 is the second sample).
+    assert calls == {'fused': 28, 'twist_momentum': 0, 'centre_of_mass_se3': 0,
+                     'banks': 400 - 28}
 
 
 def test_the_event_windows_lookups_are_done_once_per_window_length() -> None:
@@ -142,13 +154,15 @@ def test_the_event_windows_lookups_are_done_once_per_window_length() -> None:
 
 def test_a_measured_momentum_enters_the_block_test_in_one_compiled_call(bench_run) -> None:
     """
-    Per sample the measured momentum and both banks in one call (update_with_sample).
+    Per sample the measured momentum and both banks in one call (twist_step).
 
-    The separate kernels only where add_sample cannot run (MomentumBlocks.prepare).
+    update_with_sample where the excess decomposition is due (MomentumBlocks.prepare);
+    the separate kernels only where add_sample cannot run.
     """
     from reduced_dynamics.estimator.core import bank_step, blocks
     robot, messages = bench_run
-    calls = {'add_sample': 0, 'accumulate': 0, 'learn_excess': 0, 'update_with_sample': 0}
+    calls = {'add_sample': 0, 'accumulate': 0, 'learn_excess': 0, 'update_with_sample': 0,
+             'twist_step': 0}
 
     def counted(module, name):
         function = getattr(module, name)
@@ -160,15 +174,18 @@ def test_a_measured_momentum_enters_the_block_test_in_one_compiled_call(bench_ru
 
     estimator = _estimator(robot)
     with counted(blocks, 'add_sample'), counted(blocks, 'accumulate'), \
-            counted(blocks, 'learn_excess'), counted(bank_step, 'update_with_sample'):
+            counted(blocks, 'learn_excess'), counted(bank_step, 'update_with_sample'), \
+            counted(bank_step, 'twist_step'):
         estimator.add_samples(messages)
     # 400 measured momenta: the first (no difference yet) and the one that finds the
     # ring full (row 256: compacted) take the separate calls; the second comes before
     # the update period is known (add_sample alone); the others enter with the banks'
-    # update, one per row, those where the excess noise's eigen-decomposition is due
-    # (differences 1, 17, ..., 385 and 200: 26) too, learn_excess run first on a copy.
+    # update, one per row: those where the excess noise's eigen-decomposition is due
+    # (differences 1, 17, ..., 385 and 200: 26; the first of them is the second sample)
+    # by update_with_sample, learn_excess run first on a copy; the rest with the
+    # twist's momentum too (twist_step).
     assert calls == {'add_sample': 1, 'accumulate': 2, 'learn_excess': 26 + 1,
-                     'update_with_sample': 400 - 3}
+                     'update_with_sample': 26 - 1, 'twist_step': 400 - 3 - 25}
 
 
 def test_calibrated_best_equals_the_numpy_steps_it_replaces() -> None:

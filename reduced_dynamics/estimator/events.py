@@ -291,17 +291,18 @@ class EventDetector:
         sample (multiscale.twist_momenta; None: none), for the block test and the
         impulse's ends.
         """
-        # in_event once: the multi-scale test does not touch the events.
-        quiet = self.multiscale.quiet = not self.in_event
+        # in_event once (the last event, looked up once): the multi-scale test does not
+        # touch the events.
+        last = self.events[-1] if self.events else None
+        quiet = self.multiscale.quiet = last is None or last.end_ns is not None
         # A pulse is used only outside an event: inside one it is not located.
         pulse = None if mu_cov is None else \
             self.multiscale.update(stamp_ns, mu, mu_cov, measured, quiet)
-        event = None if quiet else self.events[-1]
-        if event is None and not step:
+        event = None if quiet else last
+        if event is None and not step and self._settling is not None:
             # A step within SETTLE re-opens the last event: final only after that.
             self._finalise(stamp_ns, False)
-        if event is None and self.events and significance < self.end_threshold:
-            last = self.events[-1]
+        if event is None and last is not None and significance < self.end_threshold:
             if (stamp_ns - last.end_ns) * 1e-9 <= SETTLE:
                 # The filter's mu still converges after the wrench has gone: the
                 # impulse keeps following it for SETTLE seconds (or to the next event).

@@ -36,8 +36,9 @@ is compared with the chi2_n quantile of ``R dt / 3600 / windows``. That is
 conservative twice (the bound; V_L above the true variance), which the measured
 rates in the docs show.
 
-Cost per update: one ``searchsorted`` over the ring of past estimates and a
-stacked n x n solve per window.
+Cost per update: one compiled call for both banks (core/bank_step.py; with a
+measured twist its momentum too: :class:`TwistSample`; docs/multiscale_events.md,
+"Cost").
 
 The filtered momentum's covariance is set mostly by the filter's random-walk
 wrench, so this test cannot see a slow push below ~sqrt(threshold 2 P_mu)
@@ -101,6 +102,10 @@ class ImpulseDetection(NamedTuple):
     measured: bool = False
 
 
+#: MultiScaleTest._update_twist's answer when the update is not its common one.
+_UNCOMMON = object()
+
+
 class MultiScaleTest:
     """GLR of a constant-wrench pulse over each window of a geometric bank (module doc)."""
 
@@ -149,6 +154,8 @@ class MultiScaleTest:
         self._grid[1] = -1
         #: whether no event is open (the detector sets it): only then is the null learnt
         self.quiet = True
+        # bank_step.twist_step's arrays that stay between updates (_kept_arrays).
+        self._kept: Optional[tuple] = None
 
     @property
     def active(self) -> bool:
@@ -204,10 +211,17 @@ class MultiScaleTest:
         """
         if not self.active:
             return None
+        if measured is not None and len(measured) == 1 and \
+                measured[0].__class__ is TwistSample:
+            out = self._update_twist(stamp_ns, mu, cov, measured[0], wanted)
+            if out is not _UNCOMMON:
+                return out
         sample = None
         if measured:
             if not self.blocks.active:
                 self._threshold_period = 0.0  # two tests now share the rate
+            measured = [item.momentum() if item.__class__ is TwistSample else item
+                        for item in measured]
             if len(measured) == 1 and self._period is not None:
                 # The common case: the sample and both banks in one compiled call.
                 sample = self.blocks.prepare(*measured[0])
@@ -228,6 +242,11 @@ class MultiScaleTest:
             # The fit below costs ~ points^2 x the window's samples (MomentumBlocks.locate):
             # once per sample it was most of the node's time while a push lasted.
             return None
+        return self._block_detection(stamp_ns, found, best)
+
+    def _block_detection(self, stamp_ns: int, found: Optional[ImpulseDetection],
+                         best: int) -> Optional[ImpulseDetection]:
+        """Return the block test's detection (its best window ``best``), or ``found``."""
         if best < 0 or not self.blocks.statistics[best] > self.threshold:
             return found
         # Between its evaluations a window's statistic is held (bank_step.update): the
@@ -244,6 +263,81 @@ class MultiScaleTest:
         return ImpulseDetection(block.start_ns, block.window, block.statistic,
                                 block.mu_before, block.cov_before, True)
 
+    def _update_twist(self, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
+                      sample: 'TwistSample', wanted: bool) -> Any:
+        """
+        Run :meth:`update` on the common update in one compiled call; _UNCOMMON: not common.
+
+        Common: the update period known, the block test running on positions, and
+        ``sample`` a common sample (:meth:`MomentumBlocks.prepare`'s conditions, no
+        excess decomposition due; checked before anything moves). The same steps as
+        :meth:`update` with :meth:`_filtered`, in the same order: the period, the block
+        test's first stamp and the calibration's rate in the call
+        (core/bank_step.twist_step), the arrays that stay passed as one kept tuple.
+        """
+        blocks, period, end = self.blocks, self._period, self._end
+        last, k = blocks._last, blocks._end
+        differences = blocks._differences + 1
+        if period is None or last is None or not k or k == blocks._capacity or \
+                len(blocks.linear) != 3 or sample[0] <= blocks._stamps[k - 1] or \
+                differences % 16 == 1 or differences == EXCESS_MINIMUM or \
+                not blocks.active or end <= self._start:
+            return _UNCOMMON
+        # MomentumBlocks.prepare's state, advanced (called per sample).
+        blocks._last = blocks._keep
+        blocks._differences = differences
+        self._updates += 1
+        if not self._updates % CALIBRATION_EVERY:
+            # As in update.
+            p = np.clip(self._above, 0.5, 1.0 - 1e-3)
+            self.inflation[:] = np.maximum(1.0, self._median / chdtri(self.n, p))
+        if end == self._capacity:
+            # (_filtered takes the period from the last stamp first: it stays the last.)
+            self._make_room(stamp_ns)
+            end = self._end
+        floor = self.floor_ns
+        added, period, best, value, block_best = bank_step.twist_step(
+            *sample, stamp_ns, mu, cov, 0 if floor is None else floor, floor is not None,
+            self.quiet, period, self.calibration_memory, differences >= EXCESS_MINIMUM,
+            float(min(differences, EXCESS_SAMPLES)), last[0], last[1], self._start, end, k,
+            blocks._origin_ns, *self._kept_arrays())
+        # _filtered: the threshold when the period moved (the call does not read it).
+        self._period = period
+        threshold_period = self._threshold_period
+        if abs(period - threshold_period) > PERIOD_TOLERANCE * threshold_period or \
+                not threshold_period:
+            self._threshold_period = period
+            self.threshold = float(chi2.isf(self.significance(period), self.n))
+        if added:
+            blocks._end = k + 1
+        self._end = end + 1
+        found = None
+        if wanted and best >= 0 and value > self.threshold:
+            found = self._detection(best)
+        if not wanted:
+            return None
+        return self._block_detection(stamp_ns, found, block_best)
+
+    def _kept_arrays(self) -> tuple:
+        """
+        Return the arrays bank_step.twist_step takes that stay between updates, as one tuple.
+
+        Built again when one of them was replaced (a ring grown or compacted, the block
+        test's positions started, a new excess): the identities checked are those.
+        """
+        blocks = self.blocks
+        kept = self._kept
+        if kept is not None and kept[0] is self._stamps and kept[1] is blocks._stamps and \
+                kept[2] is blocks._positions and kept[3] is blocks.excess:
+            return kept[4]
+        arrays = (blocks._excess_raw, *blocks._keep, blocks.excess, self._stamps, self._mu,
+                  self._cov, self._lags_ns, self._rows, self.statistics, self._above,
+                  self.inflation, self._scratch, self._median, blocks._info, blocks._score,
+                  *blocks._positions, blocks._common, blocks._stamps, blocks._lags_ns,
+                  blocks.mass, blocks.linear, blocks.statistics, self._grid)
+        self._kept = (self._stamps, blocks._stamps, blocks._positions, blocks.excess, arrays)
+        return arrays
+
     def measured_mean(self, lo_ns: int, hi_ns: int
                       ) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """Return the mean measured momentum over (lo_ns, hi_ns] (None: no twist)."""
@@ -259,7 +353,8 @@ class MultiScaleTest:
         the caller would drop it) and the block test's best window (-1: none),
         calibrated: one compiled call (core/bank_step.update) on preallocated arrays;
         with ``sample`` (MomentumBlocks.prepare's arguments: the period is known, so the
-        call is made) the measured momentum is taken in the same call.
+        call is made) the measured momentum is taken in the same call (a twist too:
+        :meth:`_update_twist`).
         """
         if self._end > self._start:
             dt = (stamp_ns - int(self._stamps[self._end - 1])) * 1e-9
@@ -311,9 +406,13 @@ class MultiScaleTest:
                 measured._end += 1
                 measured.active = True
         self._end += 1
-        rows = self._rows
         if not wanted or best < 0 or not value > self.threshold:
             return None, block_best
+        return self._detection(best), block_best
+
+    def _detection(self, best: int) -> ImpulseDetection:
+        """Return the filtered test's detection, its window ``best`` among those covered."""
+        rows = self._rows
         covered = rows >= 0
         rows = rows[covered]
         values = self.statistics[covered]
@@ -327,7 +426,7 @@ class MultiScaleTest:
         return ImpulseDetection(int(self._stamps[rows[knee]]),
                                 float(self.windows[np.flatnonzero(covered)[best]]),
                                 float(values[best]), self._mu[rows[longest]].copy(),
-                                self._cov[rows[longest]].copy()), block_best
+                                self._cov[rows[longest]].copy())
 
     def _calibration(self) -> tuple[float, bool]:
         """Return the null calibration's learning rate per update and whether it learns."""
@@ -402,10 +501,47 @@ def twist_momentum(ad_inverse: np.ndarray, locked: np.ndarray, connection_qd: np
                                   kirillov(pi))
 
 
+class TwistSample(NamedTuple):
+    """
+    One measured twist of an SE(3) base at its row, not yet turned into a momentum.
+
+    The arguments of :func:`.impulse.measured_momentum_se3` (the row's locked inertia
+    for the momentum and the centre of mass). :class:`MultiScaleTest` turns it into
+    the momentum inside the banks' compiled call (core/bank_step.twist_step);
+    :meth:`momentum` gives the (stamp, mu, white, common, position) tuple
+    :func:`twist_momenta` gives for other samples, the same bits.
+    """
+
+    stamp_ns: int
+    ad_inverse: np.ndarray
+    locked: np.ndarray
+    twist: np.ndarray
+    connection_qd: np.ndarray
+    twist_cov: np.ndarray
+    joint_cov: np.ndarray
+    pose_cov: np.ndarray
+    structure: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+    com_pose_cov: np.ndarray
+
+    def momentum(self) -> tuple:
+        """Return (stamp, mu, white covariance, common covariance, position)."""
+        mu, white, common, world, cov, mass = impulse.measured_momentum_se3(
+            self.ad_inverse, self.locked, self.twist, self.connection_qd, self.twist_cov,
+            self.joint_cov, self.pose_cov, self.structure, self.locked, self.rotation,
+            self.translation, self.com_pose_cov)
+        return self.stamp_ns, mu, white, common, (world, cov, mass, _LINEAR_SE3)
+
+
 def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stamp_ns: int,
                   measurements: list, gated: list, g: Any = None) -> list[tuple]:
     """
     Return (stamp, mu, covariance) of a row's accepted twist measurements.
+
+    The common one (an SE(3) base, at the row, the filter's noise) as a
+    :class:`TwistSample`: the multi-scale test computes its momentum in its own
+    compiled call.
 
     ``before``, ``lin``: the linearisations of the previous row (at ``start_ns``)
     and of this one (at ``stamp_ns``); A qbar_dot is interpolated to each
@@ -431,14 +567,16 @@ def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stam
         if se3 and measurement.noise is None and \
                 not (span and measurement.stamp_ns < stamp_ns):
             # The common sample (at the row, the filter's noise): the general case
-            # below with nothing to interpolate and no noise of its own, looked up once.
+            # below with nothing to interpolate and no noise of its own, its momentum
+            # computed in the banks' compiled call (TwistSample).
             pose = measurement.pose
-            mu, white, common, world, cov, mass = impulse.measured_momentum_se3(
-                ad_inverse, lin.locked, measurement.twist, lin.connection_qd, flt._r_twist,
-                lin.joint_cov, pose_cov, flt.group.structure_constants, lin.locked,
-                pose.rotation, pose.translation, flt._r_pose)
-            out.append((measurement.stamp_ns, mu, white, common,
-                        (world, cov, mass, _LINEAR_SE3)))
+            # tuple.__new__: the fields as they are (the NamedTuple's own __new__ is a
+            # Python function, ~0.5 us a row).
+            out.append(tuple.__new__(TwistSample, (
+                measurement.stamp_ns, ad_inverse, lin.locked, measurement.twist,
+                lin.connection_qd, flt._r_twist, lin.joint_cov, pose_cov,
+                flt.group.structure_constants, pose.rotation, pose.translation,
+                flt._r_pose)))
             continue
         connection = lin.connection_qd
         if span and measurement.stamp_ns < stamp_ns:
@@ -566,6 +704,9 @@ class MomentumBlocks:
         self._excess_raw = np.zeros((n, n))
         self._differences = 0
         self._last: Optional[tuple[np.ndarray, np.ndarray]] = None
+        # Where bank_step.twist_step leaves its sample's momentum and white
+        # covariance (the next successive difference's last sample).
+        self._keep = (np.zeros(n), np.zeros((n, n)))
         self._no_position = np.zeros((0, 0))
         self._no_common = np.zeros((n, n))
         self._no_centre = np.zeros(0)

@@ -39,6 +39,7 @@ from numba import njit
 
 from reduced_dynamics.estimator.core.blocks import add_sample
 from reduced_dynamics.estimator.core.cholesky import lower_factor, solve_factor
+from reduced_dynamics.estimator.core.impulse import measured_momentum_se3
 
 
 #: Evaluations of a block window per its length: window L is evaluated on a grid of
@@ -352,3 +353,98 @@ def update_with_sample(raw: np.ndarray, sample_mu: np.ndarray, sample_cov: np.nd
         blocks_ready, info, score, s0, s1, s2, y0, t1, counts, common, block_stamps,
         block_end, block_lags, first, mass, linear, block_statistics, grid)
     return added, best, value, block_best
+
+
+@njit(cache=True)
+def update_with_twist(ad_inverse: np.ndarray, locked: np.ndarray, twist: np.ndarray,
+                      connection_qd: np.ndarray, twist_cov: np.ndarray, joint_cov: np.ndarray,
+                      pose_cov: np.ndarray, structure: np.ndarray, rotation: np.ndarray,
+                      translation: np.ndarray, com_pose_cov: np.ndarray, raw: np.ndarray,
+                      last_mu: np.ndarray, last_cov: np.ndarray, keep_mu: np.ndarray,
+                      keep_cov: np.ndarray, divisor: float, excess: np.ndarray,
+                      sample_stamp: int, k: int, t: float, stamps: np.ndarray,
+                      mu_ring: np.ndarray, cov_ring: np.ndarray, start: int, end: int,
+                      lags: np.ndarray, stamp_ns: int, floor_ns: int, has_floor: bool,
+                      mu: np.ndarray, cov: np.ndarray, rows: np.ndarray,
+                      statistics: np.ndarray, above: np.ndarray, inflation: np.ndarray,
+                      scratch: np.ndarray, median: float, rate: float, learn: bool,
+                      blocks_ready: bool, info: np.ndarray, score: np.ndarray,
+                      s0: np.ndarray, s1: np.ndarray, s2: np.ndarray, y0: np.ndarray,
+                      t1: np.ndarray, counts: np.ndarray, common: np.ndarray,
+                      block_stamps: np.ndarray, block_lags: np.ndarray, first: int,
+                      mass: float, linear: np.ndarray, block_statistics: np.ndarray,
+                      grid: np.ndarray) -> tuple:
+    """
+    Turn one measured twist of an SE(3) base into its momentum, then :func:`update_with_sample`.
+
+    The row's whole intake of the block test in the banks' call: the twist's
+    momentum, its covariances and the measured centre of mass
+    (:func:`.impulse.measured_momentum_se3`, the locked inertia of the row for both),
+    the sample into block row ``k`` and both banks' update, the same kernels in the
+    same order as the calls it replaces (multiscale.TwistSample.momentum, then
+    MomentumBlocks.prepare's arguments and :func:`update_with_sample`). The sample's
+    momentum and white covariance are copied into ``keep_mu``, ``keep_cov`` (the
+    next sample's successive difference reads them: MomentumBlocks._last) after
+    ``last_mu``, ``last_cov`` were read (they may be the same arrays).
+    """
+    sample_mu, white, sample_common, centre, position_cov, _ = measured_momentum_se3(
+        ad_inverse, locked, twist, connection_qd, twist_cov, joint_cov, pose_cov, structure,
+        locked, rotation, translation, com_pose_cov)
+    result = update_with_sample(
+        raw, sample_mu, white, last_mu, last_cov, divisor, excess, position_cov,
+        sample_common, sample_stamp, k, t, centre, True, stamps, mu_ring, cov_ring, start,
+        end, lags, stamp_ns, floor_ns, has_floor, mu, cov, rows, statistics, above,
+        inflation, scratch, median, rate, learn, blocks_ready, info, score, s0, s1, s2, y0,
+        t1, counts, common, block_stamps, block_lags, first, mass, linear, block_statistics,
+        grid)
+    keep_mu[:] = sample_mu
+    keep_cov[:] = white
+    return result
+
+
+@njit(cache=True)
+def twist_step(sample_stamp: int, ad_inverse: np.ndarray, locked: np.ndarray,
+               twist: np.ndarray, connection_qd: np.ndarray, twist_cov: np.ndarray,
+               joint_cov: np.ndarray, pose_cov: np.ndarray, structure: np.ndarray,
+               rotation: np.ndarray, translation: np.ndarray, com_pose_cov: np.ndarray,
+               stamp_ns: int, mu: np.ndarray, cov: np.ndarray, floor_ns: int,
+               has_floor: bool, learn: bool, period: float, memory: float, ready: bool,
+               divisor: float, last_mu: np.ndarray, last_cov: np.ndarray, start: int,
+               end: int, k: int, origin_ns: int, raw: np.ndarray, keep_mu: np.ndarray,
+               keep_cov: np.ndarray, excess: np.ndarray, stamps: np.ndarray,
+               mu_ring: np.ndarray, cov_ring: np.ndarray, lags: np.ndarray, rows: np.ndarray,
+               statistics: np.ndarray, above: np.ndarray, inflation: np.ndarray,
+               scratch: np.ndarray, median: float, info: np.ndarray, score: np.ndarray,
+               s0: np.ndarray, s1: np.ndarray, s2: np.ndarray, y0: np.ndarray,
+               t1: np.ndarray, counts: np.ndarray, common: np.ndarray,
+               block_stamps: np.ndarray, block_lags: np.ndarray, mass: float,
+               linear: np.ndarray, block_statistics: np.ndarray,
+               grid: np.ndarray) -> tuple:
+    """
+    One common update of the multi-scale test (MultiScaleTest._update_twist) in one call.
+
+    The arguments: a TwistSample's fields, the update's (stamp, mu, P_mu, the floor,
+    whether the null learns), the scalars of the two tests' state, then the arrays
+    that stay between updates (the caller keeps them as one tuple). The update period
+    (a running mean of the stamps' steps), the block test's first stamp and the
+    calibration's rate as MultiScaleTest._filtered computes them, then
+    :func:`update_with_twist`. Returns (whether the sample was added, the new period,
+    the filtered best, its value, the blocks' best).
+    """
+    # The period as MultiScaleTest._filtered: the int64 step, then in float64.
+    dt = (stamp_ns - stamps[end - 1]) * 1e-9
+    if dt > 0.0:
+        period = period + 0.01 * (dt - period)
+    first = block_stamps[0]
+    if has_floor and floor_ns > first:
+        first = floor_ns
+    rate = min(1.0, period / memory) if learn else 0.0
+    t = (sample_stamp - origin_ns) * 1e-9
+    added, best, value, block_best = update_with_twist(
+        ad_inverse, locked, twist, connection_qd, twist_cov, joint_cov, pose_cov, structure,
+        rotation, translation, com_pose_cov, raw, last_mu, last_cov, keep_mu, keep_cov,
+        divisor, excess, sample_stamp, k, t, stamps, mu_ring, cov_ring, start, end, lags,
+        stamp_ns, floor_ns, has_floor, mu, cov, rows, statistics, above, inflation, scratch,
+        median, rate, learn, ready, info, score, s0, s1, s2, y0, t1, counts, common,
+        block_stamps, block_lags, first, mass, linear, block_statistics, grid)
+    return added, period, best, value, block_best

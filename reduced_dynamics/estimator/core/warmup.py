@@ -99,6 +99,20 @@ def warm_up() -> None:
                     stamp, np.full(n, 1e-3 * k), np.eye(n), np.eye(n) * 1e-6,
                     (np.zeros(d), np.eye(d), 2.0, tuple(range(d))))]
                 multiscale.update(stamp, np.full(n, 1e-3 * k), np.eye(n), measured)
+    # The same with an SE(3) base's twist turned into its momentum in the banks' call
+    # (multiscale.TwistSample: bank_step.twist_step from the third on), in the
+    # layouts of a run (Pinocchio's poses, a strided block of the filter's covariance).
+    from reduced_dynamics.estimator.multiscale import TwistSample
+    multiscale = MultiScaleTest(6, 1.0)
+    eye, p, pose = np.eye(6), np.eye(18), pin.SE3.Identity()
+    rows = np.tile(eye, (2, 1, 1))
+    for k in range(4):
+        stamp = k * 100_000_000
+        measured = [TwistSample(stamp, pose.actionInverse, rows[0], np.full(6, 1e-3 * k),
+                                np.zeros((2, 6))[0], eye, rows[1], p[:6, :6],
+                                SUBGROUPS['SE(3)'].structure_constants, pose.rotation,
+                                pose.translation, eye)]
+        multiscale.update(stamp, np.full(6, 1e-3 * k), eye, measured)
     # Measured momenta and centre of mass (core/impulse.py); the pose covariance is a
     # block of the filter's, a strided view.
     from reduced_dynamics.estimator.core import impulse
