@@ -268,6 +268,14 @@ class MomentumFilter:
         # H of a pose measurement, [1 0 0] (the step test's signatures need it).
         self._h_pose = np.zeros((n, dim))
         self._h_pose[:, :n] = np.eye(n)
+        # The row step's outputs the filter reads only on a rare outcome or to record a
+        # step (step_row.filter_step): the prediction g, x, P, Phi, then nu, R, H, S, K
+        # (top-left corners: innovations of n or 2n coordinates). Written in place by every
+        # row: what is kept is copied out.
+        m = 2 * n
+        self._work = (np.zeros((4, 4)), np.zeros(dim - n), np.zeros((dim, dim)),
+                      np.zeros((dim, dim)), np.zeros(m), np.zeros((m, m)),
+                      np.zeros((m, dim)), np.zeros((m, m)), np.zeros((dim, m)))
         #: (P, x, w^T P_ww^-1 w) of the last fused step (kernels.propagate_update)
         self._fused_significance: Optional[tuple] = None
 
@@ -531,10 +539,9 @@ class MomentumFilter:
                 self._g, self.x, self.p, lin.locked, lin.locked_inverse, lin.connection_qd,
                 lin.joint_cov, dt, u, self._jerk_var, self._densities(lin), self._basis,
                 self._pinv, self._whole, self._ad_rows, self._form_rows, stamp_ns,
-                *test.compiled_state(self.n))
+                *test.compiled_arrays)
             self._g, self.x, self.p = out[0], out[1], out[2]
             self.stamp_ns = stamp_ns
-            test.take_propagated(stamp_ns, *out[4:])
             return out[3]
         self._g, self.x, self.p, transition = kernels.propagate(
             self._g, self.x, self.p, lin.locked, lin.locked_inverse, lin.connection_qd,
@@ -676,7 +683,7 @@ class MomentumFilter:
             sigma, weight = 0.0, -1.0
         test = self.step_test
         try:
-            fused = step_row.filter_step(
+            out = step_row.filter_step(
                 self._g, self.x, self.p, lin.locked, before.locked_inverse,
                 before.connection_qd, (stamp_ns - self.stamp_ns) * 1e-9, self._jerk_var,
                 np.ascontiguousarray(measurement.pose.homogeneous),
@@ -684,19 +691,25 @@ class MomentumFilter:
                 lin.locked_inverse, lin.connection_qd, lin.joint_cov, self._pose_var,
                 self._stamp_twist, sigma, self._twist_var, self._gates[size], weight,
                 self._basis, self._pinv, self._whole, self._ad_rows, self._form_rows,
-                self._h_pose, stamp_ns, *test.compiled_state(size))
+                self._h_pose, stamp_ns, *test.compiled_arrays, *self._work)
         except (np.linalg.LinAlgError, ZeroDivisionError):
             return False
-        (g0, x0, p0, phi, accepted, nis, logdet, nu, _, g1, x1, p1, h, s, gain, health,
-         averaged, wrench_test, test_dt, count, psi, omega, beta, since, since_identity,
-         tested, evidence, nis_scale, elapsed, best, statistic, top, evaluated) = fused
+        (g1, x1, p1, accepted, nis, logdet, health, wrench_test, tested, evidence, best,
+         statistic, top, evaluated) = out
         self.stamp_ns = stamp_ns
         self._fused_significance = (p1, x1, wrench_test)
-        test.take_propagated(stamp_ns, test_dt, count, psi, omega, beta, since, since_identity)
-        if not (accepted and health == 0 and tested):
-            # Gated, a broken covariance or no onset open: the general path.
-            self._g, self.x, self.p = g0, x0, p0
-            self._measure(stamp_ns, phi, measurement, lin, output, gated, burst=False,
+        work_g, work_x, work_p, work_phi = self._work[:4]
+        if not tested:
+            # Gated, a broken covariance or no onset open: the general path, with
+            # propagate_update's results as _fused_step gives them (copies of the work
+            # arrays; when gated, the update's state is the prediction itself).
+            if accepted:
+                self._g, self.x, self.p = work_g.copy(), work_x.copy(), work_p.copy()
+            else:
+                self._g, self.x, self.p = g1, x1, p1
+            fused = self._work_results(size, accepted, nis, logdet, g1, x1, p1, health,
+                                       wrench_test)
+            self._measure(stamp_ns, fused[3], measurement, lin, output, gated, burst=False,
                           fused=fused)
             return True
         # _update's bookkeeping of an accepted fused update, in its order.
@@ -708,25 +721,39 @@ class MomentumFilter:
         self._gated_residuals = []
         self._g, self.x, self.p = g1, x1, p1
         if noise.pose_stamp > 0.0:
-            self._stamp_twist_ns = stamp_ns
-            self._stamp_twist = averaged
+            self._stamp_twist_ns = stamp_ns  # the average moved in place (filter_step)
         cause = None
-        try:
-            detection = test.take_compiled(h if with_twist else self._h_pose, s, gain, nu,
-                                           evidence, nis_scale, elapsed, best, statistic,
-                                           top, evaluated)
-            if detection is not None:
-                self._take_step(detection)
-                cause = self._health_cause()
-        except (np.linalg.LinAlgError, ZeroDivisionError) as error:
-            cause = 'covariance not finite' if not np.isfinite(self.p).all() \
-                else f'singular matrix ({error})'
+        if evidence:
+            # The step test took the update (filter_step); its outcome, from Python.
+            try:
+                detection = test._evaluated(best, statistic, top, evaluated)
+                if detection is not None:
+                    self._take_step(detection)
+                    cause = self._health_cause()
+            except (np.linalg.LinAlgError, ZeroDivisionError) as error:
+                cause = 'covariance not finite' if not np.isfinite(self.p).all() \
+                    else f'singular matrix ({error})'
         if cause is not None:
             self._restart(stamp_ns, cause, measurement, lin, output)
         elif self.record:
-            self.steps.append(FilterStep(stamp_ns, phi, g0, x0, p0, self._g, self.x, self.p,
-                                         lin.locked_inverse, output, self._held_command()))
+            # Copies: the work arrays are written again by the next row.
+            self.steps.append(FilterStep(stamp_ns, work_phi.copy(), work_g.copy(),
+                                         work_x.copy(), work_p.copy(), self._g, self.x,
+                                         self.p, lin.locked_inverse, output,
+                                         self._held_command()))
         return True
+
+    def _work_results(self, size: int, accepted: bool, nis: float, logdet: float,
+                      g1: np.ndarray, x1: np.ndarray, p1: np.ndarray, health: int,
+                      wrench_test: float) -> tuple:
+        """Return ``kernels.propagate_update``'s results from a row step's work arrays."""
+        g0, x0, p0 = self._g, self.x, self.p
+        _, _, _, phi, nu, r, h, s, gain = self._work
+        if not accepted:
+            g1, x1, p1 = g0, x0, p0
+        return (g0, x0, p0, phi.copy(), accepted, nis, logdet, nu[:size].copy(),
+                r[:size, :size].copy(), g1, x1, p1, h[:size].copy(), s[:size, :size].copy(),
+                gain[:, :size].copy(), health, self._stamp_twist, wrench_test)
 
     def _take_step(self, detection: StepDetection) -> None:
         """Take a detected wrench step (Willsky-Jones compensation); forget the hypotheses."""
@@ -945,13 +972,7 @@ class MomentumFilter:
             self._stamp_twist = self._stamp_twist + weight * (kernels.twist(
                 g1, x1[:n], lin.locked_inverse, lin.connection_qd, self._basis, self._pinv,
                 self._whole) - self._stamp_twist)
-        if fused is not None and len(fused) > 18 and fused[25]:
-            # The compiled row step absorbed and evaluated this update (step_row.py).
-            detection = self.step_test.take_compiled(self._h_pose if not with_twist else h,
-                                                     s, gain, nu, *fused[26:])
-        else:
-            detection = self.step_test.update(self._h_pose if not with_twist else h, s,
-                                              gain, nu)
+        detection = self.step_test.update(self._h_pose if not with_twist else h, s, gain, nu)
         if detection is not None:
             self._take_step(detection)
         if self.command:

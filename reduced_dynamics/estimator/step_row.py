@@ -35,6 +35,11 @@ from numba import njit
 
 from reduced_dynamics.estimator.core.kernels import propagate, propagate_update
 from reduced_dynamics.estimator.step_kernels import absorb_evaluate, fold
+from reduced_dynamics.estimator.step_test import (COUNT, DT, ELAPSED, LAST_STAMP, NEXT,
+                                                  NIS_HORIZON, NIS_SCALE, OUTLIER_2N,
+                                                  OUTLIER_N, POSE_STEP_HYPOTHESES, RECENT,
+                                                  SETTLE_UNTIL, SETTLING, SINCE_IDENTITY,
+                                                  SPACING, THRESHOLD, WINDOW)
 
 
 @njit(cache=True)
@@ -45,29 +50,33 @@ def _shift(array: np.ndarray, expired: int, count: int) -> None:
 
 
 @njit(cache=True)
-def test_propagate(stamp_ns: int, last_stamp: int, transition: np.ndarray, count: int,
-                   onsets: np.ndarray, c: np.ndarray, b0: np.ndarray, j0: np.ndarray,
-                   bound_inv: np.ndarray, bounded: np.ndarray, psi: np.ndarray,
-                   omega: np.ndarray, beta: np.ndarray, e: np.ndarray, since: np.ndarray,
-                   since_identity: bool, recent: bool, window_ns: int, spacing_ns: int,
-                   settle_until: int, settling: bool) -> tuple:
+def test_propagate(stamp_ns: int, transition: np.ndarray, ints: np.ndarray,
+                   floats: np.ndarray, onsets: np.ndarray, c: np.ndarray, b0: np.ndarray,
+                   j0: np.ndarray, bound_inv: np.ndarray, bounded: np.ndarray,
+                   psi: np.ndarray, omega: np.ndarray, beta: np.ndarray, e: np.ndarray,
+                   since: np.ndarray) -> None:
     """
-    Return WrenchStepTest.propagate's state after one step (``last_stamp`` < 0: none yet).
+    Run WrenchStepTest.propagate on its arrays, in place (``ints``/``floats``: its scalars).
 
-    Returns (dt, count, psi, omega, beta, since, since still the identity); the
-    onset arrays, Psi, Omega and beta are changed in place (and returned).
+    The same operations in the same order: Psi and the transition since the last
+    kept measurement carried over the step, old onsets expired, a new one opened and
+    the bank folded to it when due.
     """
-    dt = 0.0 if last_stamp < 0 else max(stamp_ns - last_stamp, 0) * 1e-9
+    last_stamp = ints[LAST_STAMP]
+    floats[DT] = 0.0 if last_stamp < 0 else max(stamp_ns - last_stamp, 0) * 1e-9
+    ints[LAST_STAMP] = stamp_ns
+    count = ints[COUNT]
     if count:
-        # In place (the step test's own arrays; absorb works on them in place too): a
-        # returned input array goes back to Python as itself, without a new object.
         psi[:] = transition @ psi
-    if recent:
+    if ints[RECENT]:
         # The first step since a measurement: Phi itself (no product with 1).
-        since = transition if since_identity else transition @ since
-        since_identity = False
+        if ints[SINCE_IDENTITY]:
+            since[:] = transition
+            ints[SINCE_IDENTITY] = 0
+        else:
+            since[:] = transition @ since
     expired = 0
-    oldest = stamp_ns - window_ns
+    oldest = stamp_ns - ints[WINDOW]
     while expired < count and onsets[expired] < oldest:
         expired += 1
     if expired:
@@ -77,9 +86,10 @@ def test_propagate(stamp_ns: int, last_stamp: int, transition: np.ndarray, count
         _shift(b0, expired, count)
         _shift(bounded, expired, count)
         count -= expired
-    if settling and stamp_ns < settle_until:
-        return dt, count, psi, omega, beta, since, since_identity
-    if not count or stamp_ns - onsets[count - 1] >= spacing_ns:
+        ints[COUNT] = count
+    if ints[SETTLING] and stamp_ns < ints[SETTLE_UNTIL]:
+        return
+    if not count or stamp_ns - onsets[count - 1] >= ints[SPACING]:
         if count:
             fold(c, b0, j0, bound_inv, bounded, count, psi, omega, beta)
         onsets[count] = stamp_ns
@@ -87,13 +97,44 @@ def test_propagate(stamp_ns: int, last_stamp: int, transition: np.ndarray, count
         b0[count] = 0.0
         j0[count] = 0.0
         bounded[count] = False
-        count += 1
+        ints[COUNT] = count + 1
         psi[:] = 0.0
         for i in range(psi.shape[0]):
             psi[i, i] = 1.0
         omega[:] = 0.0
         beta[:] = 0.0
-    return dt, count, psi, omega, beta, since, since_identity
+
+
+@njit(cache=True)
+def keep(ints: np.ndarray, since: np.ndarray, ring_since: np.ndarray, ring_h: np.ndarray,
+         ring_s: np.ndarray, ring_gain: np.ndarray, ring_nu: np.ndarray, ring_m: np.ndarray,
+         h: np.ndarray, s: np.ndarray, gain: np.ndarray, nu: np.ndarray) -> None:
+    """Keep a measurement in the step test's ring (WrenchStepTest._keep, compiled)."""
+    slot = ints[NEXT]
+    m = nu.shape[0]
+    dim = ring_since.shape[1]
+    if ints[SINCE_IDENTITY]:
+        ring_since[slot] = 0.0
+        for i in range(dim):
+            ring_since[slot, i, i] = 1.0
+    else:
+        ring_since[slot] = since
+    ring_h[slot, :m] = h
+    ring_s[slot, :m, :m] = s
+    ring_gain[slot, :, :m] = gain
+    ring_nu[slot, :m] = nu
+    ring_m[slot] = m
+    ints[NEXT] = (slot + 1) % POSE_STEP_HYPOTHESES
+    ints[RECENT] = min(ints[RECENT] + 1, POSE_STEP_HYPOTHESES)
+    ints[SINCE_IDENTITY] = 1
+
+
+@njit(cache=True)
+def _put(work: np.ndarray, value: np.ndarray) -> None:
+    """Write ``value`` into the top-left corner of ``work`` (2-d)."""
+    for i in range(value.shape[0]):
+        for j in range(value.shape[1]):
+            work[i, j] = value[i, j]
 
 
 @njit(cache=True)
@@ -104,22 +145,35 @@ def filter_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
                 joint_cov: np.ndarray, pose_var: np.ndarray, stamp_twist: np.ndarray,
                 stamp_sigma: float, twist_var: np.ndarray, gate: float, twist_weight: float,
                 basis: np.ndarray, pinv: np.ndarray, whole: bool, ad_rows: np.ndarray,
-                form_rows: np.ndarray, h_pose: np.ndarray, stamp_ns: int, last_stamp: int,
-                count: int, onsets: np.ndarray, c: np.ndarray, b0: np.ndarray,
-                j0: np.ndarray, bound_inv: np.ndarray, bounded: np.ndarray,
+                form_rows: np.ndarray, h_pose: np.ndarray, stamp_ns: int,
+                ints: np.ndarray, floats: np.ndarray, onsets: np.ndarray, c: np.ndarray,
+                b0: np.ndarray, j0: np.ndarray, bound_inv: np.ndarray, bounded: np.ndarray,
                 score: np.ndarray, psi: np.ndarray, omega: np.ndarray, beta: np.ndarray,
-                e: np.ndarray, since: np.ndarray, since_identity: bool, recent: bool,
-                window_ns: int, spacing_ns: int, settle_until: int, settling: bool,
-                outlier: float, threshold: float, nis_scale: float, elapsed: float,
-                nis_time: float) -> tuple:
+                e: np.ndarray, since: np.ndarray, ring_since: np.ndarray,
+                ring_h: np.ndarray, ring_s: np.ndarray, ring_gain: np.ndarray,
+                ring_nu: np.ndarray, ring_m: np.ndarray, work_g: np.ndarray,
+                work_x: np.ndarray, work_p: np.ndarray, work_phi: np.ndarray,
+                work_nu: np.ndarray, work_r: np.ndarray, work_h: np.ndarray,
+                work_s: np.ndarray, work_gain: np.ndarray) -> tuple:
     """
     Run a row's step (a measurement at the row, the step's inputs midway) and its step test.
 
     The step's inputs are the mean of the previous row's (``before_*``) and this
-    row's (state.between at 0.5); then ``kernels.propagate_update`` (its 18
-    results first), :func:`test_propagate` on its transition, and, when the
-    measurement was accepted into a healthy covariance with an onset open,
-    ``absorb_evaluate`` (whether it ran, then its results but the NIS).
+    row's (state.between at 0.5); then ``kernels.propagate_update``,
+    :func:`test_propagate` on its transition, and, when the measurement was accepted
+    into a healthy covariance with an onset open, ``absorb_evaluate`` and :func:`keep`
+    (the step test's whole update but its outcome). The step test's state
+    (WrenchStepTest.compiled_arrays) changes in place; the prediction (g, x, P, Phi)
+    goes into ``work_g``, ``work_x``, ``work_p``, ``work_phi``, and, when the step
+    test did not take the update (the filter's general path then runs from these),
+    nu, R, H, S, K into the top-left corners of ``work_nu`` ... ``work_gain``; the
+    stamp-noise twist average moves in ``stamp_twist`` itself. Nothing is written
+    before ``propagate_update`` returned (when it raises, nothing changed).
+
+    Returns (g, x, P) after the update (the prediction's arrays when gated), whether
+    accepted, NIS, log det S, the covariance's health, w^T P_ww^-1 w, whether the
+    step test took the update, whether it was evidence, the best onset, its
+    statistic, the largest bound and the onsets evaluated.
     """
     step_inverse = 0.5 * (before_inverse + inverse_locked)
     step_connection_qd = 0.5 * (before_connection_qd + connection_qd)
@@ -129,22 +183,38 @@ def filter_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
         measured, with_twist, inverse_locked, connection_qd, joint_cov, pose_var,
         stamp_twist, stamp_sigma, twist_var, gate, twist_weight, basis, pinv, whole,
         ad_rows, form_rows)
-    test_dt, count, psi, omega, beta, since, since_identity = test_propagate(
-        stamp_ns, last_stamp, phi, count, onsets, c, b0, j0, bound_inv, bounded, psi,
-        omega, beta, e, since, since_identity, recent, window_ns, spacing_ns, settle_until,
-        settling)
+    _put(work_g, g0)
+    work_x[:] = x0
+    _put(work_p, p0)
+    _put(work_phi, phi)
+    if accepted and twist_weight >= 0.0:
+        stamp_twist[:] = averaged  # a new array exactly then (propagate_update)
+    test_propagate(stamp_ns, phi, ints, floats, onsets, c, b0, j0, bound_inv, bounded, psi,
+                   omega, beta, e, since)
+    count = ints[COUNT]
     tested, evidence, best, statistic, top, evaluated = False, False, -1, 0.0, 0.0, 0
+    m = nu.shape[0]
     if accepted and health == 0 and count:
         tested = True
-        used = h if with_twist else h_pose
+        used = np.ascontiguousarray(h) if with_twist else h_pose
+        outlier = floats[OUTLIER_2N] if with_twist else floats[OUTLIER_N]
         _, evidence, nis_scale, elapsed, best, statistic, top, evaluated = absorb_evaluate(
-            np.ascontiguousarray(used), np.ascontiguousarray(s),
-            np.ascontiguousarray(gain), np.ascontiguousarray(nu), psi, omega, beta,
-            outlier, c, b0, j0, bound_inv, bounded, count, score, threshold, nis_scale,
-            elapsed, test_dt, nis_time)
-    return (g0, x0, p0, phi, accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain, health,
-            averaged, wrench_test, test_dt, count, psi, omega, beta, since, since_identity,
-            tested, evidence, nis_scale, elapsed, best, statistic, top, evaluated)
+            used, np.ascontiguousarray(s), np.ascontiguousarray(gain),
+            np.ascontiguousarray(nu), psi, omega, beta, outlier, c, b0, j0, bound_inv,
+            bounded, count, score, floats[THRESHOLD], floats[NIS_SCALE], floats[ELAPSED],
+            floats[DT], floats[NIS_HORIZON])
+        floats[NIS_SCALE] = nis_scale
+        floats[ELAPSED] = elapsed
+        keep(ints, since, ring_since, ring_h, ring_s, ring_gain, ring_nu, ring_m, used, s,
+             gain, nu)
+    else:
+        work_nu[:m] = nu
+        _put(work_r, r)
+        _put(work_h, h)
+        _put(work_s, s)
+        _put(work_gain, gain)
+    return (g1, x1, p1, accepted, nis, logdet, health, wrench_test, tested, evidence, best,
+            statistic, top, evaluated)
 
 
 @njit(cache=True)
@@ -153,25 +223,22 @@ def propagate_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarr
                    joint_cov: np.ndarray, dt: float, u: np.ndarray, jerk_var: np.ndarray,
                    density: np.ndarray, basis: np.ndarray, pinv: np.ndarray, whole: bool,
                    ad_rows: np.ndarray, form_rows: np.ndarray, stamp_ns: int,
-                   last_stamp: int, count: int, onsets: np.ndarray, c: np.ndarray,
+                   ints: np.ndarray, floats: np.ndarray, onsets: np.ndarray, c: np.ndarray,
                    b0: np.ndarray, j0: np.ndarray, bound_inv: np.ndarray,
                    bounded: np.ndarray, score: np.ndarray, psi: np.ndarray,
                    omega: np.ndarray, beta: np.ndarray, e: np.ndarray, since: np.ndarray,
-                   since_identity: bool, recent: bool, window_ns: int, spacing_ns: int,
-                   settle_until: int, settling: bool, outlier: float, threshold: float,
-                   nis_scale: float, elapsed: float, nis_time: float) -> tuple:
+                   ring_since: np.ndarray, ring_h: np.ndarray, ring_s: np.ndarray,
+                   ring_gain: np.ndarray, ring_nu: np.ndarray, ring_m: np.ndarray) -> tuple:
     """
     Propagate without a measurement (``kernels.propagate``), then :func:`test_propagate`.
 
     A row between two base measurements (joint states faster than odometry). The
-    step test's state is :func:`filter_step`'s (its update's part unused). Returns
-    (g, x, P, Phi), then :func:`test_propagate`'s results.
+    step test's arrays are :func:`filter_step`'s (its update's part unused).
+    Returns (g, x, P, Phi).
     """
     g1, x1, p1, phi = propagate(g, x, p, locked, inverse_locked, connection_qd, joint_cov,
                                 dt, u, False, jerk_var, density, basis, pinv, whole,
                                 ad_rows, form_rows)
-    test_dt, count, psi, omega, beta, since, since_identity = test_propagate(
-        stamp_ns, last_stamp, phi, count, onsets, c, b0, j0, bound_inv, bounded, psi,
-        omega, beta, e, since, since_identity, recent, window_ns, spacing_ns, settle_until,
-        settling)
-    return (g1, x1, p1, phi, test_dt, count, psi, omega, beta, since, since_identity)
+    test_propagate(stamp_ns, phi, ints, floats, onsets, c, b0, j0, bound_inv, bounded, psi,
+                   omega, beta, e, since)
+    return g1, x1, p1, phi

@@ -43,9 +43,8 @@ better, else counted in ``pose_steps``.
 
 from __future__ import annotations
 
-from collections import deque
 import math
-from typing import NamedTuple, Optional
+from typing import NamedTuple, Optional, Sequence
 
 import numpy as np
 from reduced_dynamics.chi_square import chi2
@@ -66,6 +65,18 @@ NIS_TIME = 10.0
 #: Measurements back at which a step of the pose measurement is hypothesised (one onset
 #: each): a re-fit is seen at once, and a detection comes within a few samples of it.
 POSE_STEP_HYPOTHESES = 32
+
+# Slots of WrenchStepTest's scalar state, kept in two small arrays so that the compiled row
+# step (step_row.py) reads and writes it in place: one array argument where numba checked
+# eight scalars on every call, and no tuple of results to unpack (docs/filter_row.md).
+#: ``_ints``: the last stamp (< 0: none), onsets alive, the window and the spacing [ns],
+#: the settling end [ns] and whether it applies, whether ``_since`` is the identity, the
+#: measurements kept (``recent``) and the ring slot the next one goes to
+LAST_STAMP, COUNT, WINDOW, SPACING, SETTLE_UNTIL, SETTLING, SINCE_IDENTITY, RECENT, NEXT = \
+    range(9)
+#: ``_floats``: the NIS average, its elapsed time, the last step [s], the threshold, the
+#: outlier NIS of n and of 2n innovations, NIS_TIME
+NIS_SCALE, ELAPSED, DT, THRESHOLD, OUTLIER_N, OUTLIER_2N, NIS_HORIZON = range(7)
 
 
 class StepDetection(NamedTuple):
@@ -102,18 +113,27 @@ class WrenchStepTest:
             # Compiled on first use (numba's import and its disk cache cost ~1 s).
             from reduced_dynamics.estimator import step_kernels
             self._kernels = step_kernels
-        self._spacing_ns = int(round(spacing * 1e9))
-        self._window_ns = int(round(window * 1e9))
+        self._ints = np.zeros(9, dtype=np.int64)
+        self._floats = np.zeros(7)
+        self._ints[LAST_STAMP] = -1
+        self._ints[WINDOW] = int(round(window * 1e9))
+        self._ints[SPACING] = int(round(spacing * 1e9))
+        self._ints[SINCE_IDENTITY] = 1
+        self._floats[THRESHOLD] = self.threshold
+        self._floats[NIS_HORIZON] = NIS_TIME
+        self._spacing_ns = int(self._ints[SPACING])
+        self._window_ns = int(self._ints[WINDOW])
         capacity = int(math.ceil(window / spacing)) + 2
         #: onset stamps [ns] of the hypotheses alive, oldest first (the first ``_count``)
         self._onsets = np.zeros(capacity, dtype=np.int64)
-        self._count = 0
         self._c = np.zeros((capacity, dim, n))
         self._b0 = np.zeros((capacity, n))
         self._j0 = np.zeros((capacity, n, n))
         self._bound_inv = np.zeros((capacity, n, n))
         self._bounded = np.zeros(capacity, dtype=np.bool_)
         self._score = np.zeros((capacity, n))
+        # Psi, Omega and beta are changed in place, never replaced (the compiled row step
+        # and this class share them).
         self._psi = np.eye(dim)
         self._omega = np.zeros((dim, dim))
         self._beta = np.zeros(dim)
@@ -125,20 +145,121 @@ class WrenchStepTest:
         self.evaluated = 0
         #: exponential average of the NIS per measured coordinate (1 when the noise fits)
         self.nis_scale = 1.0
-        self._stamp: Optional[int] = None
-        self._dt = 0.0
-        self._elapsed = 0.0
-        #: no onset is opened before this stamp (the filter's start-up transient)
-        self._settle_until: Optional[int] = None
         #: NIS above which a single innovation is left out of the evidence (chi2_m 1e-3)
         self._outlier = {m: float(chi2.isf(OUTLIER, m)) for m in (n, 2 * n)}
-        #: the last measurements (Phi since the previous one, H, S, K, innovation), for
-        #: the pose-step hypotheses, and the transition accumulated since the last one
-        self._recent: deque = deque(maxlen=POSE_STEP_HYPOTHESES)
-        self._identity = np.eye(dim)  # shared: _since is replaced, never modified
-        self._since = self._identity
+        self._floats[OUTLIER_N] = self._outlier[n]
+        self._floats[OUTLIER_2N] = self._outlier[2 * n]
+        # The last measurements (Phi since the previous one, H, S, K, innovation), for the
+        # pose-step hypotheses, in a ring of POSE_STEP_HYPOTHESES slots (innovations of up
+        # to 2n coordinates; ``_ring_m`` says how many), and the transition accumulated
+        # since the last one (``_since_buffer``; the identity while SINCE_IDENTITY).
+        slots, top = POSE_STEP_HYPOTHESES, 2 * n
+        self._ring_since = np.zeros((slots, dim, dim))
+        self._ring_h = np.zeros((slots, top, dim))
+        self._ring_s = np.zeros((slots, top, top))
+        self._ring_gain = np.zeros((slots, dim, top))
+        self._ring_nu = np.zeros((slots, top))
+        self._ring_m = np.zeros(slots, dtype=np.int64)
+        self._identity = np.eye(dim)
+        self._since_buffer = np.eye(dim)
+        #: the step test's arrays as step_row's compiled calls take them (fixed objects)
+        self.compiled_arrays = (
+            self._ints, self._floats, self._onsets, self._c, self._b0, self._j0,
+            self._bound_inv, self._bounded, self._score, self._psi, self._omega, self._beta,
+            self._e, self._since_buffer, self._ring_since, self._ring_h, self._ring_s,
+            self._ring_gain, self._ring_nu, self._ring_m)
         #: detections not taken because a step of the pose measurement explained more
         self.pose_steps = 0
+
+    # --- the scalar state, kept in _ints and _floats ------------------------------------
+    @property
+    def _count(self) -> int:
+        return int(self._ints[COUNT])
+
+    @_count.setter
+    def _count(self, value: int) -> None:
+        self._ints[COUNT] = value
+
+    @property
+    def _stamp(self) -> Optional[int]:
+        stamp = int(self._ints[LAST_STAMP])
+        return None if stamp < 0 else stamp
+
+    @_stamp.setter
+    def _stamp(self, value: Optional[int]) -> None:
+        self._ints[LAST_STAMP] = -1 if value is None else value
+
+    @property
+    def _settle_until(self) -> Optional[int]:
+        return int(self._ints[SETTLE_UNTIL]) if self._ints[SETTLING] else None
+
+    @_settle_until.setter
+    def _settle_until(self, value: Optional[int]) -> None:
+        self._ints[SETTLING] = value is not None
+        self._ints[SETTLE_UNTIL] = 0 if value is None else value
+
+    @property
+    def nis_scale(self) -> float:
+        """Return the exponential average of the NIS per measured coordinate."""
+        return float(self._floats[NIS_SCALE])
+
+    @nis_scale.setter
+    def nis_scale(self, value: float) -> None:
+        self._floats[NIS_SCALE] = value
+
+    @property
+    def _elapsed(self) -> float:
+        return float(self._floats[ELAPSED])
+
+    @_elapsed.setter
+    def _elapsed(self, value: float) -> None:
+        self._floats[ELAPSED] = value
+
+    @property
+    def _dt(self) -> float:
+        return float(self._floats[DT])
+
+    @_dt.setter
+    def _dt(self, value: float) -> None:
+        self._floats[DT] = value
+
+    @property
+    def _since(self) -> np.ndarray:
+        """Return the transition since the last kept measurement (a view: copy to keep)."""
+        return self._identity if self._ints[SINCE_IDENTITY] else self._since_buffer
+
+    @property
+    def recent(self) -> int:
+        """Return the number of measurements kept for the pose-step hypotheses."""
+        return int(self._ints[RECENT])
+
+    def _keep(self, h: np.ndarray, s: np.ndarray, gain: np.ndarray, nu: np.ndarray) -> None:
+        """Keep a measurement for the pose-step hypotheses (step_row.keep's, in Python)."""
+        ints = self._ints
+        slot = int(ints[NEXT])
+        m = len(nu)
+        self._ring_since[slot] = self._since
+        self._ring_h[slot, :m] = h
+        self._ring_s[slot, :m, :m] = s
+        self._ring_gain[slot, :, :m] = gain
+        self._ring_nu[slot, :m] = nu
+        self._ring_m[slot] = m
+        ints[NEXT] = (slot + 1) % POSE_STEP_HYPOTHESES
+        ints[RECENT] = min(ints[RECENT] + 1, POSE_STEP_HYPOTHESES)
+        ints[SINCE_IDENTITY] = 1
+
+    def kept(self) -> list:
+        """Return the kept measurements, oldest first: (Phi since the one before, H, S, K, nu)."""
+        count, slots = self.recent, POSE_STEP_HYPOTHESES
+        out = []
+        for k in range(count):
+            slot = (int(self._ints[NEXT]) - count + k) % slots
+            m = int(self._ring_m[slot])
+            # Copies: contiguous, and the ring's slots are written again.
+            out.append((self._ring_since[slot].copy(), self._ring_h[slot, :m].copy(),
+                        self._ring_s[slot, :m, :m].copy(), self._ring_gain[slot, :, :m].copy(),
+                        self._ring_nu[slot, :m].copy()))
+        return out
 
     @property
     def onsets(self) -> int:
@@ -156,9 +277,9 @@ class WrenchStepTest:
         """
         if settle_from_ns is not None:
             self._settle_until = settle_from_ns + self._window_ns
-        self._count = 0
-        self._recent.clear()
-        self._since = self._identity
+        ints = self._ints
+        ints[COUNT] = ints[RECENT] = ints[NEXT] = 0
+        ints[SINCE_IDENTITY] = 1
         # nis_scale stays: it describes the sensors, not the hypotheses.
 
     def propagate(self, stamp_ns: int, transition: np.ndarray) -> None:
@@ -168,11 +289,15 @@ class WrenchStepTest:
         self._dt = 0.0 if self._stamp is None else max(stamp_ns - self._stamp, 0) * 1e-9
         self._stamp = stamp_ns
         if self._count:
-            self._psi = transition @ self._psi
-        if self._recent:
+            self._psi[:] = transition @ self._psi
+        ints = self._ints
+        if ints[RECENT]:
             # The first step since a measurement: Phi itself (no product with 1).
-            self._since = transition if self._since is self._identity \
-                else transition @ self._since
+            if ints[SINCE_IDENTITY]:
+                self._since_buffer[:] = transition
+                ints[SINCE_IDENTITY] = 0
+            else:
+                self._since_buffer[:] = transition @ self._since_buffer
         # Expire hypotheses older than the window.
         count = self._count
         expired = 0
@@ -197,9 +322,9 @@ class WrenchStepTest:
             self._j0[count] = 0.0
             self._bounded[count] = False
             self._count = count + 1
-            self._psi = np.eye(self.dim)
-            self._omega = np.zeros((self.dim, self.dim))
-            self._beta = np.zeros(self.dim)
+            self._psi[:] = self._identity
+            self._omega[:] = 0.0
+            self._beta[:] = 0.0
 
     def update(self, h: np.ndarray, s: np.ndarray, gain: np.ndarray,
                nu: np.ndarray) -> Optional[StepDetection]:
@@ -208,8 +333,7 @@ class WrenchStepTest:
             return None
         # Kept for the pose-step hypotheses (a single large innovation included: a
         # re-fit is one).
-        self._recent.append((self._since, h, s, gain, nu))
-        self._since = self._identity
+        self._keep(h, s, gain, nu)
         m = len(nu)
         outlier = self._outlier.get(m, math.inf)
         if self._count:
@@ -243,49 +367,6 @@ class WrenchStepTest:
         """Return whether the test runs (its significance is above 0)."""
         return math.isfinite(self.threshold)
 
-    def compiled_state(self, m: int) -> tuple:
-        """
-        Return the state step_row.filter_step takes after the stamp (innovations of size m).
-
-        The last stamp (-1: none), the onsets and their arrays, Psi, Omega, beta, E,
-        the transition since the last measurement (and whether it is the identity),
-        whether measurements are kept, the window, spacing and settling, the outlier
-        NIS, the threshold, the NIS average and its elapsed time, NIS_TIME.
-        """
-        settle = self._settle_until
-        return (-1 if self._stamp is None else self._stamp, self._count, self._onsets,
-                self._c, self._b0, self._j0, self._bound_inv, self._bounded, self._score,
-                self._psi, self._omega, self._beta, self._e, self._since,
-                self._since is self._identity, bool(self._recent), self._window_ns,
-                self._spacing_ns, 0 if settle is None else settle, settle is not None,
-                self._outlier.get(m, math.inf), self.threshold, self.nis_scale,
-                self._elapsed, NIS_TIME)
-
-    def take_propagated(self, stamp_ns: int, dt: float, count: int, psi: np.ndarray,
-                        omega: np.ndarray, beta: np.ndarray, since: np.ndarray,
-                        since_identity: bool) -> None:
-        """Take the state after a :meth:`propagate` run compiled (step_row.test_propagate)."""
-        self._dt, self._stamp, self._count = dt, stamp_ns, count
-        self._psi, self._omega, self._beta = psi, omega, beta
-        self._since = self._identity if since_identity else since
-
-    def take_compiled(self, h: np.ndarray, s: np.ndarray, gain: np.ndarray, nu: np.ndarray,
-                      evidence: bool, nis_scale: float, elapsed: float, best: int,
-                      statistic: float, top: float,
-                      evaluated: int) -> Optional[StepDetection]:
-        """
-        Take an update whose absorb and evaluation ran compiled (step_row.filter_step).
-
-        The rest of :meth:`update` for it: the measurement kept for the pose-step
-        hypotheses, the NIS average, and the evaluation's outcome.
-        """
-        self._recent.append((self._since, h, s, gain, nu))
-        self._since = self._identity
-        self.nis_scale, self._elapsed = nis_scale, elapsed
-        if not evidence:
-            return None
-        return self._evaluated(best, statistic, top, evaluated)
-
     def _evaluated(self, best: int, statistic: float, top: float,
                    evaluated: int) -> Optional[StepDetection]:
         """Take the evaluation of the onsets (best, its statistic); return a detection."""
@@ -306,10 +387,10 @@ class WrenchStepTest:
 
     def _pose_statistic(self) -> float:
         """Return the largest statistic of a pose step at a recent measurement (S9)."""
-        return pose_statistic(self._recent, self.dim, self.n)
+        return pose_statistic(self.kept(), self.dim, self.n)
 
 
-def pose_statistic(recent: deque, dim: int, n: int) -> float:
+def pose_statistic(recent: Sequence, dim: int, n: int) -> float:
     """
     Return the largest statistic b_F^T J_F^-1 b_F of a pose step at a recent measurement.
 
