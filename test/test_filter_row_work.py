@@ -1,0 +1,164 @@
+# Copyright 2026 reduced_dynamics developers
+#
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+
+"""
+The filter row's preallocated state and work arrays (docs/filter_row.md).
+
+The step test keeps its scalars, its kept measurements (a ring) and the transition
+since the last one in arrays the compiled row step changes in place; the row step
+writes the prediction and its rare-path results into the filter's work arrays. A row
+with that state gives the same bits as the separate calls, the ring reads back what a
+deque of the measurements held, and the steps recorded for the smoother own their
+arrays (the work arrays are written again by the next row).
+"""
+
+import copy
+from collections import deque
+
+import numpy as np
+import pytest
+
+from reduced_dynamics.estimator import step_row
+from reduced_dynamics.estimator.core import kernels
+from reduced_dynamics.estimator.step_test import POSE_STEP_HYPOTHESES, WrenchStepTest
+
+
+def _estimator_filter(record: bool, rows: int = 1300):
+    """Return the paper robot's filter after ``rows`` rows of the bench's motion, and the rest."""
+    from reduced_dynamics.bench import update_samples
+    from reduced_dynamics.estimator.config import EstimatorConfig
+    from reduced_dynamics.estimator.pipeline import Estimator
+    from reduced_dynamics.robot.model import load_robot
+    robot = load_robot()
+    joints, bases = update_samples(robot, rows + 40)
+    estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0, smoothing_lag=0.0))
+    messages = [m for pair in zip(joints, bases) for m in pair]
+    estimator.add_samples(messages[:2 * rows])
+    flt = estimator.filter
+    flt.record = record
+    return estimator, flt, messages[2 * rows:]
+
+
+def test_a_row_with_the_packed_state_equals_the_separate_calls() -> None:
+    """filter_step on the step test's arrays: the bits of propagate_update + propagate + update."""
+    estimator, flt, rest = _estimator_filter(record=False)
+    captured = []
+    compiled = step_row.filter_step
+
+    def capture(*args):
+        captured.append(copy.deepcopy(args))
+        return compiled(*args)
+
+    step_row.filter_step = capture
+    try:
+        estimator.add_samples(rest[:2])
+    finally:
+        step_row.filter_step = compiled
+    args = captured[0]
+    test = flt.step_test
+    n, dim = test.n, test.dim
+    count = len(test.compiled_arrays)
+    head, arrays, work = args[:27], args[27:27 + count], args[27 + count:]
+    assert len(work) == 9 and test.onsets
+
+    # The packed call, on copies of the state before the row.
+    mine = copy.deepcopy(arrays)
+    mine_work = copy.deepcopy(work)
+    stamp_twist = head[15].copy()
+    packed_head = head[:15] + (stamp_twist,) + head[16:]
+    out = compiled(*packed_head, *mine, *mine_work)
+
+    # The separate calls: propagate_update, then a step test holding the same state
+    # stepped from Python (WrenchStepTest.propagate and update).
+    (g, x, p, locked, before_inverse, before_qd, dt, jerk_var, pose, measured, with_twist,
+     inverse_locked, connection_qd, joint_cov, pose_var, twist_avg, sigma, twist_var, gate,
+     weight, basis, pinv, whole, ad_rows, form_rows, h_pose, stamp_ns) = head
+    fused = kernels.propagate_update(
+        g, x, p, locked, 0.5 * (before_inverse + inverse_locked),
+        0.5 * (before_qd + connection_qd), joint_cov, dt, jerk_var, pose, measured,
+        with_twist, inverse_locked, connection_qd, joint_cov, pose_var, twist_avg, sigma,
+        twist_var, gate, weight, basis, pinv, whole, ad_rows, form_rows)
+    reference = WrenchStepTest(n, 1e-6, dim)
+    for mine_array, theirs in zip(reference.compiled_arrays, copy.deepcopy(arrays)):
+        mine_array[...] = theirs
+    reference.threshold, reference._outlier = test.threshold, test._outlier
+    reference.propagate(stamp_ns, fused[3])
+    m = len(fused[7])
+    reference.update(fused[12] if with_twist else h_pose, fused[13], fused[14], fused[7])
+
+    g1, x1, p1, accepted, nis, logdet, health, wrench_test, tested = out[:9]
+    assert tested and accepted and health == 0
+    for value, expected in zip((g1, x1, p1, nis, logdet, wrench_test),
+                               (fused[9], fused[10], fused[11], fused[5], fused[6],
+                                fused[17])):
+        np.testing.assert_array_equal(value, expected)
+    # The prediction in the work arrays; the stamp twist's average moved in place.
+    for value, expected in zip(mine_work[:4], fused[:4]):
+        np.testing.assert_array_equal(value, expected)
+    np.testing.assert_array_equal(stamp_twist, fused[16])
+    # The step test's whole state (scalars, bank, Psi, Omega, beta, ring) the same bits.
+    for name, value, expected in zip(range(count), mine, reference.compiled_arrays):
+        np.testing.assert_array_equal(value, expected, err_msg=str(name))
+    assert m in (n, 2 * n)
+
+
+def test_the_kept_measurements_read_back_as_a_deque_of_them() -> None:
+    """The ring (POSE_STEP_HYPOTHESES slots, both innovation sizes, wrapped) = a deque."""
+    n, dim = 3, 9
+    test = WrenchStepTest(n, 1e-6, dim)
+    rng = np.random.default_rng(4)
+    expected: deque = deque(maxlen=POSE_STEP_HYPOTHESES)
+    since = np.eye(dim)
+    for k in range(2 * POSE_STEP_HYPOTHESES + 5):
+        transition = np.eye(dim) + 0.01 * rng.standard_normal((dim, dim))
+        test.propagate(k * 10_000_000, transition)
+        if expected:
+            since = transition if since is None else transition @ since
+        m = n if k % 3 else 2 * n
+        h, s = rng.standard_normal((m, dim)), np.eye(m) * (1.0 + k)
+        gain, nu = rng.standard_normal((dim, m)), rng.standard_normal(m)
+        test._keep(h, s, gain, nu)
+        expected.append((np.eye(dim) if since is None else since, h, s, gain, nu))
+        since = None
+        kept = test.kept()
+        assert len(kept) == len(expected) == test.recent
+        for mine, theirs in zip(kept, expected):
+            for a, b in zip(mine, theirs):
+                assert a.flags.c_contiguous and a.shape == b.shape
+                np.testing.assert_array_equal(a, b)
+    test.reset()
+    assert test.kept() == [] and test._since is test._identity
+
+
+@pytest.mark.parametrize('record', [True])
+def test_recorded_steps_own_their_arrays(record: bool) -> None:
+    """Steps recorded for the smoother keep their values after later rows (no aliasing)."""
+    estimator, flt, rest = _estimator_filter(record=record, rows=1200)
+    flt.steps = []
+    estimator.add_samples(rest[:40])
+    steps = list(flt.steps)
+    assert len(steps) >= 19
+    frozen = [tuple(np.array(a, copy=True) for a in (
+        s.transition, s.pose_pred, s.x_pred, s.p_pred, s.pose, s.x, s.p)) for s in steps]
+    estimator.add_samples(rest[40:])
+    work = {id(a) for a in flt._work}
+    for step, values in zip(steps, frozen):
+        arrays = (step.transition, step.pose_pred, step.x_pred, step.p_pred, step.pose,
+                  step.x, step.p)
+        assert not work & {id(a) for a in arrays}
+        for a, b in zip(arrays, values):
+            np.testing.assert_array_equal(a, b)
+    # The prediction differs from the update, and consecutive steps from each other.
+    assert not np.array_equal(steps[-1].p_pred, steps[-1].p)
+    assert not np.array_equal(steps[-1].p_pred, steps[-2].p_pred)
