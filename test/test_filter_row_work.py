@@ -68,22 +68,22 @@ def test_a_row_with_the_packed_state_equals_the_separate_calls() -> None:
     args = captured[0]
     test = flt.step_test
     n, dim = test.n, test.dim
-    count = len(test.compiled_arrays)
-    head, arrays, work = args[:27], args[27:27 + count], args[27 + count:]
-    assert len(work) == 9 and test.onsets
+    head, fixed = args[:18], args[18:]
+    assert len(fixed) == 13 and test.onsets
+    (jerk_var, pose_var, twist_var, basis, pinv, whole, ad_rows, form_rows, h_pose) = fixed[:9]
+    arrays, work = fixed[9:12], fixed[12]
 
     # The packed call, on copies of the state before the row.
     mine = copy.deepcopy(arrays)
-    mine_work = copy.deepcopy(work)
-    stamp_twist = head[15].copy()
-    packed_head = head[:15] + (stamp_twist,) + head[16:]
-    out = compiled(*packed_head, *mine, *mine_work)
+    mine_work = work.copy()
+    stamp_twist = head[13].copy()
+    out = compiled(*head[:13], stamp_twist, *head[14:], *fixed[:9], *mine, mine_work)
 
     # The separate calls: propagate_update, then a step test holding the same state
     # stepped from Python (WrenchStepTest.propagate and update).
-    (g, x, p, locked, before_inverse, before_qd, dt, jerk_var, pose, measured, with_twist,
-     inverse_locked, connection_qd, joint_cov, pose_var, twist_avg, sigma, twist_var, gate,
-     weight, basis, pinv, whole, ad_rows, form_rows, h_pose, stamp_ns) = head
+    (g, x, p, locked, before_inverse, before_qd, dt, pose, measured, with_twist,
+     inverse_locked, connection_qd, joint_cov, twist_avg, sigma, gate, weight,
+     stamp_ns) = head
     fused = kernels.propagate_update(
         g, x, p, locked, 0.5 * (before_inverse + inverse_locked),
         0.5 * (before_qd + connection_qd), joint_cov, dt, jerk_var, pose, measured,
@@ -104,13 +104,42 @@ def test_a_row_with_the_packed_state_equals_the_separate_calls() -> None:
                                 fused[17])):
         np.testing.assert_array_equal(value, expected)
     # The prediction in the work arrays; the stamp twist's average moved in place.
-    for value, expected in zip(mine_work[:4], fused[:4]):
+    for value, expected in zip(step_row.work_views(mine_work, n, dim)[:4], fused[:4]):
         np.testing.assert_array_equal(value, expected)
     np.testing.assert_array_equal(stamp_twist, fused[16])
     # The step test's whole state (scalars, bank, Psi, Omega, beta, ring) the same bits.
-    for name, value, expected in zip(range(count), mine, reference.compiled_arrays):
+    for name, value, expected in zip(range(3), mine, reference.compiled_arrays):
         np.testing.assert_array_equal(value, expected, err_msg=str(name))
     assert m in (n, 2 * n)
+
+
+@pytest.mark.parametrize('n,dim', [(6, 18), (3, 9), (6, 30)])
+def test_the_compiled_views_are_the_step_tests_arrays(n: int, dim: int) -> None:
+    """step_row.test_views and work_views: the arrays the Python side holds, same memory."""
+    test = WrenchStepTest(n, 1e-6, dim)
+    names = ('_floats', '_onsets', '_c', '_b0', '_j0', '_bound_inv', '_score', '_psi',
+             '_omega', '_beta', '_e', '_since_buffer', '_ring_since', '_ring_h', '_ring_s',
+             '_ring_gain', '_ring_nu', '_ring_m')
+    views = step_row.test_views(test._state, test._ints)
+    assert len(views) == len(names)
+    for name, view in zip(names, views):
+        mine = getattr(test, name)
+        assert view.shape == mine.shape and view.dtype == mine.dtype, name
+        assert view.__array_interface__['data'][0] == mine.__array_interface__['data'][0], \
+            name
+    # Disjoint, and the buffers used to the end.
+    ends = sorted((v.__array_interface__['data'][0], v.nbytes) for v in views)
+    for (start, size), (after, _) in zip(ends, ends[1:]):
+        assert start + size <= after
+    work = np.zeros(step_row.work_size(n, dim))
+    arrays = step_row.work_views(work, n, dim)
+    assert [a.shape for a in arrays] == [(4, 4), (dim - n,), (dim, dim), (dim, dim),
+                                         (2 * n,), (2 * n, 2 * n), (2 * n, dim),
+                                         (2 * n, 2 * n), (dim, 2 * n)]
+    assert sum(a.size for a in arrays) == work.size
+    for k, a in enumerate(arrays):
+        a[...] = k + 1
+    assert (work > 0).all()
 
 
 def test_the_kept_measurements_read_back_as_a_deque_of_them() -> None:

@@ -272,10 +272,10 @@ class MomentumFilter:
         # step (step_row.filter_step): the prediction g, x, P, Phi, then nu, R, H, S, K
         # (top-left corners: innovations of n or 2n coordinates). Written in place by every
         # row: what is kept is copied out.
-        m = 2 * n
-        self._work = (np.zeros((4, 4)), np.zeros(dim - n), np.zeros((dim, dim)),
-                      np.zeros((dim, dim)), np.zeros(m), np.zeros((m, m)),
-                      np.zeros((m, dim)), np.zeros((m, m)), np.zeros((dim, m)))
+        self._work_buffer = np.zeros(step_row.work_size(n, dim))
+        self._work = step_row.work_views(self._work_buffer, n, dim)
+        #: (the step test they are of, filter_step's fixed arguments): built at the first row
+        self._row_fixed: tuple = (None, ())
         #: (P, x, w^T P_ww^-1 w) of the last fused step (kernels.propagate_update)
         self._fused_significance: Optional[tuple] = None
 
@@ -682,29 +682,29 @@ class MomentumFilter:
         else:
             sigma, weight = 0.0, -1.0
         test = self.step_test
+        fixed = self._row_fixed
+        if fixed[0] is not test:
+            fixed = self._row_fixed = self._fixed_arguments()
         try:
-            out = step_row.filter_step(
+            (g1, x1, p1, accepted, nis, logdet, health, wrench_test, tested, evidence, best,
+             statistic, top, evaluated) = step_row.filter_step(
                 self._g, self.x, self.p, lin.locked, before.locked_inverse,
-                before.connection_qd, (stamp_ns - self.stamp_ns) * 1e-9, self._jerk_var,
+                before.connection_qd, (stamp_ns - self.stamp_ns) * 1e-9,
                 np.ascontiguousarray(measurement.pose.homogeneous),
                 _EMPTY if twist is None else np.asarray(twist, dtype=float), with_twist,
-                lin.locked_inverse, lin.connection_qd, lin.joint_cov, self._pose_var,
-                self._stamp_twist, sigma, self._twist_var, self._gates[size], weight,
-                self._basis, self._pinv, self._whole, self._ad_rows, self._form_rows,
-                self._h_pose, stamp_ns, *test.compiled_arrays, *self._work)
+                lin.locked_inverse, lin.connection_qd, lin.joint_cov, self._stamp_twist, sigma,
+                self._gates[size], weight, stamp_ns, *fixed[1])
         except (np.linalg.LinAlgError, ZeroDivisionError):
             return False
-        (g1, x1, p1, accepted, nis, logdet, health, wrench_test, tested, evidence, best,
-         statistic, top, evaluated) = out
         self.stamp_ns = stamp_ns
         self._fused_significance = (p1, x1, wrench_test)
-        work_g, work_x, work_p, work_phi = self._work[:4]
         if not tested:
             # Gated, a broken covariance or no onset open: the general path, with
             # propagate_update's results as _fused_step gives them (copies of the work
             # arrays; when gated, the update's state is the prediction itself).
             if accepted:
-                self._g, self.x, self.p = work_g.copy(), work_x.copy(), work_p.copy()
+                work = self._work
+                self._g, self.x, self.p = work[0].copy(), work[1].copy(), work[2].copy()
             else:
                 self._g, self.x, self.p = g1, x1, p1
             fused = self._work_results(size, accepted, nis, logdet, g1, x1, p1, health,
@@ -737,11 +737,19 @@ class MomentumFilter:
             self._restart(stamp_ns, cause, measurement, lin, output)
         elif self.record:
             # Copies: the work arrays are written again by the next row.
+            work_g, work_x, work_p, work_phi = self._work[:4]
             self.steps.append(FilterStep(stamp_ns, work_phi.copy(), work_g.copy(),
                                          work_x.copy(), work_p.copy(), self._g, self.x,
                                          self.p, lin.locked_inverse, output,
                                          self._held_command()))
         return True
+
+    def _fixed_arguments(self) -> tuple:
+        """Return (the step test, step_row.filter_step's arguments fixed for the filter)."""
+        test = self.step_test
+        return test, (self._jerk_var, self._pose_var, self._twist_var, self._basis,
+                      self._pinv, self._whole, self._ad_rows, self._form_rows, self._h_pose,
+                      *test.compiled_arrays, self._work_buffer)
 
     def _work_results(self, size: int, accepted: bool, nis: float, logdet: float,
                       g1: np.ndarray, x1: np.ndarray, p1: np.ndarray, health: int,

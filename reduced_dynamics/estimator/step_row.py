@@ -36,10 +36,12 @@ from numba import njit
 from reduced_dynamics.estimator.core.kernels import propagate, propagate_update
 from reduced_dynamics.estimator.step_kernels import absorb_evaluate, fold
 from reduced_dynamics.estimator.step_test import (COUNT, DT, ELAPSED, LAST_STAMP, NEXT,
-                                                  NIS_HORIZON, NIS_SCALE, OUTLIER_2N,
-                                                  OUTLIER_N, POSE_STEP_HYPOTHESES, RECENT,
-                                                  SETTLE_UNTIL, SETTLING, SINCE_IDENTITY,
-                                                  SPACING, THRESHOLD, WINDOW)
+                                                  NIS_HORIZON, NIS_SCALE, OFFSETS, ONSETS,
+                                                  OUTLIER_2N, OUTLIER_N,
+                                                  POSE_STEP_HYPOTHESES, RECENT, SETTLE_UNTIL,
+                                                  SETTLING, SINCE_IDENTITY, SIZE_CAPACITY,
+                                                  SIZE_DIM, SIZE_N, SPACING, THRESHOLD,
+                                                  WINDOW)
 
 
 @njit(cache=True)
@@ -47,6 +49,72 @@ def _shift(array: np.ndarray, expired: int, count: int) -> None:
     """Move rows [expired, count) to [0, count - expired) (front to back: no overlap issue)."""
     for i in range(count - expired):
         array[i] = array[i + expired]
+
+
+@njit(cache=True)
+def _part(state: np.ndarray, ints: np.ndarray, index: int, size: int) -> np.ndarray:
+    """Return the float buffer's array ``index`` (FLOAT_ARRAYS' order) as 1-d, ``size`` long."""
+    start = ints[OFFSETS + index]
+    return state[start:start + size]
+
+
+@njit(cache=True)
+def test_views(state: np.ndarray, ints: np.ndarray) -> tuple:
+    """
+    Return the step test's arrays as views of its buffers (step_test.state_shapes).
+
+    (floats, onsets, C, b0, J0, J0^-1, scores, Psi, Omega, beta, E, the transition since
+    the last kept measurement, then the ring: Phi, H, S, K, nu and the innovation sizes.)
+    """
+    n, dim, cap = ints[SIZE_N], ints[SIZE_DIM], ints[SIZE_CAPACITY]
+    slots, top = POSE_STEP_HYPOTHESES, 2 * n
+    return (_part(state, ints, 0, 7), ints[ONSETS:ONSETS + cap],
+            _part(state, ints, 1, cap * dim * n).reshape((cap, dim, n)),
+            _part(state, ints, 2, cap * n).reshape((cap, n)),
+            _part(state, ints, 3, cap * n * n).reshape((cap, n, n)),
+            _part(state, ints, 4, cap * n * n).reshape((cap, n, n)),
+            _part(state, ints, 5, cap * n).reshape((cap, n)),
+            _part(state, ints, 6, dim * dim).reshape((dim, dim)),
+            _part(state, ints, 7, dim * dim).reshape((dim, dim)),
+            _part(state, ints, 8, dim),
+            _part(state, ints, 9, dim * n).reshape((dim, n)),
+            _part(state, ints, 10, dim * dim).reshape((dim, dim)),
+            _part(state, ints, 11, slots * dim * dim).reshape((slots, dim, dim)),
+            _part(state, ints, 12, slots * top * dim).reshape((slots, top, dim)),
+            _part(state, ints, 13, slots * top * top).reshape((slots, top, top)),
+            _part(state, ints, 14, slots * dim * top).reshape((slots, dim, top)),
+            _part(state, ints, 15, slots * top).reshape((slots, top)),
+            ints[ONSETS + cap:ONSETS + cap + slots])
+
+
+@njit(cache=True)
+def work_views(work: np.ndarray, n: int, dim: int) -> tuple:
+    """
+    Return the filter's row-step work arrays as views of ``work`` (:func:`work_size`).
+
+    The prediction g (4 x 4), x, P, Phi, then nu, R, H, S, K of an innovation of up to
+    2n coordinates (an innovation of m uses their top-left corners).
+    """
+    m = 2 * n
+    x_at = 16
+    p_at = x_at + dim - n
+    phi_at = p_at + dim * dim
+    nu_at = phi_at + dim * dim
+    r_at = nu_at + m
+    h_at = r_at + m * m
+    s_at = h_at + m * dim
+    gain_at = s_at + m * m
+    return (work[:16].reshape((4, 4)), work[x_at:p_at],
+            work[p_at:phi_at].reshape((dim, dim)), work[phi_at:nu_at].reshape((dim, dim)),
+            work[nu_at:r_at], work[r_at:h_at].reshape((m, m)),
+            work[h_at:s_at].reshape((m, dim)), work[s_at:gain_at].reshape((m, m)),
+            work[gain_at:gain_at + dim * m].reshape((dim, m)))
+
+
+def work_size(n: int, dim: int) -> int:
+    """Return the length of the filter's row-step work buffer (:func:`work_views`)."""
+    m = 2 * n
+    return 16 + (dim - n) + 2 * dim * dim + m + 2 * m * m + 2 * m * dim
 
 
 @njit(cache=True)
@@ -139,34 +207,31 @@ def _put(work: np.ndarray, value: np.ndarray) -> None:
 
 @njit(cache=True)
 def filter_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
-                before_inverse: np.ndarray, before_connection_qd: np.ndarray,
-                dt: float, jerk_var: np.ndarray, pose: np.ndarray, measured: np.ndarray,
-                with_twist: bool, inverse_locked: np.ndarray, connection_qd: np.ndarray,
-                joint_cov: np.ndarray, pose_var: np.ndarray, stamp_twist: np.ndarray,
-                stamp_sigma: float, twist_var: np.ndarray, gate: float, twist_weight: float,
-                basis: np.ndarray, pinv: np.ndarray, whole: bool, ad_rows: np.ndarray,
-                form_rows: np.ndarray, h_pose: np.ndarray, stamp_ns: int,
-                ints: np.ndarray, floats: np.ndarray, onsets: np.ndarray, c: np.ndarray,
-                b0: np.ndarray, j0: np.ndarray, bound_inv: np.ndarray, bounded: np.ndarray,
-                score: np.ndarray, psi: np.ndarray, omega: np.ndarray, beta: np.ndarray,
-                e: np.ndarray, since: np.ndarray, ring_since: np.ndarray,
-                ring_h: np.ndarray, ring_s: np.ndarray, ring_gain: np.ndarray,
-                ring_nu: np.ndarray, ring_m: np.ndarray, work_g: np.ndarray,
-                work_x: np.ndarray, work_p: np.ndarray, work_phi: np.ndarray,
-                work_nu: np.ndarray, work_r: np.ndarray, work_h: np.ndarray,
-                work_s: np.ndarray, work_gain: np.ndarray) -> tuple:
+                before_inverse: np.ndarray, before_connection_qd: np.ndarray, dt: float,
+                pose: np.ndarray, measured: np.ndarray, with_twist: bool,
+                inverse_locked: np.ndarray, connection_qd: np.ndarray, joint_cov: np.ndarray,
+                stamp_twist: np.ndarray, stamp_sigma: float, gate: float,
+                twist_weight: float, stamp_ns: int, jerk_var: np.ndarray,
+                pose_var: np.ndarray, twist_var: np.ndarray, basis: np.ndarray,
+                pinv: np.ndarray, whole: bool, ad_rows: np.ndarray, form_rows: np.ndarray,
+                h_pose: np.ndarray, state: np.ndarray, ints: np.ndarray,
+                bounded: np.ndarray, work: np.ndarray) -> tuple:
     """
     Run a row's step (a measurement at the row, the step's inputs midway) and its step test.
+
+    The row's values first, then what is fixed for the filter's life (its noise and
+    group constants, the step test's buffers, the work buffer: the filter passes these
+    as one tuple built once, ``MomentumFilter._row_fixed``).
 
     The step's inputs are the mean of the previous row's (``before_*``) and this
     row's (state.between at 0.5); then ``kernels.propagate_update``,
     :func:`test_propagate` on its transition, and, when the measurement was accepted
     into a healthy covariance with an onset open, ``absorb_evaluate`` and :func:`keep`
     (the step test's whole update but its outcome). The step test's state
-    (WrenchStepTest.compiled_arrays) changes in place; the prediction (g, x, P, Phi)
-    goes into ``work_g``, ``work_x``, ``work_p``, ``work_phi``, and, when the step
-    test did not take the update (the filter's general path then runs from these),
-    nu, R, H, S, K into the top-left corners of ``work_nu`` ... ``work_gain``; the
+    (WrenchStepTest.compiled_arrays: :func:`test_views`) changes in place; the
+    prediction (g, x, P, Phi) goes into ``work`` (:func:`work_views`), and, when the
+    step test did not take the update (the filter's general path then runs from these),
+    nu, R, H, S, K into the top-left corners of its further arrays; the
     stamp-noise twist average moves in ``stamp_twist`` itself. Nothing is written
     before ``propagate_update`` returned (when it raises, nothing changed).
 
@@ -183,6 +248,10 @@ def filter_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
         measured, with_twist, inverse_locked, connection_qd, joint_cov, pose_var,
         stamp_twist, stamp_sigma, twist_var, gate, twist_weight, basis, pinv, whole,
         ad_rows, form_rows)
+    (floats, onsets, c, b0, j0, bound_inv, score, psi, omega, beta, e, since, ring_since,
+     ring_h, ring_s, ring_gain, ring_nu, ring_m) = test_views(state, ints)
+    work_g, work_x, work_p, work_phi, work_nu, work_r, work_h, work_s, work_gain = \
+        work_views(work, inverse_locked.shape[0], p.shape[0])
     _put(work_g, g0)
     work_x[:] = x0
     _put(work_p, p0)
@@ -223,12 +292,7 @@ def propagate_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarr
                    joint_cov: np.ndarray, dt: float, u: np.ndarray, jerk_var: np.ndarray,
                    density: np.ndarray, basis: np.ndarray, pinv: np.ndarray, whole: bool,
                    ad_rows: np.ndarray, form_rows: np.ndarray, stamp_ns: int,
-                   ints: np.ndarray, floats: np.ndarray, onsets: np.ndarray, c: np.ndarray,
-                   b0: np.ndarray, j0: np.ndarray, bound_inv: np.ndarray,
-                   bounded: np.ndarray, score: np.ndarray, psi: np.ndarray,
-                   omega: np.ndarray, beta: np.ndarray, e: np.ndarray, since: np.ndarray,
-                   ring_since: np.ndarray, ring_h: np.ndarray, ring_s: np.ndarray,
-                   ring_gain: np.ndarray, ring_nu: np.ndarray, ring_m: np.ndarray) -> tuple:
+                   state: np.ndarray, ints: np.ndarray, bounded: np.ndarray) -> tuple:
     """
     Propagate without a measurement (``kernels.propagate``), then :func:`test_propagate`.
 
@@ -239,6 +303,8 @@ def propagate_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarr
     g1, x1, p1, phi = propagate(g, x, p, locked, inverse_locked, connection_qd, joint_cov,
                                 dt, u, False, jerk_var, density, basis, pinv, whole,
                                 ad_rows, form_rows)
+    (floats, onsets, c, b0, j0, bound_inv, _, psi, omega, beta, e, since, _, _, _, _, _,
+     _) = test_views(state, ints)
     test_propagate(stamp_ns, phi, ints, floats, onsets, c, b0, j0, bound_inv, bounded, psi,
                    omega, beta, e, since)
     return g1, x1, p1, phi

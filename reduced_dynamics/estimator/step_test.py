@@ -66,17 +66,38 @@ NIS_TIME = 10.0
 #: each): a re-fit is seen at once, and a detection comes within a few samples of it.
 POSE_STEP_HYPOTHESES = 32
 
-# Slots of WrenchStepTest's scalar state, kept in two small arrays so that the compiled row
-# step (step_row.py) reads and writes it in place: one array argument where numba checked
-# eight scalars on every call, and no tuple of results to unpack (docs/filter_row.md).
+# The step test's state is two buffers, float64 and int64, and ``_bounded``: every array of
+# it is a view of one of them, so that the compiled row step (step_row.py) takes three
+# arguments where numba checked twenty arrays on every call, and changes it in place
+# (no tuple of results to unpack; docs/filter_row.md). The int buffer starts with the
+# scalars below, then n, dim and the capacity, then the float arrays' offsets
+# (FLOAT_ARRAYS' order), then the onsets and the ring's innovation sizes.
 #: ``_ints``: the last stamp (< 0: none), onsets alive, the window and the spacing [ns],
 #: the settling end [ns] and whether it applies, whether ``_since`` is the identity, the
 #: measurements kept (``recent``) and the ring slot the next one goes to
 LAST_STAMP, COUNT, WINDOW, SPACING, SETTLE_UNTIL, SETTLING, SINCE_IDENTITY, RECENT, NEXT = \
     range(9)
-#: ``_floats``: the NIS average, its elapsed time, the last step [s], the threshold, the
-#: outlier NIS of n and of 2n innovations, NIS_TIME
+#: the int buffer's layout header: n, dim, capacity, then the float arrays' offsets
+SIZE_N, SIZE_DIM, SIZE_CAPACITY, OFFSETS = 9, 10, 11, 12
+#: ``_floats`` (the float buffer's first array): the NIS average, its elapsed time, the last
+#: step [s], the threshold, the outlier NIS of n and of 2n innovations, NIS_TIME
 NIS_SCALE, ELAPSED, DT, THRESHOLD, OUTLIER_N, OUTLIER_2N, NIS_HORIZON = range(7)
+#: the float buffer's arrays, in order (shapes: :func:`state_shapes`)
+FLOAT_ARRAYS = ('floats', 'c', 'b0', 'j0', 'bound_inv', 'score', 'psi', 'omega', 'beta',
+                'e', 'since', 'ring_since', 'ring_h', 'ring_s', 'ring_gain', 'ring_nu')
+#: where the onsets start in the int buffer (the ring's sizes follow them)
+ONSETS = OFFSETS + len(FLOAT_ARRAYS)
+
+
+def state_shapes(n: int, dim: int, capacity: int) -> dict:
+    """Return the shapes of the float buffer's arrays (step_row.test_views reads the same)."""
+    slots, top = POSE_STEP_HYPOTHESES, 2 * n
+    return {'floats': (7,), 'c': (capacity, dim, n), 'b0': (capacity, n),
+            'j0': (capacity, n, n), 'bound_inv': (capacity, n, n), 'score': (capacity, n),
+            'psi': (dim, dim), 'omega': (dim, dim), 'beta': (dim,), 'e': (dim, n),
+            'since': (dim, dim), 'ring_since': (slots, dim, dim), 'ring_h': (slots, top, dim),
+            'ring_s': (slots, top, top), 'ring_gain': (slots, dim, top),
+            'ring_nu': (slots, top)}
 
 
 class StepDetection(NamedTuple):
@@ -113,31 +134,35 @@ class WrenchStepTest:
             # Compiled on first use (numba's import and its disk cache cost ~1 s).
             from reduced_dynamics.estimator import step_kernels
             self._kernels = step_kernels
-        self._ints = np.zeros(9, dtype=np.int64)
-        self._floats = np.zeros(7)
-        self._ints[LAST_STAMP] = -1
-        self._ints[WINDOW] = int(round(window * 1e9))
-        self._ints[SPACING] = int(round(spacing * 1e9))
-        self._ints[SINCE_IDENTITY] = 1
+        capacity = int(math.ceil(window / spacing)) + 2
+        shapes = state_shapes(n, dim, capacity)
+        sizes = [int(np.prod(shapes[name])) for name in FLOAT_ARRAYS]
+        starts = np.concatenate(([0], np.cumsum(sizes)[:-1])).astype(np.int64)
+        self._state = np.zeros(int(sum(sizes)))
+        self._ints = np.zeros(ONSETS + capacity + POSE_STEP_HYPOTHESES, dtype=np.int64)
+        ints = self._ints
+        ints[SIZE_N], ints[SIZE_DIM], ints[SIZE_CAPACITY] = n, dim, capacity
+        ints[OFFSETS:ONSETS] = starts
+        views = {name: self._state[start:start + size].reshape(shapes[name])
+                 for name, start, size in zip(FLOAT_ARRAYS, starts, sizes)}
+        self._floats = views['floats']
+        ints[LAST_STAMP] = -1
+        ints[WINDOW] = int(round(window * 1e9))
+        ints[SPACING] = int(round(spacing * 1e9))
+        ints[SINCE_IDENTITY] = 1
         self._floats[THRESHOLD] = self.threshold
         self._floats[NIS_HORIZON] = NIS_TIME
-        self._spacing_ns = int(self._ints[SPACING])
-        self._window_ns = int(self._ints[WINDOW])
-        capacity = int(math.ceil(window / spacing)) + 2
+        self._spacing_ns = int(ints[SPACING])
+        self._window_ns = int(ints[WINDOW])
         #: onset stamps [ns] of the hypotheses alive, oldest first (the first ``_count``)
-        self._onsets = np.zeros(capacity, dtype=np.int64)
-        self._c = np.zeros((capacity, dim, n))
-        self._b0 = np.zeros((capacity, n))
-        self._j0 = np.zeros((capacity, n, n))
-        self._bound_inv = np.zeros((capacity, n, n))
+        self._onsets = ints[ONSETS:ONSETS + capacity]
+        self._c, self._b0, self._j0 = views['c'], views['b0'], views['j0']
+        self._bound_inv, self._score = views['bound_inv'], views['score']
         self._bounded = np.zeros(capacity, dtype=np.bool_)
-        self._score = np.zeros((capacity, n))
-        # Psi, Omega and beta are changed in place, never replaced (the compiled row step
-        # and this class share them).
-        self._psi = np.eye(dim)
-        self._omega = np.zeros((dim, dim))
-        self._beta = np.zeros(dim)
-        self._e = np.zeros((dim, n))
+        # Psi, Omega and beta are changed in place, never replaced (views of the buffer).
+        self._psi, self._omega, self._beta = views['psi'], views['omega'], views['beta']
+        self._psi[:] = np.eye(dim)
+        self._e = views['e']
         self._e[2 * n:3 * n] = np.eye(n)
         #: the largest bound on the statistic at the last update (exact when a step
         #: was detected); onsets whose statistic was formed exactly, in total
@@ -153,21 +178,15 @@ class WrenchStepTest:
         # pose-step hypotheses, in a ring of POSE_STEP_HYPOTHESES slots (innovations of up
         # to 2n coordinates; ``_ring_m`` says how many), and the transition accumulated
         # since the last one (``_since_buffer``; the identity while SINCE_IDENTITY).
-        slots, top = POSE_STEP_HYPOTHESES, 2 * n
-        self._ring_since = np.zeros((slots, dim, dim))
-        self._ring_h = np.zeros((slots, top, dim))
-        self._ring_s = np.zeros((slots, top, top))
-        self._ring_gain = np.zeros((slots, dim, top))
-        self._ring_nu = np.zeros((slots, top))
-        self._ring_m = np.zeros(slots, dtype=np.int64)
+        self._ring_since, self._ring_h = views['ring_since'], views['ring_h']
+        self._ring_s, self._ring_gain = views['ring_s'], views['ring_gain']
+        self._ring_nu = views['ring_nu']
+        self._ring_m = ints[ONSETS + capacity:]
         self._identity = np.eye(dim)
-        self._since_buffer = np.eye(dim)
-        #: the step test's arrays as step_row's compiled calls take them (fixed objects)
-        self.compiled_arrays = (
-            self._ints, self._floats, self._onsets, self._c, self._b0, self._j0,
-            self._bound_inv, self._bounded, self._score, self._psi, self._omega, self._beta,
-            self._e, self._since_buffer, self._ring_since, self._ring_h, self._ring_s,
-            self._ring_gain, self._ring_nu, self._ring_m)
+        self._since_buffer = views['since']
+        self._since_buffer[:] = self._identity
+        #: the step test's state as step_row's compiled calls take it (fixed objects)
+        self.compiled_arrays = (self._state, self._ints, self._bounded)
         #: detections not taken because a step of the pose measurement explained more
         self.pose_steps = 0
 
