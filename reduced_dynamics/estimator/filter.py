@@ -539,10 +539,11 @@ class MomentumFilter:
                 self._g, self.x, self.p, lin.locked, lin.locked_inverse, lin.connection_qd,
                 lin.joint_cov, dt, u, self._jerk_var, self._densities(lin), self._basis,
                 self._pinv, self._whole, self._ad_rows, self._form_rows, stamp_ns,
-                *test.compiled_arrays)
-            self._g, self.x, self.p = out[0], out[1], out[2]
+                *test.compiled_arrays, self._work_buffer)
+            self._g, self.x, self.p = out
             self.stamp_ns = stamp_ns
-            return out[3]
+            # Phi in the work arrays: read only to record the step (a copy: written again).
+            return self._work[3].copy() if self.record else self._work[3]
         self._g, self.x, self.p, transition = kernels.propagate(
             self._g, self.x, self.p, lin.locked, lin.locked_inverse, lin.connection_qd,
             lin.joint_cov, dt, u, self.command, self._jerk_var, self._densities(lin),

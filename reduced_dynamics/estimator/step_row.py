@@ -292,13 +292,14 @@ def propagate_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarr
                    joint_cov: np.ndarray, dt: float, u: np.ndarray, jerk_var: np.ndarray,
                    density: np.ndarray, basis: np.ndarray, pinv: np.ndarray, whole: bool,
                    ad_rows: np.ndarray, form_rows: np.ndarray, stamp_ns: int,
-                   state: np.ndarray, ints: np.ndarray, bounded: np.ndarray) -> tuple:
+                   state: np.ndarray, ints: np.ndarray, bounded: np.ndarray,
+                   work: np.ndarray) -> tuple:
     """
     Propagate without a measurement (``kernels.propagate``), then :func:`test_propagate`.
 
     A row between two base measurements (joint states faster than odometry). The
     step test's arrays are :func:`filter_step`'s (its update's part unused).
-    Returns (g, x, P, Phi).
+    Returns (g, x, P); Phi goes into ``work`` (:func:`work_views`: read only to record).
     """
     g1, x1, p1, phi = propagate(g, x, p, locked, inverse_locked, connection_qd, joint_cov,
                                 dt, u, False, jerk_var, density, basis, pinv, whole,
@@ -307,4 +308,5 @@ def propagate_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarr
      _) = test_views(state, ints)
     test_propagate(stamp_ns, phi, ints, floats, onsets, c, b0, j0, bound_inv, bounded, psi,
                    omega, beta, e, since)
-    return g1, x1, p1, phi
+    _put(work_views(work, inverse_locked.shape[0], p.shape[0])[3], phi)
+    return g1, x1, p1
