@@ -31,7 +31,8 @@ import pytest
 
 from reduced_dynamics.estimator import step_row
 from reduced_dynamics.estimator.core import kernels
-from reduced_dynamics.estimator.step_test import POSE_STEP_HYPOTHESES, WrenchStepTest
+from reduced_dynamics.estimator.step_state import POSE_STEP_HYPOTHESES
+from reduced_dynamics.estimator.step_test import WrenchStepTest
 
 
 def _estimator_filter(record: bool, rows: int = 1300, odometry_200hz: bool = False):

@@ -35,13 +35,13 @@ from numba import njit
 
 from reduced_dynamics.estimator.core.kernels import propagate, propagate_update
 from reduced_dynamics.estimator.step_kernels import absorb_evaluate, fold
-from reduced_dynamics.estimator.step_test import (COUNT, DT, ELAPSED, LAST_STAMP, NEXT,
-                                                  NIS_HORIZON, NIS_SCALE, OFFSETS, ONSETS,
-                                                  OUTLIER_2N, OUTLIER_N,
-                                                  POSE_STEP_HYPOTHESES, RECENT, SETTLE_UNTIL,
-                                                  SETTLING, SINCE_IDENTITY, SIZE_CAPACITY,
-                                                  SIZE_DIM, SIZE_N, SPACING, THRESHOLD,
-                                                  WINDOW)
+from reduced_dynamics.estimator.step_state import (COUNT, DT, ELAPSED, LAST_STAMP, NEXT,
+                                                   NIS_HORIZON, NIS_SCALE, OFFSETS, ONSETS,
+                                                   OUTLIER_2N, OUTLIER_N,
+                                                   POSE_STEP_HYPOTHESES, RECENT,
+                                                   SETTLE_UNTIL, SETTLING, SINCE_IDENTITY,
+                                                   SIZE_CAPACITY, SIZE_DIM, SIZE_N,
+                                                   SPACING, THRESHOLD, WINDOW)
 
 
 @njit(cache=True)

@@ -48,6 +48,10 @@ from typing import NamedTuple, Optional, Sequence
 
 import numpy as np
 from reduced_dynamics.chi_square import chi2
+from reduced_dynamics.estimator.step_state import (COUNT, NEXT, RECENT, SINCE_IDENTITY,
+                                                   SPACING, StepTestState, WINDOW)
+# The pose-step hypotheses' count, defined with the ring that keeps their measurements.
+from reduced_dynamics.estimator.step_state import POSE_STEP_HYPOTHESES  # noqa: F401
 
 #: Seconds between hypothesised step onsets of the GLR test, and how long each is followed.
 #: An onset hypothesised delta after the true one misses the information of the first
@@ -62,42 +66,6 @@ GLR_HYPOTHESES = 40
 OUTLIER = 1e-3
 #: Time constant [s] of the average NIS per coordinate that scales the GLR statistic.
 NIS_TIME = 10.0
-#: Measurements back at which a step of the pose measurement is hypothesised (one onset
-#: each): a re-fit is seen at once, and a detection comes within a few samples of it.
-POSE_STEP_HYPOTHESES = 32
-
-# The step test's state is two buffers, float64 and int64, and ``_bounded``: every array of
-# it is a view of one of them, so that the compiled row step (step_row.py) takes three
-# arguments where numba checked twenty arrays on every call, and changes it in place
-# (no tuple of results to unpack; docs/filter_row.md). The int buffer starts with the
-# scalars below, then n, dim and the capacity, then the float arrays' offsets
-# (FLOAT_ARRAYS' order), then the onsets and the ring's innovation sizes.
-#: ``_ints``: the last stamp (< 0: none), onsets alive, the window and the spacing [ns],
-#: the settling end [ns] and whether it applies, whether ``_since`` is the identity, the
-#: measurements kept (``recent``) and the ring slot the next one goes to
-LAST_STAMP, COUNT, WINDOW, SPACING, SETTLE_UNTIL, SETTLING, SINCE_IDENTITY, RECENT, NEXT = \
-    range(9)
-#: the int buffer's layout header: n, dim, capacity, then the float arrays' offsets
-SIZE_N, SIZE_DIM, SIZE_CAPACITY, OFFSETS = 9, 10, 11, 12
-#: ``_floats`` (the float buffer's first array): the NIS average, its elapsed time, the last
-#: step [s], the threshold, the outlier NIS of n and of 2n innovations, NIS_TIME
-NIS_SCALE, ELAPSED, DT, THRESHOLD, OUTLIER_N, OUTLIER_2N, NIS_HORIZON = range(7)
-#: the float buffer's arrays, in order (shapes: :func:`state_shapes`)
-FLOAT_ARRAYS = ('floats', 'c', 'b0', 'j0', 'bound_inv', 'score', 'psi', 'omega', 'beta',
-                'e', 'since', 'ring_since', 'ring_h', 'ring_s', 'ring_gain', 'ring_nu')
-#: where the onsets start in the int buffer (the ring's sizes follow them)
-ONSETS = OFFSETS + len(FLOAT_ARRAYS)
-
-
-def state_shapes(n: int, dim: int, capacity: int) -> dict:
-    """Return the shapes of the float buffer's arrays (step_row.test_views reads the same)."""
-    slots, top = POSE_STEP_HYPOTHESES, 2 * n
-    return {'floats': (7,), 'c': (capacity, dim, n), 'b0': (capacity, n),
-            'j0': (capacity, n, n), 'bound_inv': (capacity, n, n), 'score': (capacity, n),
-            'psi': (dim, dim), 'omega': (dim, dim), 'beta': (dim,), 'e': (dim, n),
-            'since': (dim, dim), 'ring_since': (slots, dim, dim), 'ring_h': (slots, top, dim),
-            'ring_s': (slots, top, top), 'ring_gain': (slots, dim, top),
-            'ring_nu': (slots, top)}
 
 
 class StepDetection(NamedTuple):
@@ -109,7 +77,7 @@ class StepDetection(NamedTuple):
     covariance: np.ndarray
 
 
-class WrenchStepTest:
+class WrenchStepTest(StepTestState):
     """
     GLR test of a step in the external wrench from a Kalman filter's innovations.
 
@@ -135,150 +103,19 @@ class WrenchStepTest:
             from reduced_dynamics.estimator import step_kernels
             self._kernels = step_kernels
         capacity = int(math.ceil(window / spacing)) + 2
-        shapes = state_shapes(n, dim, capacity)
-        sizes = [int(np.prod(shapes[name])) for name in FLOAT_ARRAYS]
-        starts = np.concatenate(([0], np.cumsum(sizes)[:-1])).astype(np.int64)
-        self._state = np.zeros(int(sum(sizes)))
-        self._ints = np.zeros(ONSETS + capacity + POSE_STEP_HYPOTHESES, dtype=np.int64)
-        ints = self._ints
-        ints[SIZE_N], ints[SIZE_DIM], ints[SIZE_CAPACITY] = n, dim, capacity
-        ints[OFFSETS:ONSETS] = starts
-        views = {name: self._state[start:start + size].reshape(shapes[name])
-                 for name, start, size in zip(FLOAT_ARRAYS, starts, sizes)}
-        self._floats = views['floats']
-        ints[LAST_STAMP] = -1
-        ints[WINDOW] = int(round(window * 1e9))
-        ints[SPACING] = int(round(spacing * 1e9))
-        ints[SINCE_IDENTITY] = 1
-        self._floats[THRESHOLD] = self.threshold
-        self._floats[NIS_HORIZON] = NIS_TIME
-        self._spacing_ns = int(ints[SPACING])
-        self._window_ns = int(ints[WINDOW])
-        #: onset stamps [ns] of the hypotheses alive, oldest first (the first ``_count``)
-        self._onsets = ints[ONSETS:ONSETS + capacity]
-        self._c, self._b0, self._j0 = views['c'], views['b0'], views['j0']
-        self._bound_inv, self._score = views['bound_inv'], views['score']
-        self._bounded = np.zeros(capacity, dtype=np.bool_)
-        # Psi, Omega and beta are changed in place, never replaced (views of the buffer).
-        self._psi, self._omega, self._beta = views['psi'], views['omega'], views['beta']
-        self._psi[:] = np.eye(dim)
-        self._e = views['e']
-        self._e[2 * n:3 * n] = np.eye(n)
+        #: NIS above which a single innovation is left out of the evidence (chi2_m 1e-3)
+        self._outlier = {m: float(chi2.isf(OUTLIER, m)) for m in (n, 2 * n)}
+        super().__init__(n, dim, capacity, int(round(window * 1e9)),
+                         int(round(spacing * 1e9)), self.threshold, self._outlier[n],
+                         self._outlier[2 * n], NIS_TIME)
+        self._spacing_ns = int(self._ints[SPACING])
+        self._window_ns = int(self._ints[WINDOW])
         #: the largest bound on the statistic at the last update (exact when a step
         #: was detected); onsets whose statistic was formed exactly, in total
         self.last_statistic = 0.0
         self.evaluated = 0
-        #: exponential average of the NIS per measured coordinate (1 when the noise fits)
-        self.nis_scale = 1.0
-        #: NIS above which a single innovation is left out of the evidence (chi2_m 1e-3)
-        self._outlier = {m: float(chi2.isf(OUTLIER, m)) for m in (n, 2 * n)}
-        self._floats[OUTLIER_N] = self._outlier[n]
-        self._floats[OUTLIER_2N] = self._outlier[2 * n]
-        # The last measurements (Phi since the previous one, H, S, K, innovation), for the
-        # pose-step hypotheses, in a ring of POSE_STEP_HYPOTHESES slots (innovations of up
-        # to 2n coordinates; ``_ring_m`` says how many), and the transition accumulated
-        # since the last one (``_since_buffer``; the identity while SINCE_IDENTITY).
-        self._ring_since, self._ring_h = views['ring_since'], views['ring_h']
-        self._ring_s, self._ring_gain = views['ring_s'], views['ring_gain']
-        self._ring_nu = views['ring_nu']
-        self._ring_m = ints[ONSETS + capacity:]
-        self._identity = np.eye(dim)
-        self._since_buffer = views['since']
-        self._since_buffer[:] = self._identity
-        #: the step test's state as step_row's compiled calls take it (fixed objects)
-        self.compiled_arrays = (self._state, self._ints, self._bounded)
         #: detections not taken because a step of the pose measurement explained more
         self.pose_steps = 0
-
-    # --- the scalar state, kept in _ints and _floats ------------------------------------
-    @property
-    def _count(self) -> int:
-        return int(self._ints[COUNT])
-
-    @_count.setter
-    def _count(self, value: int) -> None:
-        self._ints[COUNT] = value
-
-    @property
-    def _stamp(self) -> Optional[int]:
-        stamp = int(self._ints[LAST_STAMP])
-        return None if stamp < 0 else stamp
-
-    @_stamp.setter
-    def _stamp(self, value: Optional[int]) -> None:
-        self._ints[LAST_STAMP] = -1 if value is None else value
-
-    @property
-    def _settle_until(self) -> Optional[int]:
-        return int(self._ints[SETTLE_UNTIL]) if self._ints[SETTLING] else None
-
-    @_settle_until.setter
-    def _settle_until(self, value: Optional[int]) -> None:
-        self._ints[SETTLING] = value is not None
-        self._ints[SETTLE_UNTIL] = 0 if value is None else value
-
-    @property
-    def nis_scale(self) -> float:
-        """Return the exponential average of the NIS per measured coordinate."""
-        return float(self._floats[NIS_SCALE])
-
-    @nis_scale.setter
-    def nis_scale(self, value: float) -> None:
-        self._floats[NIS_SCALE] = value
-
-    @property
-    def _elapsed(self) -> float:
-        return float(self._floats[ELAPSED])
-
-    @_elapsed.setter
-    def _elapsed(self, value: float) -> None:
-        self._floats[ELAPSED] = value
-
-    @property
-    def _dt(self) -> float:
-        return float(self._floats[DT])
-
-    @_dt.setter
-    def _dt(self, value: float) -> None:
-        self._floats[DT] = value
-
-    @property
-    def _since(self) -> np.ndarray:
-        """Return the transition since the last kept measurement (a view: copy to keep)."""
-        return self._identity if self._ints[SINCE_IDENTITY] else self._since_buffer
-
-    @property
-    def recent(self) -> int:
-        """Return the number of measurements kept for the pose-step hypotheses."""
-        return int(self._ints[RECENT])
-
-    def _keep(self, h: np.ndarray, s: np.ndarray, gain: np.ndarray, nu: np.ndarray) -> None:
-        """Keep a measurement for the pose-step hypotheses (step_row.keep's, in Python)."""
-        ints = self._ints
-        slot = int(ints[NEXT])
-        m = len(nu)
-        self._ring_since[slot] = self._since
-        self._ring_h[slot, :m] = h
-        self._ring_s[slot, :m, :m] = s
-        self._ring_gain[slot, :, :m] = gain
-        self._ring_nu[slot, :m] = nu
-        self._ring_m[slot] = m
-        ints[NEXT] = (slot + 1) % POSE_STEP_HYPOTHESES
-        ints[RECENT] = min(ints[RECENT] + 1, POSE_STEP_HYPOTHESES)
-        ints[SINCE_IDENTITY] = 1
-
-    def kept(self) -> list:
-        """Return the kept measurements, oldest first: (Phi since the one before, H, S, K, nu)."""
-        count, slots = self.recent, POSE_STEP_HYPOTHESES
-        out = []
-        for k in range(count):
-            slot = (int(self._ints[NEXT]) - count + k) % slots
-            m = int(self._ring_m[slot])
-            # Copies: contiguous, and the ring's slots are written again.
-            out.append((self._ring_since[slot].copy(), self._ring_h[slot, :m].copy(),
-                        self._ring_s[slot, :m, :m].copy(), self._ring_gain[slot, :, :m].copy(),
-                        self._ring_nu[slot, :m].copy()))
-        return out
 
     @property
     def onsets(self) -> int:
