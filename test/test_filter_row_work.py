@@ -199,3 +199,34 @@ def test_recorded_steps_own_their_arrays(odometry_200hz: bool) -> None:
     assert any(not np.array_equal(s.p_pred, s.p) for s in steps)
     assert not np.array_equal(steps[-1].transition, steps[-2].transition)
     assert not np.array_equal(steps[-1].p_pred, steps[-2].p_pred)
+
+
+def test_a_copied_or_unpickled_step_test_keeps_its_arrays_views_of_its_own_buffers() -> None:
+    """deepcopy and pickle: the copy's arrays are views of the copy's buffers, same state."""
+    import pickle
+    n, dim = 3, 9
+    rng = np.random.default_rng(7)
+    calls = []
+    for k in range(80):
+        transition = np.eye(dim) + 0.01 * rng.standard_normal((dim, dim))
+        m = n if k % 3 else 2 * n
+        h = rng.standard_normal((m, dim))
+        calls.append((k * 10_000_000, transition, h, np.eye(m) * 2.0 + 0.1 * h @ h.T,
+                      0.1 * rng.standard_normal((dim, m)), rng.standard_normal(m)))
+    test = WrenchStepTest(n, 1e-6, dim)
+    for stamp, transition, h, s, gain, nu in calls[:40]:
+        test.propagate(stamp, transition)
+        test.update(h, s, gain, nu)
+    copies = [copy.deepcopy(test), pickle.loads(pickle.dumps(test))]
+    for other in [test] + copies:
+        for stamp, transition, h, s, gain, nu in calls[40:]:
+            other.propagate(stamp, transition)
+            other.update(h, s, gain, nu)
+    for other in copies:
+        for name in ('_psi', '_c', '_onsets', '_ring_h', '_since_buffer', '_floats'):
+            assert np.shares_memory(getattr(other, name), other._state if name not in (
+                '_onsets',) else other._ints), name
+            assert not np.shares_memory(getattr(other, name), getattr(test, name)), name
+        for mine, theirs in zip(other.compiled_arrays, test.compiled_arrays):
+            np.testing.assert_array_equal(mine, theirs)
+        assert other.nis_scale == test.nis_scale and other.recent == test.recent

@@ -83,13 +83,12 @@ class StepTestState:
         sizes = [int(np.prod(shapes[name])) for name in FLOAT_ARRAYS]
         starts = np.concatenate(([0], np.cumsum(sizes)[:-1])).astype(np.int64)
         self._state = np.zeros(int(sum(sizes)))
-        self._ints = np.zeros(ONSETS + capacity + POSE_STEP_HYPOTHESES, dtype=np.int64)
-        ints = self._ints
+        self._ints = ints = np.zeros(ONSETS + capacity + POSE_STEP_HYPOTHESES, dtype=np.int64)
         ints[SIZE_N], ints[SIZE_DIM], ints[SIZE_CAPACITY] = n, dim, capacity
         ints[OFFSETS:ONSETS] = starts
-        views = {name: self._state[start:start + size].reshape(shapes[name])
-                 for name, start, size in zip(FLOAT_ARRAYS, starts, sizes)}
-        self._floats = views['floats']
+        self._bounded = np.zeros(capacity, dtype=np.bool_)
+        self._identity = np.eye(dim)
+        self._views()
         ints[LAST_STAMP] = -1
         ints[WINDOW], ints[SPACING] = window_ns, spacing_ns
         ints[SINCE_IDENTITY] = 1
@@ -97,16 +96,25 @@ class StepTestState:
         floats[THRESHOLD], floats[NIS_HORIZON] = threshold, nis_time
         floats[OUTLIER_N], floats[OUTLIER_2N] = outlier_n, outlier_2n
         floats[NIS_SCALE] = 1.0
+        self._psi[:] = self._identity
+        self._e[2 * n:3 * n] = np.eye(n)
+        self._since_buffer[:] = self._identity
+
+    def _views(self) -> None:
+        """Make the arrays views of the buffers (at the start, and after a copy or unpickling)."""
+        ints = self._ints
+        n, dim, capacity = (int(v) for v in ints[SIZE_N:OFFSETS])
+        shapes = state_shapes(n, dim, capacity)
+        views = {name: self._state[start:start + int(np.prod(shapes[name]))].reshape(
+            shapes[name]) for name, start in zip(FLOAT_ARRAYS, ints[OFFSETS:ONSETS])}
+        self._floats = views['floats']
         #: onset stamps [ns] of the hypotheses alive, oldest first (the first ``_count``)
         self._onsets = ints[ONSETS:ONSETS + capacity]
         self._c, self._b0, self._j0 = views['c'], views['b0'], views['j0']
         self._bound_inv, self._score = views['bound_inv'], views['score']
-        self._bounded = np.zeros(capacity, dtype=np.bool_)
         # Psi, Omega and beta are changed in place, never replaced (views of the buffer).
         self._psi, self._omega, self._beta = views['psi'], views['omega'], views['beta']
-        self._psi[:] = np.eye(dim)
         self._e = views['e']
-        self._e[2 * n:3 * n] = np.eye(n)
         # The last measurements (Phi since the previous one, H, S, K, innovation), for the
         # pose-step hypotheses, in a ring of POSE_STEP_HYPOTHESES slots (innovations of up
         # to 2n coordinates; ``_ring_m`` says how many), and the transition accumulated
@@ -115,11 +123,30 @@ class StepTestState:
         self._ring_s, self._ring_gain = views['ring_s'], views['ring_gain']
         self._ring_nu = views['ring_nu']
         self._ring_m = ints[ONSETS + capacity:]
-        self._identity = np.eye(dim)
         self._since_buffer = views['since']
-        self._since_buffer[:] = self._identity
         #: the step test's state as step_row's compiled calls take it (fixed objects)
         self.compiled_arrays = (self._state, self._ints, self._bounded)
+
+    #: the attributes :meth:`_views` makes (not copied or pickled: made again from the buffers)
+    _VIEWS = ('_floats', '_onsets', '_c', '_b0', '_j0', '_bound_inv', '_score', '_psi',
+              '_omega', '_beta', '_e', '_ring_since', '_ring_h', '_ring_s', '_ring_gain',
+              '_ring_nu', '_ring_m', '_since_buffer', 'compiled_arrays')
+
+    def __getstate__(self) -> dict:
+        """Return the state to copy or pickle: the buffers, not their views (nor modules)."""
+        state = {k: v for k, v in self.__dict__.items() if k not in self._VIEWS}
+        state['_kernels'] = '_kernels' in state  # the compiled kernels' module: imported
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        """Take a copied or unpickled state; make the views of its buffers again."""
+        self.__dict__.update(state)
+        if state['_kernels']:
+            from reduced_dynamics.estimator import step_kernels
+            self._kernels = step_kernels
+        else:
+            del self._kernels
+        self._views()
 
     # --- the scalar state, kept in _ints and _floats ------------------------------------
     @property
