@@ -256,8 +256,6 @@ def filter_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
     work_x[:] = x0
     _put(work_p, p0)
     _put(work_phi, phi)
-    if accepted and twist_weight >= 0.0:
-        stamp_twist[:] = averaged  # a new array exactly then (propagate_update)
     test_propagate(stamp_ns, phi, ints, floats, onsets, c, b0, j0, bound_inv, bounded, psi,
                    omega, beta, e, since)
     count = ints[COUNT]
@@ -282,6 +280,9 @@ def filter_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
         _put(work_h, h)
         _put(work_s, s)
         _put(work_gain, gain)
+    if accepted and twist_weight >= 0.0:
+        # Last (nothing after it raises): a new array exactly then (propagate_update).
+        stamp_twist[:] = averaged
     return (g1, x1, p1, accepted, nis, logdet, health, wrench_test, tested, evidence, best,
             statistic, top, evaluated)
 
