@@ -202,7 +202,7 @@ def test_recorded_steps_own_their_arrays(odometry_200hz: bool) -> None:
 
 
 def test_a_copied_or_unpickled_step_test_keeps_its_arrays_views_of_its_own_buffers() -> None:
-    """deepcopy and pickle: the copy's arrays are views of the copy's buffers, same state."""
+    """A deep copy and a pickle: the copy's arrays are views of its own buffers, same state."""
     import pickle
     n, dim = 3, 9
     rng = np.random.default_rng(7)
