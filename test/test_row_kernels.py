@@ -272,8 +272,7 @@ class _SeparateCalls:
         import math
         from reduced_dynamics.estimator.step_test import NIS_TIME
         kernels = test._kernels
-        test._recent.append((test._since, h, s, gain, nu))
-        test._since = test._identity
+        test._keep(h, s, gain, nu)
         m = len(nu)
         outlier = test._outlier.get(m, math.inf)
         if test._count:

@@ -48,11 +48,12 @@ def _snapshot(flt) -> dict:
              'onsets': test._onsets[:count].copy(), 'nis_scale': test.nis_scale,
              'elapsed': test._elapsed, 'dt': test._dt, 'evaluated': test.evaluated,
              'last_statistic': test.last_statistic, 'pose_steps': test.pose_steps,
-             'since_identity': test._since is test._identity, 'recent': len(test._recent)}
+             'since_identity': test._since is test._identity, 'recent': test.recent}
     for name in ('_psi', '_omega', '_beta', '_since'):
         state[name] = getattr(test, name).copy()
     for name in ('_c', '_b0', '_j0', '_bound_inv', '_bounded'):
         state[name] = getattr(test, name)[:count].copy()
+    state['kept'] = [a for kept in test.kept() for a in kept]
     return state
 
 
@@ -80,6 +81,11 @@ def _assert_same(mine: dict, expected: dict) -> None:
     for name, value in expected.items():
         if isinstance(value, np.ndarray):
             np.testing.assert_array_equal(mine[name], value, err_msg=name)
+        elif isinstance(value, list):  # the kept measurements' arrays
+            assert len(mine[name]) == len(value), name
+            for a, b in zip(mine[name], value):
+                assert a.shape == b.shape, name
+                np.testing.assert_array_equal(a, b, err_msg=name)
         else:
             assert mine[name] == value or (value != value and mine[name] != mine[name]), name
 

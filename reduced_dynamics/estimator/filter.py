@@ -268,6 +268,14 @@ class MomentumFilter:
         # H of a pose measurement, [1 0 0] (the step test's signatures need it).
         self._h_pose = np.zeros((n, dim))
         self._h_pose[:, :n] = np.eye(n)
+        # The row step's outputs the filter reads only on a rare outcome or to record a
+        # step (step_row.filter_step): the prediction g, x, P, Phi, then nu, R, H, S, K
+        # (top-left corners: innovations of n or 2n coordinates). Written in place by every
+        # row: what is kept is copied out.
+        self._work_buffer = np.zeros(step_row.work_size(n, dim))
+        self._work = step_row.work_views(self._work_buffer, n, dim)
+        #: (the step test they are of, filter_step's fixed arguments): built at the first row
+        self._row_fixed: tuple = (None, ())
         #: (P, x, w^T P_ww^-1 w) of the last fused step (kernels.propagate_update)
         self._fused_significance: Optional[tuple] = None
 
@@ -531,11 +539,11 @@ class MomentumFilter:
                 self._g, self.x, self.p, lin.locked, lin.locked_inverse, lin.connection_qd,
                 lin.joint_cov, dt, u, self._jerk_var, self._densities(lin), self._basis,
                 self._pinv, self._whole, self._ad_rows, self._form_rows, stamp_ns,
-                *test.compiled_state(self.n))
-            self._g, self.x, self.p = out[0], out[1], out[2]
+                *test.compiled_arrays, self._work_buffer)
+            self._g, self.x, self.p = out
             self.stamp_ns = stamp_ns
-            test.take_propagated(stamp_ns, *out[4:])
-            return out[3]
+            # Phi in the work arrays: read only to record the step (a copy: written again).
+            return self._work[3].copy() if self.record else self._work[3]
         self._g, self.x, self.p, transition = kernels.propagate(
             self._g, self.x, self.p, lin.locked, lin.locked_inverse, lin.connection_qd,
             lin.joint_cov, dt, u, self.command, self._jerk_var, self._densities(lin),
@@ -675,28 +683,34 @@ class MomentumFilter:
         else:
             sigma, weight = 0.0, -1.0
         test = self.step_test
+        fixed = self._row_fixed
+        if fixed[0] is not test:
+            fixed = self._row_fixed = self._fixed_arguments()
         try:
-            fused = step_row.filter_step(
+            (g1, x1, p1, accepted, nis, logdet, health, wrench_test, tested, evidence, best,
+             statistic, top, evaluated) = step_row.filter_step(
                 self._g, self.x, self.p, lin.locked, before.locked_inverse,
-                before.connection_qd, (stamp_ns - self.stamp_ns) * 1e-9, self._jerk_var,
+                before.connection_qd, (stamp_ns - self.stamp_ns) * 1e-9,
                 np.ascontiguousarray(measurement.pose.homogeneous),
                 _EMPTY if twist is None else np.asarray(twist, dtype=float), with_twist,
-                lin.locked_inverse, lin.connection_qd, lin.joint_cov, self._pose_var,
-                self._stamp_twist, sigma, self._twist_var, self._gates[size], weight,
-                self._basis, self._pinv, self._whole, self._ad_rows, self._form_rows,
-                self._h_pose, stamp_ns, *test.compiled_state(size))
+                lin.locked_inverse, lin.connection_qd, lin.joint_cov, self._stamp_twist, sigma,
+                self._gates[size], weight, stamp_ns, *fixed[1])
         except (np.linalg.LinAlgError, ZeroDivisionError):
             return False
-        (g0, x0, p0, phi, accepted, nis, logdet, nu, _, g1, x1, p1, h, s, gain, health,
-         averaged, wrench_test, test_dt, count, psi, omega, beta, since, since_identity,
-         tested, evidence, nis_scale, elapsed, best, statistic, top, evaluated) = fused
         self.stamp_ns = stamp_ns
         self._fused_significance = (p1, x1, wrench_test)
-        test.take_propagated(stamp_ns, test_dt, count, psi, omega, beta, since, since_identity)
-        if not (accepted and health == 0 and tested):
-            # Gated, a broken covariance or no onset open: the general path.
-            self._g, self.x, self.p = g0, x0, p0
-            self._measure(stamp_ns, phi, measurement, lin, output, gated, burst=False,
+        if not tested:
+            # Gated, a broken covariance or no onset open: the general path, with
+            # propagate_update's results as _fused_step gives them (copies of the work
+            # arrays; when gated, the update's state is the prediction itself).
+            if accepted:
+                work = self._work
+                self._g, self.x, self.p = work[0].copy(), work[1].copy(), work[2].copy()
+            else:
+                self._g, self.x, self.p = g1, x1, p1
+            fused = self._work_results(size, accepted, nis, logdet, g1, x1, p1, health,
+                                       wrench_test)
+            self._measure(stamp_ns, fused[3], measurement, lin, output, gated, burst=False,
                           fused=fused)
             return True
         # _update's bookkeeping of an accepted fused update, in its order.
@@ -708,25 +722,47 @@ class MomentumFilter:
         self._gated_residuals = []
         self._g, self.x, self.p = g1, x1, p1
         if noise.pose_stamp > 0.0:
-            self._stamp_twist_ns = stamp_ns
-            self._stamp_twist = averaged
+            self._stamp_twist_ns = stamp_ns  # the average moved in place (filter_step)
         cause = None
-        try:
-            detection = test.take_compiled(h if with_twist else self._h_pose, s, gain, nu,
-                                           evidence, nis_scale, elapsed, best, statistic,
-                                           top, evaluated)
-            if detection is not None:
-                self._take_step(detection)
-                cause = self._health_cause()
-        except (np.linalg.LinAlgError, ZeroDivisionError) as error:
-            cause = 'covariance not finite' if not np.isfinite(self.p).all() \
-                else f'singular matrix ({error})'
+        if evidence:
+            # The step test took the update (filter_step); its outcome, from Python.
+            try:
+                detection = test._evaluated(best, statistic, top, evaluated)
+                if detection is not None:
+                    self._take_step(detection)
+                    cause = self._health_cause()
+            except (np.linalg.LinAlgError, ZeroDivisionError) as error:
+                cause = 'covariance not finite' if not np.isfinite(self.p).all() \
+                    else f'singular matrix ({error})'
         if cause is not None:
             self._restart(stamp_ns, cause, measurement, lin, output)
         elif self.record:
-            self.steps.append(FilterStep(stamp_ns, phi, g0, x0, p0, self._g, self.x, self.p,
-                                         lin.locked_inverse, output, self._held_command()))
+            # Copies: the work arrays are written again by the next row.
+            work_g, work_x, work_p, work_phi = self._work[:4]
+            self.steps.append(FilterStep(stamp_ns, work_phi.copy(), work_g.copy(),
+                                         work_x.copy(), work_p.copy(), self._g, self.x,
+                                         self.p, lin.locked_inverse, output,
+                                         self._held_command()))
         return True
+
+    def _fixed_arguments(self) -> tuple:
+        """Return (the step test, step_row.filter_step's arguments fixed for the filter)."""
+        test = self.step_test
+        return test, (self._jerk_var, self._pose_var, self._twist_var, self._basis,
+                      self._pinv, self._whole, self._ad_rows, self._form_rows, self._h_pose,
+                      *test.compiled_arrays, self._work_buffer)
+
+    def _work_results(self, size: int, accepted: bool, nis: float, logdet: float,
+                      g1: np.ndarray, x1: np.ndarray, p1: np.ndarray, health: int,
+                      wrench_test: float) -> tuple:
+        """Return ``kernels.propagate_update``'s results from a row step's work arrays."""
+        g0, x0, p0 = self._g, self.x, self.p
+        _, _, _, phi, nu, r, h, s, gain = self._work
+        if not accepted:
+            g1, x1, p1 = g0, x0, p0
+        return (g0, x0, p0, phi.copy(), accepted, nis, logdet, nu[:size].copy(),
+                r[:size, :size].copy(), g1, x1, p1, h[:size].copy(), s[:size, :size].copy(),
+                gain[:, :size].copy(), health, self._stamp_twist, wrench_test)
 
     def _take_step(self, detection: StepDetection) -> None:
         """Take a detected wrench step (Willsky-Jones compensation); forget the hypotheses."""
@@ -945,13 +981,7 @@ class MomentumFilter:
             self._stamp_twist = self._stamp_twist + weight * (kernels.twist(
                 g1, x1[:n], lin.locked_inverse, lin.connection_qd, self._basis, self._pinv,
                 self._whole) - self._stamp_twist)
-        if fused is not None and len(fused) > 18 and fused[25]:
-            # The compiled row step absorbed and evaluated this update (step_row.py).
-            detection = self.step_test.take_compiled(self._h_pose if not with_twist else h,
-                                                     s, gain, nu, *fused[26:])
-        else:
-            detection = self.step_test.update(self._h_pose if not with_twist else h, s,
-                                              gain, nu)
+        detection = self.step_test.update(self._h_pose if not with_twist else h, s, gain, nu)
         if detection is not None:
             self._take_step(detection)
         if self.command:

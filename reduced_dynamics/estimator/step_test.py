@@ -43,12 +43,15 @@ better, else counted in ``pose_steps``.
 
 from __future__ import annotations
 
-from collections import deque
 import math
-from typing import NamedTuple, Optional
+from typing import NamedTuple, Optional, Sequence
 
 import numpy as np
 from reduced_dynamics.chi_square import chi2
+from reduced_dynamics.estimator.step_state import (COUNT, NEXT, RECENT, SINCE_IDENTITY,
+                                                   SPACING, StepTestState, WINDOW)
+# The pose-step hypotheses' count, defined with the ring that keeps their measurements.
+from reduced_dynamics.estimator.step_state import POSE_STEP_HYPOTHESES  # noqa: F401
 
 #: Seconds between hypothesised step onsets of the GLR test, and how long each is followed.
 #: An onset hypothesised delta after the true one misses the information of the first
@@ -63,9 +66,6 @@ GLR_HYPOTHESES = 40
 OUTLIER = 1e-3
 #: Time constant [s] of the average NIS per coordinate that scales the GLR statistic.
 NIS_TIME = 10.0
-#: Measurements back at which a step of the pose measurement is hypothesised (one onset
-#: each): a re-fit is seen at once, and a detection comes within a few samples of it.
-POSE_STEP_HYPOTHESES = 32
 
 
 class StepDetection(NamedTuple):
@@ -77,7 +77,7 @@ class StepDetection(NamedTuple):
     covariance: np.ndarray
 
 
-class WrenchStepTest:
+class WrenchStepTest(StepTestState):
     """
     GLR test of a step in the external wrench from a Kalman filter's innovations.
 
@@ -102,41 +102,18 @@ class WrenchStepTest:
             # Compiled on first use (numba's import and its disk cache cost ~1 s).
             from reduced_dynamics.estimator import step_kernels
             self._kernels = step_kernels
-        self._spacing_ns = int(round(spacing * 1e9))
-        self._window_ns = int(round(window * 1e9))
         capacity = int(math.ceil(window / spacing)) + 2
-        #: onset stamps [ns] of the hypotheses alive, oldest first (the first ``_count``)
-        self._onsets = np.zeros(capacity, dtype=np.int64)
-        self._count = 0
-        self._c = np.zeros((capacity, dim, n))
-        self._b0 = np.zeros((capacity, n))
-        self._j0 = np.zeros((capacity, n, n))
-        self._bound_inv = np.zeros((capacity, n, n))
-        self._bounded = np.zeros(capacity, dtype=np.bool_)
-        self._score = np.zeros((capacity, n))
-        self._psi = np.eye(dim)
-        self._omega = np.zeros((dim, dim))
-        self._beta = np.zeros(dim)
-        self._e = np.zeros((dim, n))
-        self._e[2 * n:3 * n] = np.eye(n)
+        #: NIS above which a single innovation is left out of the evidence (chi2_m 1e-3)
+        self._outlier = {m: float(chi2.isf(OUTLIER, m)) for m in (n, 2 * n)}
+        super().__init__(n, dim, capacity, int(round(window * 1e9)),
+                         int(round(spacing * 1e9)), self.threshold, self._outlier[n],
+                         self._outlier[2 * n], NIS_TIME)
+        self._spacing_ns = int(self._ints[SPACING])
+        self._window_ns = int(self._ints[WINDOW])
         #: the largest bound on the statistic at the last update (exact when a step
         #: was detected); onsets whose statistic was formed exactly, in total
         self.last_statistic = 0.0
         self.evaluated = 0
-        #: exponential average of the NIS per measured coordinate (1 when the noise fits)
-        self.nis_scale = 1.0
-        self._stamp: Optional[int] = None
-        self._dt = 0.0
-        self._elapsed = 0.0
-        #: no onset is opened before this stamp (the filter's start-up transient)
-        self._settle_until: Optional[int] = None
-        #: NIS above which a single innovation is left out of the evidence (chi2_m 1e-3)
-        self._outlier = {m: float(chi2.isf(OUTLIER, m)) for m in (n, 2 * n)}
-        #: the last measurements (Phi since the previous one, H, S, K, innovation), for
-        #: the pose-step hypotheses, and the transition accumulated since the last one
-        self._recent: deque = deque(maxlen=POSE_STEP_HYPOTHESES)
-        self._identity = np.eye(dim)  # shared: _since is replaced, never modified
-        self._since = self._identity
         #: detections not taken because a step of the pose measurement explained more
         self.pose_steps = 0
 
@@ -156,9 +133,9 @@ class WrenchStepTest:
         """
         if settle_from_ns is not None:
             self._settle_until = settle_from_ns + self._window_ns
-        self._count = 0
-        self._recent.clear()
-        self._since = self._identity
+        ints = self._ints
+        ints[COUNT] = ints[RECENT] = ints[NEXT] = 0
+        ints[SINCE_IDENTITY] = 1
         # nis_scale stays: it describes the sensors, not the hypotheses.
 
     def propagate(self, stamp_ns: int, transition: np.ndarray) -> None:
@@ -168,11 +145,15 @@ class WrenchStepTest:
         self._dt = 0.0 if self._stamp is None else max(stamp_ns - self._stamp, 0) * 1e-9
         self._stamp = stamp_ns
         if self._count:
-            self._psi = transition @ self._psi
-        if self._recent:
+            self._psi[:] = transition @ self._psi
+        ints = self._ints
+        if ints[RECENT]:
             # The first step since a measurement: Phi itself (no product with 1).
-            self._since = transition if self._since is self._identity \
-                else transition @ self._since
+            if ints[SINCE_IDENTITY]:
+                self._since_buffer[:] = transition
+                ints[SINCE_IDENTITY] = 0
+            else:
+                self._since_buffer[:] = transition @ self._since_buffer
         # Expire hypotheses older than the window.
         count = self._count
         expired = 0
@@ -197,9 +178,9 @@ class WrenchStepTest:
             self._j0[count] = 0.0
             self._bounded[count] = False
             self._count = count + 1
-            self._psi = np.eye(self.dim)
-            self._omega = np.zeros((self.dim, self.dim))
-            self._beta = np.zeros(self.dim)
+            self._psi[:] = self._identity
+            self._omega[:] = 0.0
+            self._beta[:] = 0.0
 
     def update(self, h: np.ndarray, s: np.ndarray, gain: np.ndarray,
                nu: np.ndarray) -> Optional[StepDetection]:
@@ -208,8 +189,7 @@ class WrenchStepTest:
             return None
         # Kept for the pose-step hypotheses (a single large innovation included: a
         # re-fit is one).
-        self._recent.append((self._since, h, s, gain, nu))
-        self._since = self._identity
+        self._keep(h, s, gain, nu)
         m = len(nu)
         outlier = self._outlier.get(m, math.inf)
         if self._count:
@@ -243,49 +223,6 @@ class WrenchStepTest:
         """Return whether the test runs (its significance is above 0)."""
         return math.isfinite(self.threshold)
 
-    def compiled_state(self, m: int) -> tuple:
-        """
-        Return the state step_row.filter_step takes after the stamp (innovations of size m).
-
-        The last stamp (-1: none), the onsets and their arrays, Psi, Omega, beta, E,
-        the transition since the last measurement (and whether it is the identity),
-        whether measurements are kept, the window, spacing and settling, the outlier
-        NIS, the threshold, the NIS average and its elapsed time, NIS_TIME.
-        """
-        settle = self._settle_until
-        return (-1 if self._stamp is None else self._stamp, self._count, self._onsets,
-                self._c, self._b0, self._j0, self._bound_inv, self._bounded, self._score,
-                self._psi, self._omega, self._beta, self._e, self._since,
-                self._since is self._identity, bool(self._recent), self._window_ns,
-                self._spacing_ns, 0 if settle is None else settle, settle is not None,
-                self._outlier.get(m, math.inf), self.threshold, self.nis_scale,
-                self._elapsed, NIS_TIME)
-
-    def take_propagated(self, stamp_ns: int, dt: float, count: int, psi: np.ndarray,
-                        omega: np.ndarray, beta: np.ndarray, since: np.ndarray,
-                        since_identity: bool) -> None:
-        """Take the state after a :meth:`propagate` run compiled (step_row.test_propagate)."""
-        self._dt, self._stamp, self._count = dt, stamp_ns, count
-        self._psi, self._omega, self._beta = psi, omega, beta
-        self._since = self._identity if since_identity else since
-
-    def take_compiled(self, h: np.ndarray, s: np.ndarray, gain: np.ndarray, nu: np.ndarray,
-                      evidence: bool, nis_scale: float, elapsed: float, best: int,
-                      statistic: float, top: float,
-                      evaluated: int) -> Optional[StepDetection]:
-        """
-        Take an update whose absorb and evaluation ran compiled (step_row.filter_step).
-
-        The rest of :meth:`update` for it: the measurement kept for the pose-step
-        hypotheses, the NIS average, and the evaluation's outcome.
-        """
-        self._recent.append((self._since, h, s, gain, nu))
-        self._since = self._identity
-        self.nis_scale, self._elapsed = nis_scale, elapsed
-        if not evidence:
-            return None
-        return self._evaluated(best, statistic, top, evaluated)
-
     def _evaluated(self, best: int, statistic: float, top: float,
                    evaluated: int) -> Optional[StepDetection]:
         """Take the evaluation of the onsets (best, its statistic); return a detection."""
@@ -306,10 +243,10 @@ class WrenchStepTest:
 
     def _pose_statistic(self) -> float:
         """Return the largest statistic of a pose step at a recent measurement (S9)."""
-        return pose_statistic(self._recent, self.dim, self.n)
+        return pose_statistic(self.kept(), self.dim, self.n)
 
 
-def pose_statistic(recent: deque, dim: int, n: int) -> float:
+def pose_statistic(recent: Sequence, dim: int, n: int) -> float:
     """
     Return the largest statistic b_F^T J_F^-1 b_F of a pose step at a recent measurement.
 

@@ -69,31 +69,46 @@ _GAUSS_WEIGHTS = np.array([5.0 / 9.0, 8.0 / 9.0, 5.0 / 9.0])
 
 
 @njit(cache=True)
-def _mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Return a b by loops: no BLAS call or copy for the filter's n x n blocks."""
+def _mul_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """Write a b into ``out`` by loops (zeroed, then accumulated: :func:`_mul`'s order)."""
     rows, inner = a.shape
     cols = b.shape[1]
-    out = np.zeros((rows, cols))
+    for i in range(rows):
+        for j in range(cols):
+            out[i, j] = 0.0
     for i in range(rows):
         for k in range(inner):
             v = a[i, k]
             for j in range(cols):
                 out[i, j] += v * b[k, j]
+
+
+@njit(cache=True)
+def _mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Return a b by loops: no BLAS call or copy for the filter's n x n blocks."""
+    out = np.empty((a.shape[0], b.shape[1]))
+    _mul_into(a, b, out)
     return out
 
 
 @njit(cache=True)
-def _mul_t(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Return a b^T by loops."""
+def _mul_t_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """Write a b^T into ``out`` by loops."""
     rows, inner = a.shape
     cols = b.shape[0]
-    out = np.empty((rows, cols))
     for i in range(rows):
         for j in range(cols):
             acc = 0.0
             for k in range(inner):
                 acc += a[i, k] * b[j, k]
             out[i, j] = acc
+
+
+@njit(cache=True)
+def _mul_t(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Return a b^T by loops."""
+    out = np.empty((a.shape[0], b.shape[0]))
+    _mul_t_into(a, b, out)
     return out
 
 
@@ -233,13 +248,19 @@ def transition(g: np.ndarray, x: np.ndarray, locked: np.ndarray, inverse_locked:
     # With r = s/dt the w column is [g_r; s 1; 1], g_r = (b r/2 + ab r^2/6) s, so the
     # blocks are sums over the nodes of g D g^T, s g D, g D, s^2 D, s D and D.
     q = np.zeros((dim, dim))
+    # One set of the per-node blocks, written again at each node.
+    g_s = np.empty((n, n))
+    gd = np.empty((n, n))
+    gdg = np.empty((n, n))
     for node in range(3):
         r = 0.5 * (1.0 + _GAUSS_NODES[node])
         s = r * dt
         weight = 0.5 * dt * _GAUSS_WEIGHTS[node]
-        g_s = ((0.5 * r) * b + (r * r / 6.0) * ab) * s
-        gd = _mul(g_s, density)
-        gdg = _mul_t(gd, g_s)
+        for i in range(n):
+            for j in range(n):
+                g_s[i, j] = ((0.5 * r) * b[i, j] + (r * r / 6.0) * ab[i, j]) * s
+        _mul_into(g_s, density, gd)
+        _mul_t_into(gd, g_s, gdg)
         for i in range(n):
             for j in range(n):
                 q[i, j] += weight * gdg[i, j]
@@ -537,17 +558,18 @@ def _whiten(low: np.ndarray, cross: np.ndarray) -> np.ndarray:
 def _gain_from(low: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Return K = P H^T S^-1 (dim x m) as (L^-T Y)^T: the backward substitution."""
     m, dim = y.shape
-    z = np.empty((m, dim))
+    # Z = L^-T Y solved in K's own (transposed) layout: the same operations per element.
+    gain = np.empty((dim, m))
     for i in range(m - 1, -1, -1):
         for c in range(dim):
-            z[i, c] = y[i, c]
+            gain[c, i] = y[i, c]
         for k in range(i + 1, m):
             lki = low[k, i]
             for c in range(dim):
-                z[i, c] -= lki * z[k, c]
+                gain[c, i] -= lki * gain[c, k]
         for c in range(dim):
-            z[i, c] /= low[i, i]
-    return np.ascontiguousarray(z.T)
+            gain[c, i] /= low[i, i]
+    return gain
 
 
 @njit(cache=True)

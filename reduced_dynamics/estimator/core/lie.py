@@ -29,21 +29,29 @@ from numba import njit
 
 
 @njit(cache=True)
-def _skew(w: np.ndarray) -> np.ndarray:
-    out = np.zeros((3, 3))
-    out[0, 1], out[0, 2], out[1, 2] = -w[2], w[1], -w[0]
-    out[1, 0], out[2, 0], out[2, 1] = w[2], -w[1], w[0]
-    return out
+def _skew(w0: float, w1: float, w2: float) -> tuple:
+    """Return [w] row by row as 9 floats (a tuple: no array allocated; zeros as 0.0)."""
+    return (0.0, -w2, w1, w2, 0.0, -w0, -w1, w0, 0.0)
 
 
 @njit(cache=True)
-def _mul3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Return a b of 3 x 3 matrices by loops (a BLAS call costs more than the product)."""
-    out = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
-    return out
+def _mul3(a: tuple, b: tuple) -> tuple:
+    """
+    Return a b of 3 x 3 matrices held row by row in 9-tuples.
+
+    By the expressions of a loop over i, j of a[i, 0] b[0, j] + a[i, 1] b[1, j] +
+    a[i, 2] b[2, j] (a BLAS call costs more than the product; a tuple, unlike an
+    array, is not allocated).
+    """
+    return (a[0] * b[0] + a[1] * b[3] + a[2] * b[6],
+            a[0] * b[1] + a[1] * b[4] + a[2] * b[7],
+            a[0] * b[2] + a[1] * b[5] + a[2] * b[8],
+            a[3] * b[0] + a[4] * b[3] + a[5] * b[6],
+            a[3] * b[1] + a[4] * b[4] + a[5] * b[7],
+            a[3] * b[2] + a[4] * b[5] + a[5] * b[8],
+            a[6] * b[0] + a[7] * b[3] + a[8] * b[6],
+            a[6] * b[1] + a[7] * b[4] + a[8] * b[7],
+            a[6] * b[2] + a[7] * b[5] + a[8] * b[8])
 
 
 @njit(cache=True)
@@ -73,32 +81,33 @@ def exp6(twist: np.ndarray) -> np.ndarray:
     """Return exp of a twist (v, omega) as a 4 x 4 homogeneous matrix."""
     v, w = twist[:3], twist[3:]
     a, b, c = exp6_coefficients(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
-    k = _skew(w)
+    k = _skew(w[0], w[1], w[2])
     k2 = _mul3(k, k)
     out = np.zeros((4, 4))
     for i in range(3):
         for j in range(3):
-            out[i, j] = a * k[i, j] + b * k2[i, j]
+            out[i, j] = a * k[3 * i + j] + b * k2[3 * i + j]
         out[i, i] += 1.0
         # V v = v + b w x v + c w x (w x v)
-        out[i, 3] = v[i] + b * (k[i, 0] * v[0] + k[i, 1] * v[1] + k[i, 2] * v[2]) \
-            + c * (k2[i, 0] * v[0] + k2[i, 1] * v[1] + k2[i, 2] * v[2])
+        out[i, 3] = v[i] + b * (k[3 * i] * v[0] + k[3 * i + 1] * v[1] + k[3 * i + 2] * v[2]) \
+            + c * (k2[3 * i] * v[0] + k2[3 * i + 1] * v[1] + k2[3 * i + 2] * v[2])
     out[3, 3] = 1.0
     return out
 
 
 @njit(cache=True)
 def _log3(r: np.ndarray) -> tuple:
-    """Return (omega, angle) with exp([omega]) = r, angle in [0, pi]."""
-    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
-    sine = 0.5 * math.sqrt(axis[0] ** 2 + axis[1] ** 2 + axis[2] ** 2)
+    """Return (omega_0, omega_1, omega_2, angle) with exp([omega]) = r, angle in [0, pi]."""
+    axis0, axis1, axis2 = r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]
+    sine = 0.5 * math.sqrt(axis0 ** 2 + axis1 ** 2 + axis2 ** 2)
     cosine = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)
     t = math.atan2(sine, cosine)
     if cosine > -0.9:
         # t / (2 sin t) is smooth here (series below 1e-4).
         scale = 0.5 + t * t / 12.0 if t < 1e-4 else 0.5 * t / sine
-        return axis * scale, t
+        return axis0 * scale, axis1 * scale, axis2 * scale, t
     # Near pi: the symmetric part (1 - cos t) a a^T gives the axis, the skew part its sign.
+    axis = np.array([axis0, axis1, axis2])
     best = 0
     for i in range(1, 3):
         if r[i, i] > r[best, best]:
@@ -111,13 +120,13 @@ def _log3(r: np.ndarray) -> tuple:
     a = column / norm
     if a[0] * axis[0] + a[1] * axis[1] + a[2] * axis[2] < 0.0:
         a = -a
-    return a * t, t
+    return a[0] * t, a[1] * t, a[2] * t, t
 
 
 @njit(cache=True)
 def log6(g: np.ndarray) -> np.ndarray:
     """Return the twist (v, omega) of a 4 x 4 homogeneous matrix (``pin.log6``)."""
-    w, t = _log3(g[:3, :3])
+    w0, w1, w2, t = _log3(g[:3, :3])
     p = g[:3, 3]
     t2 = t * t
     if t < 1e-2:
@@ -125,14 +134,14 @@ def log6(g: np.ndarray) -> np.ndarray:
         c = 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0
     else:
         c = (1.0 - 0.5 * t * math.sin(t) / (1.0 - math.cos(t))) / t2
-    k = _skew(w)
+    k = _skew(w0, w1, w2)
     k2 = _mul3(k, k)
     out = np.empty(6)
     for i in range(3):
         # V^-1 p = p - w x p / 2 + c w x (w x p)
-        out[i] = p[i] - 0.5 * (k[i, 0] * p[0] + k[i, 1] * p[1] + k[i, 2] * p[2]) \
-            + c * (k2[i, 0] * p[0] + k2[i, 1] * p[1] + k2[i, 2] * p[2])
-        out[3 + i] = w[i]
+        out[i] = p[i] - 0.5 * (k[3 * i] * p[0] + k[3 * i + 1] * p[1] + k[3 * i + 2] * p[2]) \
+            + c * (k2[3 * i] * p[0] + k2[3 * i + 1] * p[1] + k2[3 * i + 2] * p[2])
+    out[3], out[4], out[5] = w0, w1, w2
     return out
 
 
@@ -164,20 +173,21 @@ def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def action(g: np.ndarray) -> np.ndarray:
     """Return Ad_g (6 x 6, ``pin.SE3.action``): [[R, [p] R], [0, R]]."""
     out = np.zeros((6, 6))
-    r = g[:3, :3]
-    pr = _mul3(_skew(g[:3, 3]), r)
+    r = (g[0, 0], g[0, 1], g[0, 2], g[1, 0], g[1, 1], g[1, 2], g[2, 0], g[2, 1], g[2, 2])
+    pr = _mul3(_skew(g[0, 3], g[1, 3], g[2, 3]), r)
     for i in range(3):
         for j in range(3):
-            out[i, j] = r[i, j]
-            out[3 + i, 3 + j] = r[i, j]
-            out[i, 3 + j] = pr[i, j]
+            out[i, j] = r[3 * i + j]
+            out[3 + i, 3 + j] = r[3 * i + j]
+            out[i, 3 + j] = pr[3 * i + j]
     return out
 
 
 @njit(cache=True)
 def group_exp(eta: np.ndarray, basis: np.ndarray, whole: bool) -> np.ndarray:
     """Return exp of algebra coordinates eta of the subgroup (S eta)."""
-    return exp6(eta.copy() if whole else basis @ eta)
+    # exp6 reads the twist only: no copy of eta when it is one already.
+    return exp6(eta) if whole else exp6(basis @ eta)
 
 
 @njit(cache=True)
