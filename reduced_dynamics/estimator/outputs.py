@@ -33,6 +33,8 @@ from reduced_dynamics.estimator.cyclic import CyclicColumns
 from reduced_dynamics.estimator.events import EventNotice
 from reduced_dynamics.estimator.kernel import UpdateKernel
 from reduced_dynamics.estimator.prediction import PredictionJob
+from reduced_dynamics.messages.cdr_columns import (joint_state_records, stamp_columns,
+                                                   vector6_records)
 from reduced_dynamics.messages.samples import (Diagnostics, EventSample, JointStateSample,
                                                PosePath, ShapePrediction, trusted_sample,
                                                TwistSample, WrenchSample)
@@ -144,6 +146,11 @@ class OutputChunk:
         """Return the number of samples."""
         return len(self.stamps_ns)
 
+    @property
+    def kernel(self) -> UpdateKernel:
+        """Return the estimator's kernel (lifts of the algebra columns to wrenches)."""
+        return self._kernel
+
     def outputs(self) -> list[EstimatorOutput]:
         """Return one :class:`EstimatorOutput` per row (message-ready samples)."""
         kernel = self._kernel
@@ -180,12 +187,7 @@ class OutputChunk:
                 mu, energy)
             extra = extras.get(k) if extras else None
             if extra:
-                output.prediction, output.prediction_path, output.diagnostics = extra[:3]
-                if len(extra) > 3:
-                    output.prediction_phase_path, output.prediction_job = extra[3]
-                if len(extra) > 4:
-                    (output.prediction_horizon, output.prediction_ellipsoids,
-                     output.prediction_shape_covariance) = extra[4]
+                _set_extra(output, extra)
             if cyclic is not None:
                 output.cyclic_state = cyclic.sample(k, stamp)
             if self.mu_cov is not None:
@@ -201,6 +203,76 @@ class OutputChunk:
                                               self.mu.shape[1])
             out.append(output)
         return out
+
+
+    def records(self) -> Optional[dict[str, np.ndarray]]:
+        """
+        Return the every-row messages as CDR columns: field -> (K, size) uint8 arrays.
+
+        The fields (:data:`COLUMN_FIELDS`) of :meth:`outputs`' samples that every
+        row carries, row k the bytes ``cdr.ENCODERS`` gives for row k's sample
+        (messages/cdr_columns.py), without building the samples. None when a
+        stamp is not a ROS Time (the per-message encoders then say why).
+        """
+        stamps = stamp_columns(self.stamps_ns)
+        if stamps is None:
+            return None
+        kernel, world, base = self._kernel, self._world, self._base
+        out = {
+            'momentum': vector6_records(stamps, world, kernel.wrenches(self.mu)),
+            'body_momentum': vector6_records(stamps, base, kernel.wrenches(self.pi)),
+            'momentum_rate': vector6_records(stamps, world,
+                                             kernel.wrenches(self.momentum_rate)),
+            'drift_twist': vector6_records(stamps, base, kernel.twists(self.drift))}
+        cyclic = self.cyclic
+        if cyclic is None:
+            out['shape_state'] = joint_state_records(stamps, '', self._names, self.qbar,
+                                                     self.qbar_dot, self.pbar)
+        else:
+            out['shape_state'] = joint_state_records(stamps, '', cyclic.kept_names,
+                                                     cyclic.qhat, cyclic.qhat_dot,
+                                                     cyclic.phat)
+            out['cyclic_state'] = joint_state_records(stamps, '', cyclic.cyclic_names,
+                                                      cyclic.angles, cyclic.rates,
+                                                      cyclic.theta)
+        if self.disturbance is not None:
+            out['disturbance'] = vector6_records(stamps, world,
+                                                 kernel.wrenches(self.disturbance))
+        return out
+
+    def extra_fields(self, k: int) -> dict[str, Any]:
+        """Return row k's occasional fields (predictions, diagnostics) that are set."""
+        extra = self.extras.get(k) if self.extras else None
+        if not extra:
+            return {}
+        holder = _Fields()
+        _set_extra(holder, extra)
+        return {name: value for name, value in holder.__dict__.items() if value is not None}
+
+    def row_events(self, k: int) -> Optional[list[EventSample]]:
+        """Return the ``~/events`` records of row k (None: none)."""
+        if self.events and k in self.events:
+            return event_samples(self.events[k], self._kernel.wrenches, self.mu.shape[1])
+        return None
+
+
+#: The fields of :meth:`OutputChunk.records`: every row's messages, in topic order.
+COLUMN_FIELDS = ('momentum', 'body_momentum', 'shape_state', 'cyclic_state', 'momentum_rate',
+                 'disturbance', 'drift_twist')
+
+
+class _Fields:
+    """Attribute holder for :func:`_set_extra` outside an :class:`EstimatorOutput`."""
+
+
+def _set_extra(output: Any, extra: tuple) -> None:
+    """Set a row's predictions and diagnostics (a chunk's ``extras`` entry) on ``output``."""
+    output.prediction, output.prediction_path, output.diagnostics = extra[:3]
+    if len(extra) > 3:
+        output.prediction_phase_path, output.prediction_job = extra[3]
+    if len(extra) > 4:
+        (output.prediction_horizon, output.prediction_ellipsoids,
+         output.prediction_shape_covariance) = extra[4]
 
 
 class EstimatorBatch:
