@@ -67,8 +67,10 @@ def test_write_rows_writes_the_bag_of_write_raw(tmp_path, monkeypatch, chunk_byt
     parts = [rng.integers(0, 256, (count, 60), dtype=np.uint8),
              rng.integers(0, 256, (count, 37), dtype=np.uint8)]
     for interleaved in (0, 50):
-        expected = _write(tmp_path / f'raw{interleaved}' / 'bag', False, stamps, parts, interleaved)
-        got = _write(tmp_path / f'rows{interleaved}' / 'bag', True, stamps, parts, interleaved)
+        expected = _write(tmp_path / f'raw{interleaved}' / 'bag', False, stamps, parts,
+                          interleaved)
+        got = _write(tmp_path / f'rows{interleaved}' / 'bag', True, stamps, parts,
+                     interleaved)
         assert got == expected
 
 

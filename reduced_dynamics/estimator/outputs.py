@@ -204,7 +204,6 @@ class OutputChunk:
             out.append(output)
         return out
 
-
     def records(self) -> Optional[dict[str, np.ndarray]]:
         """
         Return the every-row messages as CDR columns: field -> (K, size) uint8 arrays.
