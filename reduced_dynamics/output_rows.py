@@ -32,14 +32,11 @@ from typing import Any, Callable, Sequence
 
 from reduced_dynamics.bag.writer import BagWriter
 from reduced_dynamics.estimator.outputs import COLUMN_FIELDS, EstimatorOutput, OutputChunk
-from reduced_dynamics.messages import cdr
+from reduced_dynamics.messages.cdr_columns import COLUMN_ENCODERS
 
 #: An output topic: EstimatorOutput field, bag topic, sample -> CDR bytes.
 Encoder = tuple[str, str, Callable[[Any], bytes]]
 
-#: The per-message encoders whose bytes OutputChunk.records reproduces.
-_COLUMN_ENCODERS = (cdr.encode_wrench_stamped, cdr.encode_twist_stamped,
-                    cdr.encode_joint_state)
 
 
 def columns_apply(encoders: Sequence[Encoder]) -> bool:
@@ -54,7 +51,7 @@ def columns_apply(encoders: Sequence[Encoder]) -> bool:
     while lead < len(names) and names[lead] in COLUMN_FIELDS:
         lead += 1
     return (not any(name in COLUMN_FIELDS for name in names[lead:])
-            and all(encode in _COLUMN_ENCODERS for _, _, encode in encoders[:lead]))
+            and all(encode in COLUMN_ENCODERS for _, _, encode in encoders[:lead]))
 
 
 class RowWriter:

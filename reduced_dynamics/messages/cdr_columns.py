@@ -28,16 +28,20 @@ message k (``records[k].tobytes()``, or :func:`split`).
 
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from typing import Optional
 
 import numpy as np
 
 from reduced_dynamics.messages.cdr import (_cached, _frame_block, _header8, _string_block,
-                                           _U32, HEADER)
+                                           _U32, encode_joint_state, encode_twist_stamped,
+                                           encode_wrench_stamped, HEADER)
 from reduced_dynamics.messages.stamps import NS_PER_S
 
 _INT32_MAX = 2**31 - 1
 _LAYOUTS: dict = {}
+
+#: The per-message encoders whose bytes these columns reproduce.
+COLUMN_ENCODERS = (encode_wrench_stamped, encode_twist_stamped, encode_joint_state)
 
 
 def stamp_columns(stamps_ns: np.ndarray) -> Optional[tuple[np.ndarray, np.ndarray]]:
@@ -139,7 +143,3 @@ def split(records: np.ndarray) -> list[bytes]:
     data = records.tobytes()
     return [data[i:i + size] for i in range(0, len(data), size)]
 
-
-def interleave(parts: Sequence[np.ndarray]) -> np.ndarray:
-    """Return rows of ``parts`` (each (K, size_t)) side by side: row k, topic by topic."""
-    return np.concatenate(parts, axis=1) if len(parts) > 1 else parts[0]
