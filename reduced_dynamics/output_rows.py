@@ -38,7 +38,6 @@ from reduced_dynamics.messages.cdr_columns import COLUMN_ENCODERS
 Encoder = tuple[str, str, Callable[[Any], bytes]]
 
 
-
 def columns_apply(encoders: Sequence[Encoder]) -> bool:
     """
     Tell whether a chunk's rows can be written from its columns with ``encoders``.

@@ -142,4 +142,3 @@ def split(records: np.ndarray) -> list[bytes]:
     size = records.shape[1]
     data = records.tobytes()
     return [data[i:i + size] for i in range(0, len(data), size)]
-
