@@ -32,6 +32,7 @@ from typing import Any, Callable, Sequence
 
 from reduced_dynamics.bag.writer import BagWriter
 from reduced_dynamics.estimator.outputs import COLUMN_FIELDS, EstimatorOutput, OutputChunk
+from reduced_dynamics.output_spool import OutputSpool
 from reduced_dynamics.messages.cdr_columns import COLUMN_ENCODERS
 
 #: An output topic: EstimatorOutput field, bag topic, sample -> CDR bytes.
@@ -74,6 +75,27 @@ class RowWriter:
             sample = getattr(output, name)
             if sample is not None:
                 write(topic, stamp, encode(sample))
+
+    def hold_chunk(self, spool: OutputSpool, chunk: OutputChunk) -> None:
+        """Hold ``chunk``'s causal messages in ``spool`` (smoothed replay): runs of rows."""
+        records = chunk.records() if self.columns else None
+        if records is None:
+            for output in chunk.outputs():
+                spool.hold(output)
+            return
+        stamps, count = chunk.stamps_ns, len(chunk)
+        extras = chunk.extras
+        occasional = sorted(k for k, extra in extras.items() if extra) if extras else []
+        start = 0
+        for k in (*occasional, count):
+            if k > start:
+                spool.hold_rows(stamps[start:k], {name: part[start:k]
+                                                  for name, part in records.items()})
+            if k == count:
+                break
+            spool.hold_fields(int(stamps[k]), chunk.extra_fields(k),
+                              {name: part[k].tobytes() for name, part in records.items()})
+            start = k + 1
 
     def write_chunk(self, chunk: OutputChunk) -> None:
         """Write every row of ``chunk`` as :meth:`write_output` would, output by output."""

@@ -434,12 +434,18 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                         if rows:
                             write_lagged(rows, max(last_ns[0], rows[-1].stamp_ns))
                 if spool is not None:
-                    for output in done.outputs():
-                        spool.hold(output)
+                    for chunk in chunks:
+                        rows_out.hold_chunk(spool, chunk)
                         if options.plots_dir:
-                            series['shape'].add((output.stamp_ns, *output.shape_state.position))
+                            shape = chunk.qbar if chunk.cyclic is None else chunk.cyclic.qhat
+                            for k, stamp in enumerate(chunk.stamps_ns.tolist()):
+                                series['shape'].add((stamp, *shape[k]))
                     if final:
-                        _write_smoothed(spool, estimator, write, series, options.plots_dir)
+                        if rows_out.columns:
+                            _write_smoothed_columns(spool, estimator, writer, series,
+                                                    options.plots_dir)
+                        else:
+                            _write_smoothed(spool, estimator, write, series, options.plots_dir)
                         spool.close()
                         files.close()
                     return
@@ -541,6 +547,45 @@ def _plot_rows(series: dict, chunk: OutputChunk) -> None:
         series['shape'].add((stamp, *shape[k]))
         if disturbance is not None:
             series['disturbance'].add((stamp, *disturbance[k]))
+
+
+def _write_smoothed_columns(spool: OutputSpool, estimator: Estimator, writer: BagWriter,
+                            series: dict, plots: Optional[str]) -> None:
+    """
+    Write the held outputs in order, their smoothed fields from the estimator's columns.
+
+    The bag of :func:`_write_smoothed` (output by output): the held runs of rows
+    go out as blocks (:meth:`BagWriter.write_rows`), merged topic by topic with
+    as many smoothed rows.
+    """
+    recorded = estimator.step_store.outputs
+    if recorded != spool.count:
+        raise ValueError(f'{spool.count} outputs for {recorded} recorded filter rows')
+    encoders = spool.encoders
+    for smoothed in estimator.smoothed_columns():
+        for stamps, held in spool.segments():
+            one = isinstance(stamps, int)
+            rows = smoothed.take(1 if one else len(stamps))
+            records = rows['records']
+            topics, parts = [], []
+            for index, (name, topic, _) in enumerate(encoders):
+                part = records.get(name) if name in SMOOTHED_FIELDS else held.get(index)
+                if part is not None:
+                    topics.append(topic)
+                    parts.append(part)
+            if one:
+                for topic, part in zip(topics, parts):
+                    writer.write_raw(topic, stamps, part if isinstance(part, bytes)
+                                     else part[0].tobytes())
+            else:
+                writer.write_rows(topics, stamps, parts)
+            if plots:
+                rate, disturbance = rows['rate'], rows['disturbance']
+                for k, stamp in enumerate([stamps] if one else stamps.tolist()):
+                    series['mu'].add((stamp, *rows['mu'][k]))
+                    series['rate'].add((stamp, *rate[k]))
+                    if disturbance is not None:
+                        series['disturbance'].add((stamp, *disturbance[k]))
 
 
 def _write_smoothed(spool: OutputSpool, estimator: Estimator, write: Callable,

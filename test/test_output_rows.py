@@ -23,6 +23,7 @@ from reduced_dynamics.bag import writer as bag_writer
 from reduced_dynamics.bag.errors import BagError
 from reduced_dynamics.bag.writer import BagWriter
 from reduced_dynamics import output_rows
+from reduced_dynamics.output_spool import OutputSpool
 from reduced_dynamics.replay import replay, ReplayOptions
 from reduced_dynamics.resources import config_path
 from reduced_dynamics.robot.model import load_robot
@@ -99,8 +100,10 @@ CASES = {
 }
 
 
+@pytest.mark.parametrize('smooth', [False, True], ids=['causal', 'smoothed'])
 @pytest.mark.parametrize('case', sorted(CASES))
-def test_replay_from_columns_writes_the_bag_of_outputs_one_by_one(tmp_path, monkeypatch, case):
+def test_replay_from_columns_writes_the_bag_of_outputs_one_by_one(tmp_path, monkeypatch, case,
+                                                                   smooth):
     bag, urdf, extra = CASES[case]
     robot = load_robot(str(config_path(urdf)) if urdf else '')
     monkeypatch.setattr(bag_writer, '_CHUNK_BYTES', 20_000)
@@ -112,15 +115,35 @@ def test_replay_from_columns_writes_the_bag_of_outputs_one_by_one(tmp_path, monk
             monkeypatch.undo()
             monkeypatch.setattr(bag_writer, '_CHUNK_BYTES', 20_000)
             calls = []
-            original = output_rows.RowWriter.write_chunk
+            name = 'hold_chunk' if smooth else 'write_chunk'
+            original = getattr(output_rows.RowWriter, name)
 
-            def counted(self, chunk):
+            def counted(self, *args):
                 calls.append(self.columns)
-                return original(self, chunk)
-            monkeypatch.setattr(output_rows.RowWriter, 'write_chunk', counted)
+                return original(self, *args)
+            monkeypatch.setattr(output_rows.RowWriter, name, counted)
         out = tmp_path / ('columns' if columns else 'reference') / 'out'
-        summary = replay(str(DATA / bag), str(out), robot, ReplayOptions(smooth=False, **extra))
+        summary = replay(str(DATA / bag), str(out), robot, ReplayOptions(smooth=smooth,
+                                                                         **extra))
         written[columns] = _bag_bytes(out)
     assert calls and all(calls)
     assert summary['predictions'] and summary['messages_out']
     assert written[True] == written[False]
+
+
+def test_spool_gives_back_runs_and_single_rows_in_order(tmp_path):
+    encode = lambda sample: b'<' + sample + b'>'  # noqa: E731
+    encoders = [('momentum', '/m', encode), ('shape_state', '/s', encode),
+                ('diagnostics', '/d', encode)]
+    spool = OutputSpool(str(tmp_path / 'spool'), encoders)
+    spool.hold_rows(np.array([5, 6]), {'shape_state': np.array([[1, 2], [3, 4]], np.uint8),
+                                       'momentum': np.zeros((2, 3), np.uint8)})
+    spool.hold_fields(7, {'diagnostics': b'x'}, {'shape_state': b'\x05\x06'})
+    spool.hold_rows(np.zeros(0, np.int64), {})
+    spool.hold_rows(np.array([2**40]), {'shape_state': np.array([[9, 9]], np.uint8)})
+    assert spool.count == 4
+    assert list(spool.rows()) == [(5, {1: b'\x01\x02'}), (6, {1: b'\x03\x04'}),
+                                  (7, {1: b'\x05\x06', 2: b'<x>'}), (2**40, {1: b'\t\t'})]
+    segments = list(spool.segments())
+    assert [type(s[0]) for s in segments] == [np.ndarray, int, np.ndarray]
+    spool.close()

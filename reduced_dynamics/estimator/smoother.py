@@ -45,7 +45,8 @@ import numpy as np
 
 from reduced_dynamics.estimator.core import smoother as kernels
 from reduced_dynamics.estimator.filter import FilterStep
-from reduced_dynamics.estimator.outputs import EstimatorOutput, smoothed_fields
+from reduced_dynamics.estimator.outputs import (EstimatorOutput, smoothed_fields,
+                                                SmoothedColumns)
 from reduced_dynamics.geometry.lie_group import BaseGroup
 
 #: Steps per block: ~8 MiB for the paper robot (3n = 18), big enough for large writes.
@@ -322,6 +323,21 @@ class Smoothing:
         try:
             yield from smoothed_fields(self.kernel, rows.blocks(), self.config.world_frame,
                                        self.robot.base_link, self.commanded_wrench)
+        finally:
+            rows.close()
+
+    def smoothed_columns(self) -> Iterator[SmoothedColumns]:
+        """
+        Yield once the smoothed rows as :class:`~.outputs.SmoothedColumns` (replay).
+
+        The same rows as :meth:`smoothed_rows`, as CDR columns; the files are
+        closed when the generator is.
+        """
+        rows = smooth_rows(self.robot.group, self.step_store, self.smoother_files,
+                           self.filter._form_rows)
+        try:
+            yield SmoothedColumns(self.kernel, rows.blocks(), self.config.world_frame,
+                                  self.robot.base_link, self.commanded_wrench)
         finally:
             rows.close()
 
