@@ -102,8 +102,8 @@ CASES = {
 
 @pytest.mark.parametrize('smooth', [False, True], ids=['causal', 'smoothed'])
 @pytest.mark.parametrize('case', sorted(CASES))
-def test_replay_from_columns_writes_the_bag_of_outputs_one_by_one(tmp_path, monkeypatch, case,
-                                                                   smooth):
+def test_replay_from_columns_writes_the_bag_of_outputs_one_by_one(
+        tmp_path, monkeypatch, case, smooth):
     bag, urdf, extra = CASES[case]
     robot = load_robot(str(config_path(urdf)) if urdf else '')
     monkeypatch.setattr(bag_writer, '_CHUNK_BYTES', 20_000)

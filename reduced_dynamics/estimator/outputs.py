@@ -148,7 +148,7 @@ class OutputChunk:
 
     @property
     def kernel(self) -> UpdateKernel:
-        """Return the estimator's kernel (lifts of the algebra columns to wrenches)."""
+        """Return the kernel of the estimator (lifts of algebra columns to wrenches)."""
         return self._kernel
 
     def outputs(self) -> list[EstimatorOutput]:
