@@ -134,6 +134,12 @@ DRAIN_LIMIT = 64
 #: starved of CPU skips the oldest (the estimator has computed it for its residual at the
 #: horizon; only its messages go unpublished, counted) instead of queueing without bound.
 WORKER_QUEUE_KEEP = 64
+#: The interpreter's GIL switch interval [s] once the prediction worker runs. A prediction
+#: (DOP853 and its covariance, ~7 ms of Python for the paper robot) holds the GIL; at the
+#: default 5 ms a sample arriving meanwhile waits up to 5 ms for the worker to yield it,
+#: at 1 kHz several samples per prediction, i.e. the node's latency tail
+#: (docs/output_path.md). At 0.2 ms the wait is bounded by that, for a few extra switches.
+GIL_SWITCH_INTERVAL = 0.0002
 #: ~/predict_base_motion as a request/response topic pair (standard types; README).
 PREDICT_REQUEST_TOPIC = '~/predict_base_motion/request'
 PREDICT_PATH_TOPIC = '~/predict_base_motion/path'
@@ -405,6 +411,10 @@ class _PredictionWorker:
         self.done = 0
         #: jobs skipped because the queue was full (their messages not published)
         self.skipped = 0
+        # Two threads now share the GIL: the input path must not wait a whole default
+        # interval for a running prediction to yield it.
+        if sys.getswitchinterval() > GIL_SWITCH_INTERVAL:
+            sys.setswitchinterval(GIL_SWITCH_INTERVAL)
         self._thread = threading.Thread(target=self._run, name='predictions', daemon=True)
         self._thread.start()
 
