@@ -23,6 +23,7 @@ hashes, so it is self-describing for ``ros2 bag info/play``, Foxglove and the
 :class:`reduced_dynamics.messages.RosbagsTypes`).
 """
 
+from collections import defaultdict
 from collections.abc import Mapping
 from io import BytesIO
 import operator
@@ -45,7 +46,7 @@ from rosbags.interfaces import (
 )
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionMode
-from rosbags.rosbag2.storage_mcap import McapWriter
+from rosbags.rosbag2.storage_mcap import McapWriter, PendingChunk
 from rosbags.typesys import get_typestore, Stores
 
 from reduced_dynamics.bag.errors import BagError, one_line
@@ -123,7 +124,9 @@ class _McapAppender:
             and all(hasattr(chunk, a) for a in ('msgs', 'message_start_time',
                                                 'message_end_time'))
             and all(hasattr(storage, a) for a in ('channel_stats', 'message_start_time',
-                                                  'message_end_time', 'close_chunk'))
+                                                  'message_end_time', 'close_chunk', 'bio',
+                                                  'chunks', 'compressor', 'compression'))
+            and isinstance(chunk, PendingChunk)
             and all(hasattr(writer, a) for a in ('counts', 'min_timestamp', 'max_timestamp')))
         return cls(writer, storage) if known else None
 
@@ -151,7 +154,43 @@ class _McapAppender:
         storage.channel_stats[connection_id] += 1
         writer.counts[connection_id] += 1
         if bio.tell() > _CHUNK_BYTES:
-            storage.close_chunk()
+            self.close_chunk()
+
+    def close_chunk(self) -> None:
+        """
+        Do what ``McapWriter.close_chunk`` does, the message indexes packed by numpy.
+
+        rosbags writes each index entry with two ``int.to_bytes`` calls (~0.5 us a
+        message); here one array per channel. The records are the same bytes.
+        """
+        storage = self.storage
+        chunk, bio = storage.chunk, storage.bio
+        data = chunk.bio.getvalue()
+        compressed = storage.compressor(data)
+        compression = storage.compression.encode()
+        packed = (struct.pack('<QQQII', chunk.message_start_time, chunk.message_end_time,
+                              len(data), 0, len(compression)) + compression
+                  + struct.pack('<Q', len(compressed)))
+        chunk_start = bio.tell()
+        bio.write(struct.pack('<BQ', 0x06, len(packed) + len(compressed)))
+        bio.write(packed)
+        bio.write(compressed)
+        chunk_end = bio.tell()
+        offsets = []
+        for cid, msgs in chunk.msgs.items():
+            offsets.append(struct.pack('<HQ', cid, bio.tell()))
+            index = np.array(msgs, dtype='<u8').tobytes() if msgs else b''
+            bio.write(struct.pack('<BQHI', 0x07, 6 + len(index), cid, len(index)))
+            bio.write(index)
+        record = BytesIO()  # the Chunk Index, written by McapWriter.close (a BytesIO there)
+        record.write(struct.pack('<QQQQI', chunk.message_start_time, chunk.message_end_time,
+                                 chunk_start, chunk_end - chunk_start, len(offsets) * 10))
+        record.write(b''.join(offsets))
+        record.write(struct.pack('<QI', bio.tell() - chunk_end, len(compression)))
+        record.write(compression)
+        record.write(struct.pack('<QQ', len(compressed), len(data)))
+        storage.chunks.append(record)
+        storage.chunk = PendingChunk(2**63 - 1, 0, BytesIO(), defaultdict(list))
 
     def write_rows(self, connection_ids: Sequence[int], stamps: np.ndarray,
                    records: Sequence[np.ndarray]) -> None:
