@@ -37,37 +37,41 @@ from reduced_dynamics.messages.cdr import (_cached, _frame_block, _header8, _str
                                            encode_wrench_stamped, HEADER)
 from reduced_dynamics.messages.stamps import NS_PER_S
 
-_INT32_MAX = 2**31 - 1
+#: The first stamp [ns] whose seconds overflow builtin_interfaces/Time's int32.
+_TIME_END_NS = 2**31 * NS_PER_S
 _LAYOUTS: dict = {}
 
 #: The per-message encoders whose bytes these columns reproduce.
 COLUMN_ENCODERS = (encode_wrench_stamped, encode_twist_stamped, encode_joint_state)
 
 
-def stamp_columns(stamps_ns: np.ndarray) -> Optional[tuple[np.ndarray, np.ndarray]]:
+def stamp_columns(stamps_ns: np.ndarray) -> Optional[np.ndarray]:
     """
-    Return (sec, nanosec) of integer nanosecond stamps; None if one is not a ROS Time.
+    Return builtin_interfaces/Time of integer nanosecond stamps, packed, or None.
 
-    None (a negative stamp or sec beyond int32): the caller goes message by
-    message, where the per-message encoder raises its own error.
+    Each stamp as the int64 whose little-endian bytes are its ``sec`` (int32) and
+    ``nanosec`` (uint32). None (a negative stamp or sec beyond int32): the caller goes
+    message by message, where the per-message encoder raises its own error.
     """
-    sec, nanosec = np.divmod(np.asarray(stamps_ns, dtype=np.int64), NS_PER_S)
-    if sec.size and (sec.min() < 0 or sec.max() > _INT32_MAX):
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    if stamps.size and (stamps.min() < 0 or stamps.max() >= _TIME_END_NS):
         return None
-    return sec, nanosec
+    sec, nanosec = np.divmod(stamps, NS_PER_S)
+    nanosec <<= 32
+    nanosec |= sec
+    return nanosec
 
 
-def _rows(template: bytes, count: int) -> np.ndarray:
-    """Return ``count`` copies of ``template`` as a (count, len) uint8 array."""
+def _rows(template: np.ndarray, count: int) -> np.ndarray:
+    """Return ``count`` copies of the uint8 row ``template`` as a (count, len) array."""
     out = np.empty((count, len(template)), np.uint8)
-    out[:] = np.frombuffer(template, np.uint8)
+    out[:] = template
     return out
 
 
-def _put_stamps(out: np.ndarray, stamps: tuple[np.ndarray, np.ndarray]) -> None:
+def _put_stamps(out: np.ndarray, stamps: np.ndarray) -> None:
     """Write each row's builtin_interfaces/Time at byte 4 (after the CDR header)."""
-    out[:, 4:8].view('<i4')[:, 0] = stamps[0]
-    out[:, 8:12].view('<u4')[:, 0] = stamps[1]
+    out[:, 4:12].view('<i8')[:, 0] = stamps
 
 
 def _put_f64(out: np.ndarray, offset: int, values: np.ndarray) -> None:
@@ -77,7 +81,13 @@ def _put_f64(out: np.ndarray, offset: int, values: np.ndarray) -> None:
         out[:, offset:offset + 8 * width].view('<f8')[:] = values
 
 
-def vector6_records(stamps: tuple[np.ndarray, np.ndarray], frame_id: str,
+def _vector6_template(frame_id: str) -> tuple[np.ndarray, int]:
+    """Return a zero WrenchStamped/TwistStamped as uint8 and its values' byte offset."""
+    prefix = _header8(0, frame_id)
+    return np.frombuffer(prefix + bytes(48), np.uint8), len(prefix)
+
+
+def vector6_records(stamps: np.ndarray, frame_id: str,
                     values: np.ndarray) -> np.ndarray:
     """
     Return WrenchStamped or TwistStamped messages (the same layout), one per row.
@@ -87,14 +97,15 @@ def vector6_records(stamps: tuple[np.ndarray, np.ndarray], frame_id: str,
     """
     if values.ndim != 2 or values.shape[1] != 6:
         raise ValueError(f'expected (K, 6) values, got shape {values.shape}')
-    prefix = _header8(0, frame_id)
-    out = _rows(prefix + bytes(48), len(values))
+    template, offset = _cached(_LAYOUTS, ('vector6', frame_id),
+                               lambda: _vector6_template(frame_id))
+    out = _rows(template, len(values))
     _put_stamps(out, stamps)
-    _put_f64(out, len(prefix), values)
+    _put_f64(out, offset, values)
     return out
 
 
-def _joint_state_layout(frame_id: str, names: tuple[str, ...]) -> tuple[bytes, tuple]:
+def _joint_state_layout(frame_id: str, names: tuple[str, ...]) -> tuple[np.ndarray, tuple]:
     """Return a JointState's template (zeros) and its three arrays' byte offsets."""
     # The arithmetic of cdr.encode_joint_state, positions relative to the CDR header.
     frame = _frame_block(str(frame_id), 4)
@@ -112,10 +123,10 @@ def _joint_state_layout(frame_id: str, names: tuple[str, ...]) -> tuple[bytes, t
             parts.append(bytes(pad + 8 * m))
             offsets.append(4 + pos + pad)
             pos += pad + 8 * m
-    return b''.join(parts), tuple(offsets)
+    return np.frombuffer(b''.join(parts), np.uint8), tuple(offsets)
 
 
-def joint_state_records(stamps: tuple[np.ndarray, np.ndarray], frame_id: str,
+def joint_state_records(stamps: np.ndarray, frame_id: str,
                         names: tuple[str, ...], position: np.ndarray, velocity: np.ndarray,
                         effort: np.ndarray) -> np.ndarray:
     """
