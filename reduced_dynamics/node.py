@@ -69,11 +69,13 @@ from reduced_dynamics.estimator.base_motion import answer_messages
 from reduced_dynamics.estimator.config import PARAMETERS as ESTIMATOR_PARAMETERS
 from reduced_dynamics.estimator.config import ParameterSpec
 from reduced_dynamics.estimator.core.warmup import warm_up
+from reduced_dynamics.estimator.outputs import COLUMN_FIELDS, OutputChunk
 from reduced_dynamics.messages import (
     cdr, command_from_ros, DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample,
     joint_state_from_ros, joint_trajectory_from_ros, odometry_from_ros,
     pose_stamped_from_ros, pose_with_covariance_stamped_from_ros, RclpyTypes, RosbagsTypes,
     string_from_ros)
+from reduced_dynamics.messages.cdr_columns import COLUMN_ENCODERS, split
 from reduced_dynamics.messages.samples import with_receive_time
 from reduced_dynamics.params import ALL_PARAMETERS, check_any_parameter, RUNTIME_PARAMETERS
 from reduced_dynamics.robot.model import load_robot, ModelError
@@ -132,6 +134,12 @@ DRAIN_LIMIT = 64
 #: starved of CPU skips the oldest (the estimator has computed it for its residual at the
 #: horizon; only its messages go unpublished, counted) instead of queueing without bound.
 WORKER_QUEUE_KEEP = 64
+#: The interpreter's GIL switch interval [s] once the prediction worker runs. A prediction
+#: (DOP853 and its covariance, ~7 ms of Python for the paper robot) holds the GIL; at the
+#: default 5 ms a sample arriving meanwhile waits up to 5 ms for the worker to yield it,
+#: at 1 kHz several samples per prediction, i.e. the node's latency tail
+#: (docs/output_path.md). At 0.2 ms the wait is bounded by that, for a few extra switches.
+GIL_SWITCH_INTERVAL = 0.0002
 #: ~/predict_base_motion as a request/response topic pair (standard types; README).
 PREDICT_REQUEST_TOPIC = '~/predict_base_motion/request'
 PREDICT_PATH_TOPIC = '~/predict_base_motion/path'
@@ -403,6 +411,10 @@ class _PredictionWorker:
         self.done = 0
         #: jobs skipped because the queue was full (their messages not published)
         self.skipped = 0
+        # Two threads now share the GIL: the input path must not wait a whole default
+        # interval for a running prediction to yield it.
+        if sys.getswitchinterval() > GIL_SWITCH_INTERVAL:
+            sys.setswitchinterval(GIL_SWITCH_INTERVAL)
         self._thread = threading.Thread(target=self._run, name='predictions', daemon=True)
         self._thread.start()
 
@@ -468,6 +480,9 @@ class _Shell:
         self._encoders: dict[str, Callable[[Any], bytes]] = {}
         #: The outputs advertised (topics.active_topics of the features that are on).
         self._output_topics = OUTPUT_TOPICS
+        #: (topic, field) published from a chunk's columns, and the others (_activate)
+        self._column_topics: list[tuple[str, str]] = []
+        self._occasional_topics: list = []
         self._input_subscriptions: list = []
         #: (subscription, callback) of the sensor inputs, which _drain_inputs takes from
         self._sensor_inputs: list = []
@@ -786,6 +801,13 @@ class _Shell:
             # serializer, as replay writes them (same bytes).
             encoder = cdr.ENCODERS.get(topic.msgtype) if topic.fast_encoding else None
             self._encoders[topic.name] = encoder or cdr_encoder(topic, RosbagsTypes())
+        # A chunk's every-row outputs published from its columns (_publish_chunk).
+        column = [t for t in self._output_topics if t.field in COLUMN_FIELDS]
+        self._column_topics = [(t.name, t.field) for t in column]
+        self._occasional_topics = [t for t in self._output_topics
+                                   if t.field not in COLUMN_FIELDS]
+        if not all(self._encoders[t.name] in COLUMN_ENCODERS for t in column):
+            self._column_topics = []
         self._subscribe_inputs(overridable)
         latched = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL,
@@ -907,24 +929,24 @@ class _Shell:
     # estimator's stamp policy compares header stamps with (estimator/stamps.py).
     def _on_joint_state(self, data: bytes, info: Any) -> None:
         self._take('joint_states', data, cdr.decode_joint_state, 'sensor_msgs/msg/JointState',
-                   joint_state_from_ros, 'add_joint_state', received_ns(info))
+                   joint_state_from_ros, 'joint_state_batch', received_ns(info))
         self._drain_inputs()
 
     def _on_odometry(self, data: bytes, info: Any) -> None:
         self._take('base', data, cdr.decode_odometry, 'nav_msgs/msg/Odometry',
-                   odometry_from_ros, 'add_base_state', received_ns(info))
+                   odometry_from_ros, 'base_state_batch', received_ns(info))
         self._drain_inputs()
 
     def _on_command(self, data: bytes, info: Any) -> None:
         self._take('command', data, cdr.decode_wrench_stamped,
-                   'geometry_msgs/msg/WrenchStamped', command_from_ros, 'add_command',
+                   'geometry_msgs/msg/WrenchStamped', command_from_ros, 'command_batch',
                    received_ns(info))
 
     def _on_pose(self, data: bytes, info: Any) -> None:
         base_link = self._estimator.robot.base_link if self._estimator else ''
         self._take('base', data, lambda d: cdr.decode_pose_stamped(d, base_link),
                    'geometry_msgs/msg/PoseStamped',
-                   lambda m: pose_stamped_from_ros(m, base_link), 'add_base_state',
+                   lambda m: pose_stamped_from_ros(m, base_link), 'base_state_batch',
                    received_ns(info))
         self._drain_inputs()
 
@@ -934,7 +956,7 @@ class _Shell:
                    lambda d: cdr.decode_pose_with_covariance_stamped(d, base_link),
                    'geometry_msgs/msg/PoseWithCovarianceStamped',
                    lambda m: pose_with_covariance_stamped_from_ros(m, base_link),
-                   'add_base_state', received_ns(info))
+                   'base_state_batch', received_ns(info))
         self._drain_inputs()
 
     def _drain_inputs(self) -> None:
@@ -1026,16 +1048,16 @@ class _Shell:
             self._reject('no_robot_model', self._model_error or 'no robot model')
             return
         rejected_before = sum(estimator.rejected.values())
-        outputs = self._estimate(lambda: getattr(estimator, method)(sample))
-        if outputs is None:
+        batch = self._estimate(lambda: getattr(estimator, method)(sample))
+        if batch is None:
             return
         if sum(estimator.rejected.values()) != rejected_before and estimator.last_rejection:
             reason = estimator.last_rejection.partition(':')[0]
             self._warn_throttled(reason, f'input rejected: {estimator.last_rejection}')
         if estimator.clock_resets != self._resets_seen:
             self._on_stamp_reset(estimator)
-        for output in outputs:
-            self._publish(output)
+        for chunk in batch.chunks:
+            self._publish_chunk(chunk)
 
     def _reject(self, reason: str, detail: str, error: bool = False) -> None:
         """Count an input the estimator did not process, and say why (throttled)."""
@@ -1089,6 +1111,47 @@ class _Shell:
         job = output.prediction_job
         if job is not None and self._worker is not None:
             self._worker.submit(job)
+
+    def _publish_chunk(self, chunk: OutputChunk) -> None:
+        """
+        Publish a processed chunk's outputs, as :meth:`_publish` would output by output.
+
+        The every-row messages are encoded from the chunk's columns at once
+        (:meth:`OutputChunk.records`, the bytes of the per-message encoders) and go
+        out topic by topic: ``~/momentum`` of every row the sample released first,
+        then the other topics; a row's predictions, diagnostics, fixed-lag rows and
+        events after them.
+        """
+        records = chunk.records() if self._column_topics else None
+        if records is None:
+            for output in chunk.outputs():
+                self._publish(output)
+            return
+        publishers, encoders = self._publishers_by_topic, self._encoders
+        if not publishers:
+            return  # deactivated
+        for name, field in self._column_topics:
+            part = records.get(field)
+            if part is not None:
+                publish = publishers[name].publish
+                for data in split(part):
+                    publish(data)
+        rows = set(chunk.extras or ()) | set(chunk.fixed_lag or ()) | set(chunk.events or ())
+        for k in sorted(rows):
+            fields = chunk.extra_fields(k)
+            for topic in self._occasional_topics:
+                sample = fields.get(topic.field)
+                if sample is not None:
+                    publishers[topic.name].publish(encoders[topic.name](sample))
+            for row in (chunk.fixed_lag.get(k) if chunk.fixed_lag else None) or ():
+                for topic in FIXED_LAG_TOPICS:
+                    publishers[topic.name].publish(
+                        encoders[topic.name](getattr(row, topic.field)))
+            for event in chunk.row_events(k) or ():
+                publishers[EVENTS_TOPIC.name].publish(encoders[EVENTS_TOPIC.name](event))
+            job = fields.get('prediction_job')
+            if job is not None and self._worker is not None:
+                self._worker.submit(job)
 
     def _publish_prediction(self, messages: Any) -> None:
         """Publish a finished prediction (worker thread), stamped with its start sample."""

@@ -42,7 +42,8 @@ from reduced_dynamics.bag.errors import BagError
 from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.bag.writer import BagWriter
 from reduced_dynamics.estimator.config import check_parameter, EstimatorConfig
-from reduced_dynamics.estimator.pipeline import Estimator, EstimatorOutput
+from reduced_dynamics.estimator.outputs import EstimatorBatch, OutputChunk
+from reduced_dynamics.estimator.pipeline import Estimator
 from reduced_dynamics.estimator.smoother import SmootherFiles
 from reduced_dynamics.bag.reader import BagReader
 from reduced_dynamics.messages import cdr
@@ -51,6 +52,7 @@ from reduced_dynamics.messages.convert import (
     pose_stamped_from_ros, pose_with_covariance_stamped_from_ros)
 from reduced_dynamics.messages.samples import JointTrajectorySample, with_receive_time
 from reduced_dynamics.messages.types import RosbagsTypes
+from reduced_dynamics.output_rows import RowWriter
 from reduced_dynamics.output_spool import OutputSpool, SMOOTHED_FIELDS
 from reduced_dynamics.params import defaults, load_params_file
 from reduced_dynamics.plot_marks import read_marks
@@ -406,48 +408,51 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                     for name, topic, encode in lagged:
                         write(topic, record_ns, encode(getattr(row, name)))
 
-            def emit(outputs: list[EstimatorOutput], final: bool = False) -> None:
-                for output in outputs:
-                    for event in output.events or ():
-                        write(events_topic, output.stamp_ns, encode_event(event))
-                    last_event_ns[0] = output.stamp_ns
+            rows_out = RowWriter(writer, encoders)
+
+            def emit(done: EstimatorBatch, final: bool = False) -> None:
+                chunks = done.chunks
+                for chunk in chunks:
+                    for k in sorted(chunk.events or ()):
+                        for event in chunk.row_events(k) or ():
+                            write(events_topic, int(chunk.stamps_ns[k]), encode_event(event))
+                last = next((int(c.stamps_ns[-1]) for c in reversed(chunks) if len(c)), None)
+                if last is not None:
+                    last_event_ns[0] = last
                 if final:
                     for event in estimator.finish_events():
                         write(events_topic, last_event_ns[0], encode_event(event))
                 if lagged:
-                    for output in outputs:
-                        if output.fixed_lag:
-                            write_lagged(output.fixed_lag, output.stamp_ns)
-                        last_ns[0] = output.stamp_ns
+                    for chunk in chunks:
+                        for k in sorted(chunk.fixed_lag or ()):
+                            if chunk.fixed_lag[k]:
+                                write_lagged(chunk.fixed_lag[k], int(chunk.stamps_ns[k]))
+                    if last is not None:
+                        last_ns[0] = last
                     if final:
                         rows = estimator.flush_fixed_lag()
                         if rows:
                             write_lagged(rows, max(last_ns[0], rows[-1].stamp_ns))
                 if spool is not None:
-                    for output in outputs:
-                        spool.hold(output)
+                    for chunk in chunks:
+                        rows_out.hold_chunk(spool, chunk)
                         if options.plots_dir:
-                            series['shape'].add((output.stamp_ns, *output.shape_state.position))
+                            shape = chunk.qbar if chunk.cyclic is None else chunk.cyclic.qhat
+                            for k, stamp in enumerate(chunk.stamps_ns.tolist()):
+                                series['shape'].add((stamp, *shape[k]))
                     if final:
-                        _write_smoothed(spool, estimator, write, series, options.plots_dir)
+                        if rows_out.columns:
+                            _write_smoothed_columns(spool, estimator, writer, series,
+                                                    options.plots_dir)
+                        else:
+                            _write_smoothed(spool, estimator, write, series, options.plots_dir)
                         spool.close()
                         files.close()
                     return
-                for output in outputs:
-                    stamp = output.stamp_ns
-                    for name, topic, encode in encoders:
-                        sample = getattr(output, name)
-                        if sample is not None:
-                            write(topic, stamp, encode(sample))
+                for chunk in chunks:
+                    rows_out.write_chunk(chunk)
                     if options.plots_dir:
-                        series['mu'].add((output.stamp_ns, *output.mu))
-                        series['rate'].add((output.stamp_ns, *output.momentum_rate.force,
-                                            *output.momentum_rate.torque))
-                        series['shape'].add((output.stamp_ns, *output.shape_state.position))
-                        if output.disturbance is not None:
-                            series['disturbance'].add((output.stamp_ns,
-                                                       *output.disturbance.force,
-                                                       *output.disturbance.torque))
+                        _plot_rows(series, chunk)
 
             batch: list = []
             last_ns = [0]  # stamp of the last output
@@ -465,7 +470,7 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                         if sample.__class__ is JointTrajectorySample:
                             # A plan applies from its arrival: what came before is
                             # processed first, as the node's callbacks would.
-                            emit(estimator.add_samples(batch).outputs())
+                            emit(estimator.add_samples(batch))
                             batch = []
                             estimator.add_trajectory(sample)
                         else:
@@ -480,7 +485,7 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                 if len(batch) >= REPLAY_BATCH:
                     # The estimator's batched path: identical outputs, a fraction of the
                     # per-sample cost (one vectorised update per chunk).
-                    emit(estimator.add_samples(batch).outputs())
+                    emit(estimator.add_samples(batch))
                     batch = []
                 if options.progress is not None and count % 256 == 0:
                     now = time.perf_counter()
@@ -490,8 +495,8 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                         options.progress.write(f'\rreplay: {100 * done:5.1f}% '
                                                f'({sum(read.values())} messages)')
                         options.progress.flush()
-            emit(estimator.add_samples(batch).outputs())
-            emit(estimator.flush_batch().outputs(), final=True)
+            emit(estimator.add_samples(batch))
+            emit(estimator.flush_batch(), final=True)
         written = {topic: count for topic, count in writer.message_counts.items() if count}
         skipped = dict(reader.skipped)
         # A --start/--end window reads part of the bag on purpose: no missing count then.
@@ -528,6 +533,59 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
                                   for a, b in marks['pulses']],
             'pulse_topic': marks['pulse_topic']}
     return summary
+
+
+def _plot_rows(series: dict, chunk: OutputChunk) -> None:
+    """Add a chunk's causal rows to the plots' series (what its outputs carry)."""
+    kernel = chunk.kernel
+    rate = kernel.wrenches(chunk.momentum_rate)
+    shape = chunk.qbar if chunk.cyclic is None else chunk.cyclic.qhat
+    disturbance = None if chunk.disturbance is None else kernel.wrenches(chunk.disturbance)
+    for k, stamp in enumerate(chunk.stamps_ns.tolist()):
+        series['mu'].add((stamp, *chunk.mu[k]))
+        series['rate'].add((stamp, *rate[k]))
+        series['shape'].add((stamp, *shape[k]))
+        if disturbance is not None:
+            series['disturbance'].add((stamp, *disturbance[k]))
+
+
+def _write_smoothed_columns(spool: OutputSpool, estimator: Estimator, writer: BagWriter,
+                            series: dict, plots: Optional[str]) -> None:
+    """
+    Write the held outputs in order, their smoothed fields from the estimator's columns.
+
+    The bag of :func:`_write_smoothed` (output by output): the held runs of rows
+    go out as blocks (:meth:`BagWriter.write_rows`), merged topic by topic with
+    as many smoothed rows.
+    """
+    recorded = estimator.step_store.outputs
+    if recorded != spool.count:
+        raise ValueError(f'{spool.count} outputs for {recorded} recorded filter rows')
+    encoders = spool.encoders
+    for smoothed in estimator.smoothed_columns():
+        for stamps, held in spool.segments():
+            one = isinstance(stamps, int)
+            rows = smoothed.take(1 if one else len(stamps))
+            records = rows['records']
+            topics, parts = [], []
+            for index, (name, topic, _) in enumerate(encoders):
+                part = records.get(name) if name in SMOOTHED_FIELDS else held.get(index)
+                if part is not None:
+                    topics.append(topic)
+                    parts.append(part)
+            if one:
+                for topic, part in zip(topics, parts):
+                    writer.write_raw(topic, stamps, part if isinstance(part, bytes)
+                                     else part[0].tobytes())
+            else:
+                writer.write_rows(topics, stamps, parts)
+            if plots:
+                rate, disturbance = rows['rate'], rows['disturbance']
+                for k, stamp in enumerate([stamps] if one else stamps.tolist()):
+                    series['mu'].add((stamp, *rows['mu'][k]))
+                    series['rate'].add((stamp, *rate[k]))
+                    if disturbance is not None:
+                        series['disturbance'].add((stamp, *disturbance[k]))
 
 
 def _write_smoothed(spool: OutputSpool, estimator: Estimator, write: Callable,

@@ -573,7 +573,7 @@ def test_an_estimator_failure_loses_one_sample_not_the_node(ros, node_factory, m
     messages = input_messages(ros, count=20)
     feed(ros, node, messages[:10])
     published = len(ros.published('~/momentum', node))
-    original = node.estimator.add_joint_state
+    original = node.estimator.joint_state_batch
     calls = []
 
     def fail_once(sample):
@@ -581,7 +581,7 @@ def test_an_estimator_failure_loses_one_sample_not_the_node(ros, node_factory, m
         if len(calls) == 1:
             raise RuntimeError('discrete gradient: no convergence')
         return original(sample)
-    monkeypatch.setattr(node.estimator, 'add_joint_state', fail_once)
+    monkeypatch.setattr(node.estimator, 'joint_state_batch', fail_once)
     feed(ros, node, messages[10:])
     assert node.estimator.rejected['estimator_error'] == 1
     assert len(ros.published('~/momentum', node)) > published

@@ -33,6 +33,8 @@ from reduced_dynamics.estimator.cyclic import CyclicColumns
 from reduced_dynamics.estimator.events import EventNotice
 from reduced_dynamics.estimator.kernel import UpdateKernel
 from reduced_dynamics.estimator.prediction import PredictionJob
+from reduced_dynamics.messages.cdr_columns import (COLUMN_ENCODERS, joint_state_records,
+                                                   stamp_columns, vector6_records)
 from reduced_dynamics.messages.samples import (Diagnostics, EventSample, JointStateSample,
                                                PosePath, ShapePrediction, trusted_sample,
                                                TwistSample, WrenchSample)
@@ -144,6 +146,11 @@ class OutputChunk:
         """Return the number of samples."""
         return len(self.stamps_ns)
 
+    @property
+    def kernel(self) -> UpdateKernel:
+        """Return the kernel of the estimator (lifts of algebra columns to wrenches)."""
+        return self._kernel
+
     def outputs(self) -> list[EstimatorOutput]:
         """Return one :class:`EstimatorOutput` per row (message-ready samples)."""
         kernel = self._kernel
@@ -180,12 +187,7 @@ class OutputChunk:
                 mu, energy)
             extra = extras.get(k) if extras else None
             if extra:
-                output.prediction, output.prediction_path, output.diagnostics = extra[:3]
-                if len(extra) > 3:
-                    output.prediction_phase_path, output.prediction_job = extra[3]
-                if len(extra) > 4:
-                    (output.prediction_horizon, output.prediction_ellipsoids,
-                     output.prediction_shape_covariance) = extra[4]
+                _set_extra(output, extra)
             if cyclic is not None:
                 output.cyclic_state = cyclic.sample(k, stamp)
             if self.mu_cov is not None:
@@ -201,6 +203,75 @@ class OutputChunk:
                                               self.mu.shape[1])
             out.append(output)
         return out
+
+    def records(self) -> Optional[dict[str, np.ndarray]]:
+        """
+        Return the every-row messages as CDR columns: field -> (K, size) uint8 arrays.
+
+        The fields (:data:`COLUMN_FIELDS`) of :meth:`outputs`' samples that every
+        row carries, row k the bytes ``cdr.ENCODERS`` gives for row k's sample
+        (messages/cdr_columns.py), without building the samples. None when a
+        stamp is not a ROS Time (the per-message encoders then say why).
+        """
+        stamps = stamp_columns(self.stamps_ns)
+        if stamps is None:
+            return None
+        kernel, world, base = self._kernel, self._world, self._base
+        out = {
+            'momentum': vector6_records(stamps, world, kernel.wrenches(self.mu)),
+            'body_momentum': vector6_records(stamps, base, kernel.wrenches(self.pi)),
+            'momentum_rate': vector6_records(stamps, world,
+                                             kernel.wrenches(self.momentum_rate)),
+            'drift_twist': vector6_records(stamps, base, kernel.twists(self.drift))}
+        cyclic = self.cyclic
+        if cyclic is None:
+            out['shape_state'] = joint_state_records(stamps, '', self._names, self.qbar,
+                                                     self.qbar_dot, self.pbar)
+        else:
+            out['shape_state'] = joint_state_records(stamps, '', cyclic.kept_names,
+                                                     cyclic.qhat, cyclic.qhat_dot,
+                                                     cyclic.phat)
+            out['cyclic_state'] = joint_state_records(stamps, '', cyclic.cyclic_names,
+                                                      cyclic.angles, cyclic.rates,
+                                                      cyclic.theta)
+        if self.disturbance is not None:
+            out['disturbance'] = vector6_records(stamps, world,
+                                                 kernel.wrenches(self.disturbance))
+        return out
+
+    def extra_fields(self, k: int) -> dict[str, Any]:
+        """Return row k's occasional fields (predictions, diagnostics) that are set."""
+        extra = self.extras.get(k) if self.extras else None
+        if not extra:
+            return {}
+        holder = _Fields()
+        _set_extra(holder, extra)
+        return {name: value for name, value in holder.__dict__.items() if value is not None}
+
+    def row_events(self, k: int) -> Optional[list[EventSample]]:
+        """Return the ``~/events`` records of row k (None: none)."""
+        if self.events and k in self.events:
+            return event_samples(self.events[k], self._kernel.wrenches, self.mu.shape[1])
+        return None
+
+
+#: The fields of :meth:`OutputChunk.records`: every row's messages, in topic order.
+COLUMN_FIELDS = ('momentum', 'body_momentum', 'shape_state', 'cyclic_state', 'momentum_rate',
+                 'disturbance', 'drift_twist')
+
+
+class _Fields:
+    """Attribute holder for :func:`_set_extra` outside an :class:`EstimatorOutput`."""
+
+
+def _set_extra(output: Any, extra: tuple) -> None:
+    """Set a row's predictions and diagnostics (a chunk's ``extras`` entry) on ``output``."""
+    output.prediction, output.prediction_path, output.diagnostics = extra[:3]
+    if len(extra) > 3:
+        output.prediction_phase_path, output.prediction_job = extra[3]
+    if len(extra) > 4:
+        (output.prediction_horizon, output.prediction_ellipsoids,
+         output.prediction_shape_covariance) = extra[4]
 
 
 class EstimatorBatch:
@@ -263,3 +334,81 @@ def smoothed_fields(kernel: UpdateKernel, blocks: Iterable[np.ndarray], world: s
                 fields['disturbance'] = trusted_sample(
                     wrench_sample, stamp, world, disturbance[k, :3], disturbance[k, 3:])
             yield fields
+
+
+class SmoothedColumns:
+    """
+    The smoothed rows (blocks of :class:`~.smoother.RowStore` records) as CDR columns.
+
+    :meth:`take` returns the next n rows whatever the blocks' sizes: ``records``
+    (field -> (n, size) uint8, the smoothed fields of :func:`smoothed_fields`
+    that are messages, each row the bytes ``cdr.ENCODERS`` gives for that
+    field's sample), ``mu``, ``rate`` and ``disturbance`` (n, 6) for the plots.
+    """
+
+    def __init__(self, kernel: UpdateKernel, blocks: Iterable[np.ndarray], world: str,
+                 base: str, command: bool) -> None:
+        """Read ``blocks`` (in order) lazily, as :meth:`take` needs them."""
+        self._kernel, self._world, self._base, self._command = kernel, world, base, command
+        self._blocks = iter(blocks)
+        self._pending: list[dict[str, Any]] = []
+        self._offset = 0
+
+    def _convert(self, block: np.ndarray) -> dict[str, Any]:
+        kernel, world, base = self._kernel, self._world, self._base
+        stamps = block['stamp_ns']
+        columns = stamp_columns(stamps)
+        if columns is None:  # not a ROS Time: the per-message encoder says why
+            bad = next(s for s in stamps.tolist() if not 0 <= s < 2**31 * 10**9)
+            COLUMN_ENCODERS[0](trusted_sample(WrenchSample, bad, world, np.zeros(3),
+                                              np.zeros(3)))
+            raise ValueError(f'ROS Time out of range: {bad} ns')  # (the encoder raised)
+        # Contiguous columns: the kernel's row products are then those of the causal run.
+        mu = np.ascontiguousarray(block['mu'])
+        rate = kernel.wrenches(np.ascontiguousarray(block['rate']))
+        out = {'mu': mu, 'rate': rate, 'disturbance': None, 'records': {
+            'momentum': vector6_records(columns, world, kernel.wrenches(mu)),
+            'body_momentum': vector6_records(columns, base, kernel.wrenches(
+                np.ascontiguousarray(block['pi']))),
+            'momentum_rate': vector6_records(columns, world, rate),
+            'drift_twist': vector6_records(columns, base, kernel.twists(
+                np.ascontiguousarray(block['drift'])))}}
+        if self._command:
+            out['disturbance'] = kernel.wrenches(np.ascontiguousarray(block['disturbance']))
+            out['records']['disturbance'] = vector6_records(columns, world,
+                                                            out['disturbance'])
+        out['count'] = len(stamps)
+        return out
+
+    def take(self, count: int) -> dict[str, Any]:
+        """Return the next ``count`` rows (ValueError if the blocks end before)."""
+        pieces = []
+        need = count
+        while need:
+            if not self._pending:
+                block = next(self._blocks, None)
+                if block is None:
+                    raise ValueError(f'the smoothed rows ended {need} rows early')
+                if len(block):
+                    self._pending.append(self._convert(block))
+                continue
+            head = self._pending[0]
+            start = self._offset
+            stop = min(head['count'], start + need)
+            pieces.append((head, start, stop))
+            need -= stop - start
+            if stop == head['count']:
+                self._pending.pop(0)
+                self._offset = 0
+            else:
+                self._offset = stop
+
+        def cut(get: Any) -> Any:
+            parts = [get(head)[a:b] for head, a, b in pieces]
+            return parts[0] if len(parts) == 1 else np.concatenate(parts)
+        first = pieces[0][0]
+        return {'mu': cut(lambda h: h['mu']), 'rate': cut(lambda h: h['rate']),
+                'disturbance': None if first['disturbance'] is None
+                else cut(lambda h: h['disturbance']),
+                'records': {name: cut(lambda h, name=name: h['records'][name])
+                            for name in first['records']}}

@@ -332,6 +332,34 @@ class Estimator(InputIntake, Timing, ChunkProcessing, Reporting, Smoothing,
         self._take_command(sample)
         return self._close_streaming()
 
+    def joint_state_batch(self, sample: JointStateSample) -> EstimatorBatch:
+        """Like :meth:`add_joint_state`, returning the outputs column-wise (the node)."""
+        self._chunk_limit = self._batch_limit
+        try:
+            self._take_joint(sample)
+        finally:
+            self._chunk_limit = 1
+        return self._streaming_batch()
+
+    def base_state_batch(self, sample: BaseStateSample) -> EstimatorBatch:
+        """Like :meth:`add_base_state`, returning the outputs column-wise (the node)."""
+        self._chunk_limit = self._batch_limit
+        try:
+            self._take_base(sample)
+        finally:
+            self._chunk_limit = 1
+        return self._streaming_batch()
+
+    def command_batch(self, sample: CommandSample) -> EstimatorBatch:
+        """Like :meth:`add_command`, returning the outputs column-wise (the node)."""
+        self._take_command(sample)
+        return self._streaming_batch()
+
+    def _streaming_batch(self) -> EstimatorBatch:
+        if self._chunk.rows:  # a joint state that waits for its base state: none
+            self._process_chunk()
+        return self._take_done()
+
     def add_samples(self, samples: Iterable[Sample]) -> EstimatorBatch:
         """
         Take joint-state, base (and command) samples in arrival order (the batched path).

@@ -45,7 +45,8 @@ import numpy as np
 
 from reduced_dynamics.estimator.core import smoother as kernels
 from reduced_dynamics.estimator.filter import FilterStep
-from reduced_dynamics.estimator.outputs import EstimatorOutput, smoothed_fields
+from reduced_dynamics.estimator.outputs import (EstimatorOutput, smoothed_fields,
+                                                SmoothedColumns)
 from reduced_dynamics.geometry.lie_group import BaseGroup
 
 #: Steps per block: ~8 MiB for the paper robot (3n = 18), big enough for large writes.
@@ -108,6 +109,12 @@ class StepStore:
         self._path = files.file(name)
         self._file = open(self._path, 'w+b')
         self._buffer = np.zeros(block, self.dtype)
+        # One view per field: item assignment into an ndarray is several times cheaper
+        # than into the fields of a structured record (np.void).
+        self._fields = tuple(self._buffer[name] for name in (
+            'stamp_ns', 'output', 'has_transition', 'transition', 'pose_pred', 'x_pred',
+            'p_pred', 'pose', 'x', 'p', 'locked_inverse'))
+        self._command = self._buffer['command'] if command else None
         self._filled = 0  # records in _buffer (not yet written)
         self._written = 0  # records in the file
         self.outputs = 0
@@ -120,21 +127,24 @@ class StepStore:
 
     def append(self, step: FilterStep) -> None:
         """Store ``step`` (its arrays are copied)."""
-        record = self._buffer[self._filled]
-        record['stamp_ns'] = step.stamp_ns
-        record['output'] = step.output
+        k = self._filled
+        (stamp, output, has_transition, transition, pose_pred, x_pred, p_pred, pose, x, p,
+         locked_inverse) = self._fields
+        stamp[k] = step.stamp_ns
+        output[k] = step.output
         if step.transition is None:
-            record['has_transition'] = False
+            # (The buffer is reused: a stale transition stays, unread, as before.)
+            has_transition[k] = False
         else:
-            record['has_transition'] = True
-            record['transition'] = step.transition
-        record['pose_pred'] = step.pose_pred
-        record['x_pred'], record['p_pred'] = step.x_pred, step.p_pred
-        record['pose'] = step.pose
-        record['x'], record['p'] = step.x, step.p
-        record['locked_inverse'] = step.locked_inverse
-        if self.command:
-            record['command'] = step.command
+            has_transition[k] = True
+            transition[k] = step.transition
+        pose_pred[k] = step.pose_pred
+        x_pred[k], p_pred[k] = step.x_pred, step.p_pred
+        pose[k] = step.pose
+        x[k], p[k] = step.x, step.p
+        locked_inverse[k] = step.locked_inverse
+        if self._command is not None:
+            self._command[k] = step.command
         self.outputs += bool(step.output)
         self._filled += 1
         if self._filled == self._block:
@@ -322,6 +332,21 @@ class Smoothing:
         try:
             yield from smoothed_fields(self.kernel, rows.blocks(), self.config.world_frame,
                                        self.robot.base_link, self.commanded_wrench)
+        finally:
+            rows.close()
+
+    def smoothed_columns(self) -> Iterator[SmoothedColumns]:
+        """
+        Yield once the smoothed rows as :class:`~.outputs.SmoothedColumns` (replay).
+
+        The same rows as :meth:`smoothed_rows`, as CDR columns; the files are
+        closed when the generator is.
+        """
+        rows = smooth_rows(self.robot.group, self.step_store, self.smoother_files,
+                           self.filter._form_rows)
+        try:
+            yield SmoothedColumns(self.kernel, rows.blocks(), self.config.world_frame,
+                                  self.robot.base_link, self.commanded_wrench)
         finally:
             rows.close()
 
