@@ -21,12 +21,21 @@ are mapped onto the model's joints and checked (finite, URDF limits and bounds,
 commanded wrenches bounded, planned trajectories checked; then the stamp policy
 (:mod:`~reduced_dynamics.estimator.stamps`) decides, and :mod:`.timing` takes
 what it accepts. Bad input is rejected with a reason and counted; it never raises.
+
+A batch (:meth:`InputIntake._take_batch`, the batched path) is validated by
+columns first: the joint states in the model's joint order and the base states
+that need no projection or message noise are stacked, checked for finite values
+and plausibility with numpy, and their base rows built in one pass (the same
+float operations as per message, the same bits). Then every message goes, in
+arrival order, through the stamp policy and synchronisation as on the streaming
+path; one that failed a column check takes the per-message path, which rejects it
+with its reason and text, in its place in the order.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Union
+from typing import Optional, Sequence, Union
 
 import numpy as np
 import pinocchio as pin
@@ -47,6 +56,9 @@ class _Identity:
 _IDENTITY = _Identity()
 #: Joint-name lists whose mapping to the model is cached (memory bound of that cache).
 NAME_MAPS_KEEP = 64
+#: Fewer messages of a kind in a batch than this are validated one by one (the column
+#: checks' numpy calls cost more than they save).
+COLUMN_MIN = 8
 
 
 def _all_finite(*arrays: np.ndarray) -> bool:
@@ -129,6 +141,142 @@ class InputIntake:
             self._stamp_result(result, True)
             return
         self._accept_joint(pending)
+
+    def _take_batch(self, samples: Sequence) -> None:
+        """Take samples in arrival order, validated by columns where that is valid."""
+        joint_class, base_class = JointStateSample, BaseStateSample
+        joints = [s for s in samples if s.__class__ is joint_class]
+        bases = [s for s in samples if s.__class__ is base_class]
+        joint_items = self._joint_columns(joints)
+        base_items = self._base_columns(bases)
+        take_joint, take_base = self._take_joint, self._take_base
+        joint_offer, base_offer = self._joint_gate.offer, self._base_gate.offer
+        accept_joint, accept_base = self._accept_joint, self._accept_base
+        stamp_result = self._stamp_result
+        joint_index = base_index = 0
+        for sample in samples:
+            kind = sample.__class__
+            if kind is joint_class:
+                pending = joint_items[joint_index]
+                joint_index += 1
+                if pending is None:
+                    take_joint(sample)
+                    continue
+                # _take_joint for a sample the columns passed: counted, then the stamp.
+                self._received_joints += 1
+                self._period_joints += 1
+                result = joint_offer(pending[0], sample.receive_ns, pending)
+                if result is ACCEPTED:
+                    accept_joint(pending)
+                else:
+                    self._stamp_result(result, True)
+            elif kind is base_class:
+                item = base_items[base_index]
+                base_index += 1
+                if item is None:
+                    take_base(sample)
+                    continue
+                self._received_bases += 1
+                self._period_bases += 1
+                result = base_offer(item[0], sample.receive_ns, item)
+                if result is ACCEPTED:
+                    accept_base(item)
+                else:
+                    stamp_result(result, False)
+            elif isinstance(sample, JointStateSample):
+                take_joint(sample)
+            elif kind is CommandSample:
+                self._take_command(sample)
+            else:
+                take_base(sample)
+
+    def _joint_columns(self, joints: list) -> list:
+        """
+        Return per joint state its queued tuple if it passes every check, else None.
+
+        Only joint states in the model's order with velocities are taken by columns:
+        others (and a failed check) go through :meth:`_take_joint`.
+        """
+        out: list = [None] * len(joints)
+        m = self._m
+        if not m or len(joints) < COLUMN_MIN:
+            return out
+        model = self.robot.shape_joint_names
+        index = [k for k, s in enumerate(joints)
+                 if (s.names is model or s.names == model) and s.velocity.size]
+        if len(index) < COLUMN_MIN:
+            return out
+        taken = [joints[k] for k in index]
+        zeros = self._zeros_m
+        efforts = [s.effort if s.effort.size else zeros for s in taken]
+        count = len(taken)
+        position = np.concatenate([s.position for s in taken]).reshape(count, m)
+        velocity = np.concatenate([s.velocity for s in taken]).reshape(count, m)
+        effort = np.concatenate(efforts).reshape(count, m)
+        finite = np.isfinite(position).all(axis=1)
+        finite &= np.isfinite(velocity).all(axis=1)
+        finite &= np.isfinite(effort).all(axis=1)
+        bounds = self._joint_bounds.get(model)
+        if bounds is None:
+            bounds = self._joint_bounds[model] = JointBounds(self.robot, self.config, model)
+        no_effort = np.fromiter((e is zeros for e in efforts), bool, count)
+        # Non-finite rows fail here too (a comparison with NaN is False).
+        with np.errstate(all='ignore'):
+            ok = finite & bounds.passes(position, velocity, effort, no_effort)
+        for k, s, effort_k, passed in zip(index, taken, efforts, ok.tolist()):
+            if passed:
+                # As _take_joint queues it: the arrays by reference.
+                out[k] = (s.stamp_ns, s.position, s.velocity, effort_k)
+        return out
+
+    def _base_columns(self, bases: list) -> list:
+        """
+        Return per base state its (stamp, row) if it passes every check, else None.
+
+        Taken by columns: a floating base, twists that need no projection, no message
+        covariance in use; with Odometry, samples with a twist. The row is what
+        :meth:`_take_base` builds (position, normalised quaternion, twist), the same
+        bits: x / sqrt(x x + y y + z z + w w) in the same order.
+        """
+        out: list = [None] * len(bases)
+        odometry = self.use_odometry
+        if len(bases) < COLUMN_MIN or not self._floating or odometry and self._project_twists:
+            return out
+        covariance = self.config.use_message_covariance
+        index = [k for k, s in enumerate(bases)
+                 if (s.twist_linear is not None) is odometry
+                 and not (covariance and (s.pose_covariance is not None
+                                          or s.twist_covariance is not None))]
+        count = len(index)
+        if count < COLUMN_MIN:
+            return out
+        taken = [bases[k] for k in index]
+        columns = [np.concatenate([s.position for s in taken]).reshape(count, 3),
+                   np.concatenate([s.orientation_xyzw for s in taken]).reshape(count, 4)]
+        twist: Optional[np.ndarray] = None
+        if odometry:
+            twist = np.concatenate(
+                (np.concatenate([s.twist_linear for s in taken]).reshape(count, 3),
+                 np.concatenate([s.twist_angular for s in taken]).reshape(count, 3)), axis=1)
+        position, quaternion = columns
+        x, y, z, w = quaternion.T
+        # (Bad rows may overflow or be NaN: they fail, and the per-message path says why.)
+        with np.errstate(all='ignore'):
+            norm = np.sqrt(x * x + y * y + z * z + w * w)
+            ok = np.isfinite(position).all(axis=1)
+            ok &= np.isfinite(quaternion).all(axis=1)
+            if twist is not None:
+                ok &= np.isfinite(twist).all(axis=1)
+            ok &= norm >= 1e-6
+            ok &= self._base_bounds.passes(position, norm, twist)
+            columns[1] = quaternion / norm[:, None]
+        if twist is not None:
+            columns.append(twist)
+        rows = np.concatenate(columns, axis=1).tolist()
+        for k, s, row, passed in zip(index, taken, rows, ok.tolist()):
+            if passed:
+                out[k] = (s.stamp_ns, row)
+        return out
 
     def _map_names(self, names: tuple[str, ...]):
         if len(set(names)) != len(names):
