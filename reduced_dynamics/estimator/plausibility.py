@@ -83,7 +83,7 @@ class JointBounds:
     def passes(self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray,
                no_effort: Optional[np.ndarray] = None) -> np.ndarray:
         """
-        Return, per row of the (count, joints) columns, whether :meth:`check` passes.
+        Return per row of the (count, joints) columns whether :meth:`check` finds nothing.
 
         The values must be finite (checked before, as on the per-message path);
         ``no_effort`` marks rows whose message had no effort (not checked).
@@ -133,7 +133,7 @@ class BaseBounds:
     def passes(self, position: np.ndarray, norm: np.ndarray,
                twist: Optional[np.ndarray]) -> np.ndarray:
         """
-        Return, per row, whether :meth:`check` passes (columns: (count, 3), (count,), (count, 6)).
+        Return per row whether :meth:`check` finds nothing (columns of 3, 1 and 6 values).
 
         ``twist`` None: the samples carry none. The sums and roots are those of
         :meth:`check`, in the same order (the same bits).
