@@ -35,7 +35,7 @@ with its reason and text, in its place in the order.
 from __future__ import annotations
 
 import math
-from typing import Optional, Sequence, Union
+from typing import Sequence, Union
 
 import numpy as np
 import pinocchio as pin
@@ -206,27 +206,35 @@ class InputIntake:
                  if (s.names is model or s.names == model) and s.velocity.size]
         if len(index) < COLUMN_MIN:
             return out
-        taken = [joints[k] for k in index]
-        zeros = self._zeros_m
-        efforts = [s.effort if s.effort.size else zeros for s in taken]
+        taken = joints if len(index) == len(joints) else [joints[k] for k in index]
         count = len(taken)
         position = np.concatenate([s.position for s in taken]).reshape(count, m)
         velocity = np.concatenate([s.velocity for s in taken]).reshape(count, m)
-        effort = np.concatenate(efforts).reshape(count, m)
-        finite = np.isfinite(position).all(axis=1)
-        finite &= np.isfinite(velocity).all(axis=1)
-        finite &= np.isfinite(effort).all(axis=1)
+        efforts = [s.effort for s in taken]
+        effort = np.concatenate(efforts)
+        no_effort = None
+        if effort.size != count * m:
+            # Some without effort (each has none or m): zeros, not checked, as per message.
+            zeros = self._zeros_m
+            efforts = [e if e.size else zeros for e in efforts]
+            no_effort = np.fromiter((e is zeros for e in efforts), bool, count)
+            effort = np.concatenate(efforts)
+        effort = effort.reshape(count, m)
         bounds = self._joint_bounds.get(model)
         if bounds is None:
             bounds = self._joint_bounds[model] = JointBounds(self.robot, self.config, model)
-        no_effort = np.fromiter((e is zeros for e in efforts), bool, count)
-        # Non-finite rows fail here too (a comparison with NaN is False).
+        # (Bad rows may be NaN: they fail, and the per-message path says why.)
         with np.errstate(all='ignore'):
-            ok = finite & bounds.passes(position, velocity, effort, no_effort)
-        for k, s, effort_k, passed in zip(index, taken, efforts, ok.tolist()):
+            ok = np.isfinite(position).all(axis=1)
+            ok &= np.isfinite(velocity).all(axis=1)
+            ok &= np.isfinite(effort).all(axis=1)
+            ok &= bounds.passes(position, velocity, effort, no_effort)
+        # As _take_joint queues them: the arrays by reference.
+        if taken is joints and ok.all():
+            return [(s.stamp_ns, s.position, s.velocity, e) for s, e in zip(taken, efforts)]
+        for k, s, e, passed in zip(index, taken, efforts, ok.tolist()):
             if passed:
-                # As _take_joint queues it: the arrays by reference.
-                out[k] = (s.stamp_ns, s.position, s.velocity, effort_k)
+                out[k] = (s.stamp_ns, s.position, s.velocity, e)
         return out
 
     def _base_columns(self, bases: list) -> list:
@@ -234,9 +242,10 @@ class InputIntake:
         Return per base state its (stamp, row) if it passes every check, else None.
 
         Taken by columns: a floating base, twists that need no projection, no message
-        covariance in use; with Odometry, samples with a twist. The row is what
-        :meth:`_take_base` builds (position, normalised quaternion, twist), the same
-        bits: x / sqrt(x x + y y + z z + w w) in the same order.
+        covariance in use; with Odometry, samples with a twist (in pose mode, without).
+        The row holds the values :meth:`_take_base` puts in its list (position,
+        normalised quaternion, twist), the same bits: x / sqrt(x x + y y + z z + w w) in
+        the same order; it is a row of one array (no list of floats per sample).
         """
         out: list = [None] * len(bases)
         odometry = self.use_odometry
@@ -250,29 +259,26 @@ class InputIntake:
         count = len(index)
         if count < COLUMN_MIN:
             return out
-        taken = [bases[k] for k in index]
-        columns = [np.concatenate([s.position for s in taken]).reshape(count, 3),
-                   np.concatenate([s.orientation_xyzw for s in taken]).reshape(count, 4)]
-        twist: Optional[np.ndarray] = None
-        if odometry:
-            twist = np.concatenate(
-                (np.concatenate([s.twist_linear for s in taken]).reshape(count, 3),
-                 np.concatenate([s.twist_angular for s in taken]).reshape(count, 3)), axis=1)
-        position, quaternion = columns
+        taken = bases if count == len(bases) else [bases[k] for k in index]
+        width = 13 if odometry else 7
+        # One (count, width) array: position, quaternion, twist (normalised in place below).
+        arrays = [a for s in taken for a in (s.position, s.orientation_xyzw, s.twist_linear,
+                                             s.twist_angular)] if odometry else \
+            [a for s in taken for a in (s.position, s.orientation_xyzw)]
+        rows = np.concatenate(arrays).reshape(count, width)
+        position, quaternion = rows[:, :3], rows[:, 3:7]
+        twist = rows[:, 7:] if odometry else None
         x, y, z, w = quaternion.T
         # (Bad rows may overflow or be NaN: they fail, and the per-message path says why.)
         with np.errstate(all='ignore'):
             norm = np.sqrt(x * x + y * y + z * z + w * w)
-            ok = np.isfinite(position).all(axis=1)
-            ok &= np.isfinite(quaternion).all(axis=1)
-            if twist is not None:
-                ok &= np.isfinite(twist).all(axis=1)
+            ok = np.isfinite(rows).all(axis=1)
             ok &= norm >= 1e-6
             ok &= self._base_bounds.passes(position, norm, twist)
-            columns[1] = quaternion / norm[:, None]
-        if twist is not None:
-            columns.append(twist)
-        rows = np.concatenate(columns, axis=1).tolist()
+            quaternion /= norm[:, None]
+        # The rows are views of one array (what the chunk stacks again in one call).
+        if taken is bases and ok.all():
+            return [(s.stamp_ns, row) for s, row in zip(taken, rows)]
         for k, s, row, passed in zip(index, taken, rows, ok.tolist()):
             if passed:
                 out[k] = (s.stamp_ns, row)

@@ -94,7 +94,12 @@ class ChunkProcessing:
         # The cheapest ways to stack these rows (arrays; lists of 13 floats).
         qbar = np.concatenate(qbar).reshape(count, m)
         qbar_dot = np.concatenate(qbar_dot).reshape(count, m)
-        bases = np.fromiter(chain.from_iterable(bases), float, count * 13).reshape(count, 13)
+        if bases[0].__class__ is np.ndarray:
+            # Rows of the batched path's base columns (estimator/intake.py): one copy.
+            bases = np.concatenate(bases).reshape(count, 13)
+        else:
+            bases = np.fromiter(chain.from_iterable(bases), float, count * 13).reshape(count,
+                                                                                       13)
         result = self.kernel.filter_inputs(qbar, qbar_dot, bases,
                                            self.config.joint_velocity_noise ** 2)
         inverse = result.inverse
