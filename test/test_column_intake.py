@@ -310,3 +310,48 @@ def test_column_bounds_pass_exactly_where_the_per_message_checks_pass():
     assert got == want and 0 < sum(got) < 500
     got = base.passes(where, norm, None).tolist()
     assert got == [base.check(p.tolist(), float(n), []) is None for p, n in zip(where, norm)]
+
+
+def test_rows_keep_the_prediction_inputs_only_when_predictions_run():
+    # processing.py: the per-row poses, states and quiet flags (in_event) serve the
+    # predictions; without them the row reads in_event only inside the detector. With
+    # predictions the outputs (estimates and predictions) are those of the messages
+    # one by one.
+    import sys
+
+    from reduced_dynamics.estimator.events import EventDetector
+
+    class Counting(EventDetector):
+        reads = 0
+
+        @property
+        def in_event(self):
+            if sys._getframe(1).f_code.co_filename.endswith('processing.py'):
+                Counting.reads += 1
+            return EventDetector.in_event.fget(self)
+
+    robot = RobotModel()
+    rng = np.random.default_rng(5)
+    stream = [sample for k in range(200) for sample in (
+        _joint(robot, rng, 10 * S + k * 10 * MS, None), _base(robot, rng, 10 * S + k * 10 * MS,
+                                                              None))]
+    for rate, per_row in ((0.0, 0), (20.0, 1)):
+        config = EstimatorConfig(prediction_rate=rate, diagnostics_rate=0.0)
+        estimator = Estimator(robot, config)
+        estimator.add_samples(stream[:20])
+        estimator.detector.__class__ = Counting
+        Counting.reads = 0
+        before = estimator.processed
+        estimator.add_samples(stream[20:])
+        assert estimator.processed - before > 150
+        assert Counting.reads == per_row * (estimator.processed - before)
+    outputs = list(_batched(Estimator(robot, config), stream, 64))[-1]
+    reference = _per_message(Estimator(robot, config), stream)
+    assert _output_bits(outputs) == _output_bits(reference)
+    paths = [(o.stamp_ns, o.prediction_path.positions.tobytes(),
+              o.prediction_path.orientations_xyzw.tobytes()) for o in outputs
+             if o.prediction_path is not None]
+    assert len(paths) > 10 and paths == [
+        (o.stamp_ns, o.prediction_path.positions.tobytes(),
+         o.prediction_path.orientations_xyzw.tobytes()) for o in reference
+        if o.prediction_path is not None]
