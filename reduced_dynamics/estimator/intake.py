@@ -169,7 +169,7 @@ class InputIntake:
                 if result is ACCEPTED:
                     accept_joint(pending)
                 else:
-                    self._stamp_result(result, True)
+                    stamp_result(result, True)
             elif kind is base_class:
                 item = base_items[base_index]
                 base_index += 1
