@@ -24,7 +24,7 @@ what it accepts. Bad input is rejected with a reason and counted; it never raise
 
 A batch (:meth:`InputIntake._take_batch`, the batched path) is validated by
 columns first: the joint states in the model's joint order and the base states
-that need no projection or message noise are stacked, checked for finite values
+of a floating base are stacked, checked for finite values
 and plausibility with numpy, and their base rows built in one pass (the same
 float operations as per message, the same bits). Then every message goes, in
 arrival order, through the stamp policy and synchronisation as on the streaming
@@ -35,7 +35,7 @@ with its reason and text, in its place in the order.
 from __future__ import annotations
 
 import math
-from typing import Sequence, Union
+from typing import Optional, Sequence, Union
 
 import numpy as np
 import pinocchio as pin
@@ -148,7 +148,7 @@ class InputIntake:
         joints = [s for s in samples if s.__class__ is joint_class]
         bases = [s for s in samples if s.__class__ is base_class]
         joint_items = self._joint_columns(joints)
-        base_items = self._base_columns(bases)
+        base_items, noisy = self._base_columns(bases)
         take_joint, take_base = self._take_joint, self._take_base
         joint_offer, base_offer = self._joint_gate.offer, self._base_gate.offer
         accept_joint, accept_base = self._accept_joint, self._accept_base
@@ -172,10 +172,17 @@ class InputIntake:
                     stamp_result(result, True)
             elif kind is base_class:
                 item = base_items[base_index]
-                base_index += 1
                 if item is None:
+                    base_index += 1
                     take_base(sample)
                     continue
+                if noisy is not None and noisy[base_index]:
+                    # The message's own noise, in its place in the order (its fallbacks
+                    # are counted as _take_base counts them): the row as a list.
+                    row = item[1]
+                    item = (item[0], self._with_message_noise(row.tolist(), sample,
+                                                              tuple(row[3:7].tolist())))
+                base_index += 1
                 self._received_bases += 1
                 self._period_bases += 1
                 result = base_offer(item[0], sample.receive_ns, item)
@@ -237,28 +244,29 @@ class InputIntake:
                 out[k] = (s.stamp_ns, s.position, s.velocity, e)
         return out
 
-    def _base_columns(self, bases: list) -> list:
+    def _base_columns(self, bases: list) -> tuple[list, Optional[list]]:
         """
         Return per base state its (stamp, row) if it passes every check, else None.
 
-        Taken by columns: a floating base, twists that need no projection, no message
-        covariance in use; with Odometry, samples with a twist (in pose mode, without).
-        The row holds the values :meth:`_take_base` puts in its list (position,
-        normalised quaternion, twist), the same bits: x / sqrt(x x + y y + z z + w w) in
-        the same order; it is a row of one array (no list of floats per sample).
+        Taken by columns: a floating base, twists that need no projection; with
+        Odometry, samples with a twist (in pose mode, without). The row holds the
+        values :meth:`_take_base` puts in its list (position, normalised quaternion,
+        twist), the same bits: x / sqrt(x x + y y + z z + w w) in the same order; it is
+        a row of one array (no list of floats per sample). Second: per base state
+        whether its message covariance is to be read (None: none is).
         """
         out: list = [None] * len(bases)
         odometry = self.use_odometry
         if len(bases) < COLUMN_MIN or not self._floating or odometry and self._project_twists:
-            return out
-        covariance = self.config.use_message_covariance
-        index = [k for k, s in enumerate(bases)
-                 if (s.twist_linear is not None) is odometry
-                 and not (covariance and (s.pose_covariance is not None
-                                          or s.twist_covariance is not None))]
+            return out, None
+        index = [k for k, s in enumerate(bases) if (s.twist_linear is not None) is odometry]
         count = len(index)
         if count < COLUMN_MIN:
-            return out
+            return out, None
+        noisy = [s.pose_covariance is not None or s.twist_covariance is not None
+                 for s in bases] if self.config.use_message_covariance else None
+        if noisy is not None and not any(noisy):
+            noisy = None
         taken = bases if count == len(bases) else [bases[k] for k in index]
         width = 13 if odometry else 7
         # One (count, width) array: position, quaternion, twist (normalised in place below).
@@ -278,11 +286,11 @@ class InputIntake:
             quaternion /= norm[:, None]
         # The rows are views of one array (what the chunk stacks again in one call).
         if taken is bases and ok.all():
-            return [(s.stamp_ns, row) for s, row in zip(taken, rows)]
+            return [(s.stamp_ns, row) for s, row in zip(taken, rows)], noisy
         for k, s, row, passed in zip(index, taken, rows, ok.tolist()):
             if passed:
                 out[k] = (s.stamp_ns, row)
-        return out
+        return out, noisy
 
     def _map_names(self, names: tuple[str, ...]):
         if len(set(names)) != len(names):
