@@ -38,14 +38,21 @@ def connection_terms(mass: np.ndarray, n: int, qbar_dot: np.ndarray, joint_varia
     connection_qd = np.empty((count, n))
     joint_cov = np.empty((count, n, n))
     eye = np.eye(n)
+    # The products go into arrays allocated once (np.dot with out: the same BLAS calls
+    # as @, gemm and gemv, so the same bits; test_filter_inputs_kernel.py).
+    coupling = np.empty((n, mass.shape[1] - n))
+    connection = np.empty((n, mass.shape[1] - n))
+    outer = np.empty((n, n))
     for k in range(count):
         locked[k] = mass[k, :n, :n]
         # solve(I, 1) in C order: numpy's inv (LAPACK gesv), bit for bit.
         inv = np.ascontiguousarray(np.linalg.solve(locked[k], eye))
         inverse[k] = inv
-        connection = inv @ np.ascontiguousarray(mass[k, :n, n:])
-        connection_qd[k] = connection @ qbar_dot[k]
-        joint_cov[k] = joint_variance * (connection @ connection.T)
+        coupling[:, :] = mass[k, :n, n:]
+        np.dot(inv, coupling, connection)
+        np.dot(connection, qbar_dot[k], connection_qd[k])
+        np.dot(connection, connection.T, outer)
+        joint_cov[k] = joint_variance * outer
     return locked, inverse, connection_qd, joint_cov
 
 
