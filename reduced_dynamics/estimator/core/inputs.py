@@ -74,10 +74,18 @@ def chunk_terms(mass: np.ndarray, n: int, qbar_dot: np.ndarray, quaternions: np.
                                                                  joint_variance)
     pbar = np.empty((count, m))
     rotation = np.empty((count, 3, 3))
+    # (Arrays allocated once, np.dot with out: the same gemv calls as @.)
+    shape_block = np.empty((m, m))
+    coupling = np.empty((n, m))
+    shape_qd = np.empty(m)
+    coupled = np.empty(m)
     for k in range(count):
         if with_pbar:
-            shape_qd = np.ascontiguousarray(mass[k, n:, n:]) @ qbar_dot[k]
-            pbar[k] = shape_qd - connection_qd[k] @ np.ascontiguousarray(mass[k, :n, n:])
+            shape_block[:, :] = mass[k, n:, n:]
+            coupling[:, :] = mass[k, :n, n:]
+            np.dot(shape_block, qbar_dot[k], shape_qd)
+            np.dot(connection_qd[k], coupling, coupled)
+            pbar[k] = shape_qd - coupled
         x, y, z, w = quaternions[k, 0], quaternions[k, 1], quaternions[k, 2], quaternions[k, 3]
         tx, ty, tz = 2.0 * x, 2.0 * y, 2.0 * z
         twx, twy, twz = tx * w, ty * w, tz * w
@@ -103,8 +111,9 @@ def drift_energy(inverse: np.ndarray, pi: np.ndarray, qbar_dot: np.ndarray,
     drift = np.empty((count, n))
     energy = np.empty(count)
     for k in range(count):
-        twist = inverse[k] @ pi[k]
-        drift[k] = twist
+        # (Straight into the row: np.dot with out, the same gemv as @.)
+        twist = drift[k]
+        np.dot(inverse[k], pi[k], twist)
         energy[k] = 0.5 * (np.dot(pi[k], twist) + np.dot(qbar_dot[k], pbar[k]))
     return drift, energy
 
