@@ -46,8 +46,8 @@ def connection_terms(mass: np.ndarray, n: int, qbar_dot: np.ndarray, joint_varia
     for k in range(count):
         locked[k] = mass[k, :n, :n]
         # solve(I, 1) in C order: numpy's inv (LAPACK gesv), bit for bit.
-        inv = np.ascontiguousarray(np.linalg.solve(locked[k], eye))
-        inverse[k] = inv
+        inverse[k] = np.linalg.solve(locked[k], eye)
+        inv = inverse[k]
         coupling[:, :] = mass[k, :n, n:]
         np.dot(inv, coupling, connection)
         np.dot(connection, qbar_dot[k], connection_qd[k])
