@@ -23,7 +23,7 @@ commanded wrenches bounded, planned trajectories checked; then the stamp policy
 what it accepts. Bad input is rejected with a reason and counted; it never raises.
 
 A batch (:meth:`InputIntake._take_batch`, the batched path) is validated by
-columns first: the joint states in the model's joint order and the base states
+columns first (:mod:`.intake_columns`): the joint states in the model's joint order and the base states
 of a floating base are stacked, checked for finite values
 and plausibility with numpy, and their base rows built in one pass (the same
 float operations as per message, the same bits). Then every message goes, in
@@ -40,6 +40,7 @@ from typing import Optional, Sequence, Union
 import numpy as np
 import pinocchio as pin
 
+from reduced_dynamics.estimator import intake_columns as columns
 from reduced_dynamics.estimator.covariance import CovarianceReader, NoisyRow
 from reduced_dynamics.estimator.outputs import EstimatorOutput
 from reduced_dynamics.estimator.plausibility import JointBounds
@@ -198,99 +199,22 @@ class InputIntake:
                 take_base(sample)
 
     def _joint_columns(self, joints: list) -> list:
-        """
-        Return per joint state its queued tuple if it passes every check, else None.
-
-        Only joint states in the model's order with velocities are taken by columns:
-        others (and a failed check) go through :meth:`_take_joint`.
-        """
-        out: list = [None] * len(joints)
-        m = self._m
-        if not m or len(joints) < COLUMN_MIN:
-            return out
+        """Return per joint state its queued tuple if it passes every check, else None."""
         model = self.robot.shape_joint_names
-        index = [k for k, s in enumerate(joints)
-                 if (s.names is model or s.names == model) and s.velocity.size]
-        if len(index) < COLUMN_MIN:
-            return out
-        taken = joints if len(index) == len(joints) else [joints[k] for k in index]
-        count = len(taken)
-        position = np.concatenate([s.position for s in taken]).reshape(count, m)
-        velocity = np.concatenate([s.velocity for s in taken]).reshape(count, m)
-        efforts = [s.effort for s in taken]
-        effort = np.concatenate(efforts)
-        no_effort = None
-        if effort.size != count * m:
-            # Some without effort (each has none or m): zeros, not checked, as per message.
-            zeros = self._zeros_m
-            efforts = [e if e.size else zeros for e in efforts]
-            no_effort = np.fromiter((e is zeros for e in efforts), bool, count)
-            effort = np.concatenate(efforts)
-        effort = effort.reshape(count, m)
+        if not self._m or len(joints) < COLUMN_MIN:
+            return [None] * len(joints)
         bounds = self._joint_bounds.get(model)
         if bounds is None:
             bounds = self._joint_bounds[model] = JointBounds(self.robot, self.config, model)
-        # (Bad rows may be NaN: they fail, and the per-message path says why.)
-        with np.errstate(all='ignore'):
-            ok = np.isfinite(position).all(axis=1)
-            ok &= np.isfinite(velocity).all(axis=1)
-            ok &= np.isfinite(effort).all(axis=1)
-            ok &= bounds.passes(position, velocity, effort, no_effort)
-        # As _take_joint queues them: the arrays by reference.
-        if taken is joints and ok.all():
-            return [(s.stamp_ns, s.position, s.velocity, e) for s, e in zip(taken, efforts)]
-        for k, s, e, passed in zip(index, taken, efforts, ok.tolist()):
-            if passed:
-                out[k] = (s.stamp_ns, s.position, s.velocity, e)
-        return out
+        return columns.joint_columns(joints, model, bounds, self._zeros_m, COLUMN_MIN)
 
     def _base_columns(self, bases: list) -> tuple[list, Optional[list]]:
-        """
-        Return per base state its (stamp, row) if it passes every check, else None.
-
-        Taken by columns: a floating base, twists that need no projection; with
-        Odometry, samples with a twist (in pose mode, without). The row holds the
-        values :meth:`_take_base` puts in its list (position, normalised quaternion,
-        twist), the same bits: x / sqrt(x x + y y + z z + w w) in the same order; it is
-        a row of one array (no list of floats per sample). Second: per base state
-        whether its message covariance is to be read (None: none is).
-        """
-        out: list = [None] * len(bases)
+        """Return per base state its (stamp, row) if it passes every check, and the noisy."""
         odometry = self.use_odometry
         if len(bases) < COLUMN_MIN or not self._floating or odometry and self._project_twists:
-            return out, None
-        index = [k for k, s in enumerate(bases) if (s.twist_linear is not None) is odometry]
-        count = len(index)
-        if count < COLUMN_MIN:
-            return out, None
-        noisy = [s.pose_covariance is not None or s.twist_covariance is not None
-                 for s in bases] if self.config.use_message_covariance else None
-        if noisy is not None and not any(noisy):
-            noisy = None
-        taken = bases if count == len(bases) else [bases[k] for k in index]
-        width = 13 if odometry else 7
-        # One (count, width) array: position, quaternion, twist (normalised in place below).
-        arrays = [a for s in taken for a in (s.position, s.orientation_xyzw, s.twist_linear,
-                                             s.twist_angular)] if odometry else \
-            [a for s in taken for a in (s.position, s.orientation_xyzw)]
-        rows = np.concatenate(arrays).reshape(count, width)
-        position, quaternion = rows[:, :3], rows[:, 3:7]
-        twist = rows[:, 7:] if odometry else None
-        x, y, z, w = quaternion.T
-        # (Bad rows may overflow or be NaN: they fail, and the per-message path says why.)
-        with np.errstate(all='ignore'):
-            norm = np.sqrt(x * x + y * y + z * z + w * w)
-            ok = np.isfinite(rows).all(axis=1)
-            ok &= norm >= 1e-6
-            ok &= self._base_bounds.passes(position, norm, twist)
-            quaternion /= norm[:, None]
-        # The rows are views of one array (what the chunk stacks again in one call).
-        if taken is bases and ok.all():
-            return [(s.stamp_ns, row) for s, row in zip(taken, rows)], noisy
-        for k, s, row, passed in zip(index, taken, rows, ok.tolist()):
-            if passed:
-                out[k] = (s.stamp_ns, row)
-        return out, noisy
+            return [None] * len(bases), None
+        return columns.base_columns(bases, odometry, self.config.use_message_covariance,
+                                    self._base_bounds, COLUMN_MIN)
 
     def _map_names(self, names: tuple[str, ...]):
         if len(set(names)) != len(names):
