@@ -23,13 +23,13 @@ commanded wrenches bounded, planned trajectories checked; then the stamp policy
 what it accepts. Bad input is rejected with a reason and counted; it never raises.
 
 A batch (:meth:`InputIntake._take_batch`, the batched path) is validated by
-columns first (:mod:`.intake_columns`): the joint states in the model's joint order and the base states
-of a floating base are stacked, checked for finite values
-and plausibility with numpy, and their base rows built in one pass (the same
-float operations as per message, the same bits). Then every message goes, in
-arrival order, through the stamp policy and synchronisation as on the streaming
-path; one that failed a column check takes the per-message path, which rejects it
-with its reason and text, in its place in the order.
+columns first (:mod:`.intake_columns`): the joint states in the model's joint
+order and the base states of a floating base are stacked, checked for finite
+values and plausibility with numpy, and their base rows built in one pass (the
+same float operations as per message, the same bits). Then every message goes,
+in arrival order, through the stamp policy and synchronisation as on the
+streaming path; one that failed a column check takes the per-message path, which
+rejects it with its reason and text, in its place in the order.
 """
 
 from __future__ import annotations
