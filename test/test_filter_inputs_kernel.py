@@ -35,7 +35,8 @@ def _numpy_terms(mass: np.ndarray, n: int, qbar_dot: np.ndarray,
 def test_connection_terms_equal_the_stacked_numpy_calls() -> None:
     """Random positive definite mass matrices: one row (streaming) and chunks."""
     rng = np.random.default_rng(0)
-    for n, m in ((6, 6), (6, 3), (3, 2), (6, 24), (6, 1)):
+    # (m = 0: a base-only robot, the products of empty blocks are zeros.)
+    for n, m in ((6, 6), (6, 3), (3, 2), (6, 24), (6, 1), (6, 0), (3, 0)):
         for count in (1, 7, 40):
             root = rng.standard_normal((count, n + m, n + m))
             mass = root @ np.swapaxes(root, 1, 2) + (n + m) * np.eye(n + m)

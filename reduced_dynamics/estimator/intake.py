@@ -21,16 +21,26 @@ are mapped onto the model's joints and checked (finite, URDF limits and bounds,
 commanded wrenches bounded, planned trajectories checked; then the stamp policy
 (:mod:`~reduced_dynamics.estimator.stamps`) decides, and :mod:`.timing` takes
 what it accepts. Bad input is rejected with a reason and counted; it never raises.
+
+A batch (:meth:`InputIntake._take_batch`, the batched path) is validated by
+columns first (:mod:`.intake_columns`): the joint states in the model's joint
+order and the base states of a floating base are stacked, checked for finite
+values and plausibility with numpy, and their base rows built in one pass (the
+same float operations as per message, the same bits). Then every message goes,
+in arrival order, through the stamp policy and synchronisation as on the
+streaming path; one that failed a column check takes the per-message path, which
+rejects it with its reason and text, in its place in the order.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Union
+from typing import Optional, Sequence, Union
 
 import numpy as np
 import pinocchio as pin
 
+from reduced_dynamics.estimator import intake_columns as columns
 from reduced_dynamics.estimator.covariance import CovarianceReader, NoisyRow
 from reduced_dynamics.estimator.outputs import EstimatorOutput
 from reduced_dynamics.estimator.plausibility import JointBounds
@@ -47,6 +57,9 @@ class _Identity:
 _IDENTITY = _Identity()
 #: Joint-name lists whose mapping to the model is cached (memory bound of that cache).
 NAME_MAPS_KEEP = 64
+#: Fewer messages of a kind in a batch than this are validated one by one (the column
+#: checks' numpy calls cost more than they save).
+COLUMN_MIN = 8
 
 
 def _all_finite(*arrays: np.ndarray) -> bool:
@@ -129,6 +142,79 @@ class InputIntake:
             self._stamp_result(result, True)
             return
         self._accept_joint(pending)
+
+    def _take_batch(self, samples: Sequence) -> None:
+        """Take samples in arrival order, validated by columns where that is valid."""
+        joint_class, base_class = JointStateSample, BaseStateSample
+        joints = [s for s in samples if s.__class__ is joint_class]
+        bases = [s for s in samples if s.__class__ is base_class]
+        joint_items = self._joint_columns(joints)
+        base_items, noisy = self._base_columns(bases)
+        take_joint, take_base = self._take_joint, self._take_base
+        joint_offer, base_offer = self._joint_gate.offer, self._base_gate.offer
+        accept_joint, accept_base = self._accept_joint, self._accept_base
+        stamp_result = self._stamp_result
+        joint_index = base_index = 0
+        for sample in samples:
+            kind = sample.__class__
+            if kind is joint_class:
+                pending = joint_items[joint_index]
+                joint_index += 1
+                if pending is None:
+                    take_joint(sample)
+                    continue
+                # _take_joint for a sample the columns passed: counted, then the stamp.
+                self._received_joints += 1
+                self._period_joints += 1
+                result = joint_offer(pending[0], sample.receive_ns, pending)
+                if result is ACCEPTED:
+                    accept_joint(pending)
+                else:
+                    stamp_result(result, True)
+            elif kind is base_class:
+                item = base_items[base_index]
+                if item is None:
+                    base_index += 1
+                    take_base(sample)
+                    continue
+                if noisy is not None and noisy[base_index]:
+                    # The message's own noise, in its place in the order (its fallbacks
+                    # are counted as _take_base counts them): the row as a list.
+                    row = item[1]
+                    item = (item[0], self._with_message_noise(row.tolist(), sample,
+                                                              tuple(row[3:7].tolist())))
+                base_index += 1
+                self._received_bases += 1
+                self._period_bases += 1
+                result = base_offer(item[0], sample.receive_ns, item)
+                if result is ACCEPTED:
+                    accept_base(item)
+                else:
+                    stamp_result(result, False)
+            elif isinstance(sample, JointStateSample):
+                take_joint(sample)
+            elif kind is CommandSample:
+                self._take_command(sample)
+            else:
+                take_base(sample)
+
+    def _joint_columns(self, joints: list) -> list:
+        """Return per joint state its queued tuple if it passes every check, else None."""
+        model = self.robot.shape_joint_names
+        if not self._m or len(joints) < COLUMN_MIN:
+            return [None] * len(joints)
+        bounds = self._joint_bounds.get(model)
+        if bounds is None:
+            bounds = self._joint_bounds[model] = JointBounds(self.robot, self.config, model)
+        return columns.joint_columns(joints, model, bounds, self._zeros_m, COLUMN_MIN)
+
+    def _base_columns(self, bases: list) -> tuple[list, Optional[list]]:
+        """Return per base state its (stamp, row) if it passes every check, and the noisy."""
+        odometry = self.use_odometry
+        if len(bases) < COLUMN_MIN or not self._floating or odometry and self._project_twists:
+            return [None] * len(bases), None
+        return columns.base_columns(bases, odometry, self.config.use_message_covariance,
+                                    self._base_bounds, COLUMN_MIN)
 
     def _map_names(self, names: tuple[str, ...]):
         if len(set(names)) != len(names):

@@ -368,16 +368,12 @@ class Estimator(InputIntake, Timing, ChunkProcessing, Reporting, Smoothing,
         :meth:`add_command` on each in turn, with the same outputs, rejections and
         events, but the update is vectorised over chunks of samples.
         """
-        take_joint, take_base = self._take_joint, self._take_base
+        if not isinstance(samples, (list, tuple)):
+            samples = list(samples)
         self._chunk_limit = self._batch_limit
         try:
-            for sample in samples:
-                if sample.__class__ is JointStateSample or isinstance(sample, JointStateSample):
-                    take_joint(sample)
-                elif sample.__class__ is CommandSample:
-                    self._take_command(sample)
-                else:
-                    take_base(sample)
+            # Validation by columns, then per message in order (estimator/intake.py).
+            self._take_batch(samples)
             self._process_chunk()
         finally:
             self._chunk_limit = 1

@@ -94,7 +94,12 @@ class ChunkProcessing:
         # The cheapest ways to stack these rows (arrays; lists of 13 floats).
         qbar = np.concatenate(qbar).reshape(count, m)
         qbar_dot = np.concatenate(qbar_dot).reshape(count, m)
-        bases = np.fromiter(chain.from_iterable(bases), float, count * 13).reshape(count, 13)
+        if bases[0].__class__ is np.ndarray:
+            # Rows of the batched path's base columns (estimator/intake.py): one copy.
+            bases = np.concatenate(bases).reshape(count, 13)
+        else:
+            bases = np.fromiter(chain.from_iterable(bases), float, count * 13).reshape(count,
+                                                                                       13)
         result = self.kernel.filter_inputs(qbar, qbar_dot, bases,
                                            self.config.joint_velocity_noise ** 2)
         inverse = result.inverse
@@ -121,6 +126,9 @@ class ChunkProcessing:
         filter_measurements = self._filter_measurements
         # Ad_g on the subalgebra: the whole algebra's is the pose's action (filter._adjoint).
         whole = flt._whole
+        # Poses, states and quiet flags serve the predictions only (_per_sample); nothing
+        # in the loop starts or ends one, so this holds for the whole chunk.
+        predicting = self.predictor.active or self._prediction_enabled()
         for k in range(count):
             stamp = stamp_list[k]
             prior = None
@@ -179,13 +187,14 @@ class ChunkProcessing:
                             mu_cov[k] if disturbance is None else None, measured_mu)
             if detector.notices:
                 events[k] = detector.take_notices()
-            poses.append(g)
-            # Commanded wrench: the total wrench (delivered command + disturbance) at this
-            # row is what mu does over a prediction from it.
-            states.append((x, p) if disturbance is None else (x, p, rate[k], w_cov[k]))
-            # Predictions assume mu constant: none starts while an event is under way
-            # (not while an ended event's record waits out its horizon: in_event).
-            quiet.append(not detector.in_event)
+            if predicting:
+                poses.append(g)
+                # Commanded wrench: the total wrench (delivered command + disturbance) at
+                # this row is what mu does over a prediction from it.
+                states.append((x, p) if disturbance is None else (x, p, rate[k], w_cov[k]))
+                # Predictions assume mu constant: none starts while an event is under way
+                # (not while an ended event's record waits out its horizon: in_event).
+                quiet.append(not detector.in_event)
         # Drift twist I^-1 pi and the reduced energy (5.36) from the filtered momentum,
         # 1/2 pi.I^-1 pi + 1/2 pbar.qbar_dot: one compiled call, the same per row whatever
         # the chunk (core/inputs.py).
@@ -198,7 +207,7 @@ class ChunkProcessing:
             xi_hat = drift - result.connection_qd
             cyclic = self._cyclic_view.columns(result.mass, xi_hat, qbar, qbar_dot)
             self._last_theta = cyclic.theta[-1]
-        if self.predictor.active or self._prediction_enabled():
+        if predicting:
             self._per_sample(stamp_list, qbar, qbar_dot, taus, result, extras, rejected_at,
                              cyclic, poses, mu, quiet, states)
         self.latest_state = (stamp_list[-1], result.rotation[-1], result.translation[-1],

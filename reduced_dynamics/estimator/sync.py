@@ -70,8 +70,9 @@ class BaseBuffer:
     """
     A short history of base samples, strictly increasing in stamp.
 
-    Samples are held as rows of plain floats (what the update stacks for a whole
-    chunk); a ``pin.SE3`` is built, once, only when an interpolation needs it.
+    Samples are held as rows of plain floats, or rows of a float array (the batched
+    path's base columns), what the update stacks for a whole chunk; a ``pin.SE3``
+    is built, once, only when an interpolation needs it.
     """
 
     def __init__(self, keep: int = 64) -> None:

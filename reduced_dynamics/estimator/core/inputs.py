@@ -38,14 +38,21 @@ def connection_terms(mass: np.ndarray, n: int, qbar_dot: np.ndarray, joint_varia
     connection_qd = np.empty((count, n))
     joint_cov = np.empty((count, n, n))
     eye = np.eye(n)
+    # The products go into arrays allocated once (np.dot with out: the same BLAS calls
+    # as @, gemm and gemv, so the same bits; test_filter_inputs_kernel.py).
+    coupling = np.empty((n, mass.shape[1] - n))
+    connection = np.empty((n, mass.shape[1] - n))
+    outer = np.empty((n, n))
     for k in range(count):
         locked[k] = mass[k, :n, :n]
         # solve(I, 1) in C order: numpy's inv (LAPACK gesv), bit for bit.
-        inv = np.ascontiguousarray(np.linalg.solve(locked[k], eye))
-        inverse[k] = inv
-        connection = inv @ np.ascontiguousarray(mass[k, :n, n:])
-        connection_qd[k] = connection @ qbar_dot[k]
-        joint_cov[k] = joint_variance * (connection @ connection.T)
+        inverse[k] = np.linalg.solve(locked[k], eye)
+        inv = inverse[k]
+        coupling[:, :] = mass[k, :n, n:]
+        np.dot(inv, coupling, connection)
+        np.dot(connection, qbar_dot[k], connection_qd[k])
+        np.dot(connection, connection.T, outer)
+        joint_cov[k] = joint_variance * outer
     return locked, inverse, connection_qd, joint_cov
 
 
@@ -67,10 +74,18 @@ def chunk_terms(mass: np.ndarray, n: int, qbar_dot: np.ndarray, quaternions: np.
                                                                  joint_variance)
     pbar = np.empty((count, m))
     rotation = np.empty((count, 3, 3))
+    # (Arrays allocated once, np.dot with out: the same gemv calls as @.)
+    shape_block = np.empty((m, m))
+    coupling = np.empty((n, m))
+    shape_qd = np.empty(m)
+    coupled = np.empty(m)
     for k in range(count):
         if with_pbar:
-            shape_qd = np.ascontiguousarray(mass[k, n:, n:]) @ qbar_dot[k]
-            pbar[k] = shape_qd - connection_qd[k] @ np.ascontiguousarray(mass[k, :n, n:])
+            shape_block[:, :] = mass[k, n:, n:]
+            coupling[:, :] = mass[k, :n, n:]
+            np.dot(shape_block, qbar_dot[k], shape_qd)
+            np.dot(connection_qd[k], coupling, coupled)
+            pbar[k] = shape_qd - coupled
         x, y, z, w = quaternions[k, 0], quaternions[k, 1], quaternions[k, 2], quaternions[k, 3]
         tx, ty, tz = 2.0 * x, 2.0 * y, 2.0 * z
         twx, twy, twz = tx * w, ty * w, tz * w
@@ -96,8 +111,9 @@ def drift_energy(inverse: np.ndarray, pi: np.ndarray, qbar_dot: np.ndarray,
     drift = np.empty((count, n))
     energy = np.empty(count)
     for k in range(count):
-        twist = inverse[k] @ pi[k]
-        drift[k] = twist
+        # (Straight into the row: np.dot with out, the same gemv as @.)
+        twist = drift[k]
+        np.dot(inverse[k], pi[k], twist)
         energy[k] = 0.5 * (np.dot(pi[k], twist) + np.dot(qbar_dot[k], pbar[k]))
     return drift, energy
 
