@@ -296,3 +296,70 @@ def position_ramps(times: np.ndarray, starts: np.ndarray, ends: np.ndarray, ramp
             ramp[i, k] = r
             timed[i, k] = r * t
             square[i, k] = r * r
+
+
+@njit(cache=True)
+def _selected(x: float, mapped: bool, scale: float) -> float:
+    """Return an entry of E^T X E / scale as numpy's products give it (E selects coordinates)."""
+    # A 0/1 selection product is exact: the entry plus +0.0 (a -0.0 turns +0.0) where
+    # selected, +0.0 elsewhere; then divided as numpy divided it.
+    return ((x + 0.0) if mapped else 0.0) / scale
+
+
+@njit(cache=True)
+def pulse_normals(block: np.ndarray, rhs_block: np.ndarray, cross: np.ndarray,
+                  square: np.ndarray, score: np.ndarray, moment: np.ndarray,
+                  timed: np.ndarray, moment2: np.ndarray, pulled: np.ndarray,
+                  linear: np.ndarray, mass: float, mass2: float, with_positions: bool,
+                  normal: np.ndarray, rhs: np.ndarray) -> None:
+    """
+    Write MomentumBlocks.locate's normal equations, one per pulse fit, as numpy wrote them.
+
+    Unknowns (mu0, c0, J): ``block`` and ``rhs_block`` are the (mu0, c0) part, the
+    same in every fit; per fit f the twists' sums ``cross`` (sum r Lambda), ``square``
+    (sum r^2 Lambda) (flat n x n) and ``score`` (sum r Lambda y), and with positions
+    the ramp integrals' sums ``moment`` (sum R P), ``timed`` (sum R t P), ``moment2``
+    (sum R^2 P) (flat d x d) and ``pulled`` (sum R P c). Each entry is the sum numpy's
+    assignments and in-place additions formed, in their order (the same bits).
+    """
+    n = score.shape[1]
+    d = linear.shape[0]
+    m = block.shape[0]
+    jj = n + d
+    where = np.full(n, -1, dtype=np.int64)  # the linear coordinate's index, -1: none
+    for i in range(d):
+        where[linear[i]] = i
+    for f in range(cross.shape[0]):
+        for a in range(m):
+            for b in range(m):
+                normal[f, a, b] = block[a, b]
+            rhs[f, a] = rhs_block[a]
+        for a in range(n):
+            ia = where[a]
+            for b in range(n):
+                ib = where[b]
+                up = cross[f, b * n + a]  # the (mu0, J) block: cross transposed
+                low = cross[f, a * n + b]
+                both = square[f, a * n + b]
+                if with_positions:
+                    mapped = ia >= 0 and ib >= 0
+                    k = ia * d + ib
+                    coupling = _selected(timed[f, k] if mapped else 0.0, mapped, mass2)
+                    up += coupling
+                    low += coupling
+                    both += _selected(moment2[f, k] if mapped else 0.0, mapped, mass2)
+                normal[f, a, jj + b] = up
+                normal[f, jj + a, b] = low
+                normal[f, jj + a, jj + b] = both
+            value = score[f, a]
+            if with_positions:
+                value += _selected(pulled[f, ia] if ia >= 0 else 0.0, ia >= 0, mass)
+            rhs[f, jj + a] = value
+            for c in range(d):
+                column = row = 0.0
+                if with_positions:
+                    column += _selected(moment[f, c * d + ia] if ia >= 0 else 0.0, ia >= 0,
+                                        mass)
+                    row += _selected(moment[f, ia * d + c] if ia >= 0 else 0.0, ia >= 0, mass)
+                normal[f, n + c, jj + a] = column
+                normal[f, jj + a, n + c] = row
