@@ -327,6 +327,136 @@ def test_locate_keeps_its_ramps_work_space_without_changing_a_bit(monkeypatch) -
     assert kept[0] == kept[2] and kept[0] != kept[1]
 
 
+def _numpy_locate(test: MomentumBlocks, stamp_ns: int, window: int,
+                  floor_ns: Optional[int]) -> tuple:
+    """Return locate's detection, normal equations and right-hand sides as numpy built them."""
+    stamps = test._stamps[:test._end]
+    lo_ns = stamp_ns - 3 * int(test._lags_ns[window])
+    lo_ns = lo_ns if floor_ns is None else max(lo_ns, floor_ns)
+    lo = max(int(np.searchsorted(stamps, lo_ns, 'right')) - 1, -1)
+    hi = test._end - 1
+    index = np.arange(lo + 1, hi + 1)
+    previous = np.concatenate(([lo], index[:-1]))
+    first, low = previous < 0, np.maximum(previous, 0)
+    info_k = test._info[index] - np.where(first[:, None, None], 0.0, test._info[low])
+    score_k = test._score[index] - np.where(first[:, None], 0.0, test._score[low])
+    n = test.n
+    times = (stamps[index] - stamps[hi]) * 1e-9
+    grid = np.unique(np.linspace(0, len(index) - 1, 40).round().astype(int))
+    starts, ends = np.meshgrid(times[grid], times[grid], indexing='ij')
+    keep = ends > starts
+    starts, ends = starts[keep], ends[keep]
+    ramp = np.clip((times[None, :] - starts[:, None]) / (ends - starts)[:, None], 0.0, 1.0)
+    flat_info = info_k.reshape(len(index), n * n)
+    cross = (ramp @ flat_info).reshape(-1, n, n)
+    d = len(test.linear)
+    size = 2 * n + d
+    normal = np.zeros((len(starts), size, size))
+    rhs = np.zeros((len(starts), size))
+    mu0, c0, jj = slice(0, n), slice(n, n + d), slice(size - n, size)
+    normal[:, mu0, mu0] = flat_info.sum(axis=0).reshape(n, n)
+    normal[:, jj, mu0] = cross
+    normal[:, mu0, jj] = cross.transpose(0, 2, 1)
+    normal[:, jj, jj] = ((ramp ** 2) @ flat_info).reshape(-1, n, n)
+    rhs[:, mu0] = score_k.sum(axis=0)
+    rhs[:, jj] = ramp @ score_k
+    s0, _, _, y0, _, counts = test._positions
+    present = (counts[index] - np.where(first, 0, counts[low])) > 0 if d else index < 0
+    if present.sum() >= 2:
+        lam = (s0[index] - np.where(first[:, None, None], 0.0, s0[low]))[present]
+        weighted = (y0[index] - np.where(first[:, None], 0.0, y0[low]))[present]
+        t = times[present]
+        c = np.linalg.solve(lam, weighted[..., None])[..., 0]
+        c = c - c.mean(axis=0)
+        span = (ends - starts)[:, None]
+        integral = np.clip(t[None, :] - starts[:, None], 0.0, span) ** 2 / (2.0 * span) \
+            + np.maximum(t[None, :] - ends[:, None], 0.0)
+        flat = lam.reshape(len(t), d * d)
+        sums = {name: (weights @ flat).reshape(-1, d, d) for name, weights in (
+            ('R', integral), ('tR', integral * t[None, :]), ('RR', integral ** 2))}
+        p0, p1, p2 = (((t ** j)[None, :] @ flat).reshape(d, d) for j in range(3))
+        pc = np.einsum('kij,kj->ki', lam, c)
+        select = np.zeros((d, n))
+        select[np.arange(d), test.linear] = 1.0
+        st, mass = select.T, test.mass
+        normal[:, mu0, mu0] += st @ p2 @ select / mass ** 2
+        normal[:, mu0, c0] += st @ p1 / mass
+        normal[:, c0, mu0] += p1 @ select / mass
+        normal[:, c0, c0] += p0
+        coupling = st @ sums['tR'] @ select / mass ** 2
+        normal[:, mu0, jj] += coupling
+        normal[:, jj, mu0] += coupling
+        normal[:, c0, jj] += sums['R'] @ select / mass
+        normal[:, jj, c0] += st @ sums['R'] / mass
+        normal[:, jj, jj] += st @ sums['RR'] @ select / mass ** 2
+        rhs[:, mu0] += (st @ (t @ pc)) / mass
+        rhs[:, c0] += pc.sum(axis=0)
+        rhs[:, jj] += (integral @ pc) @ select / mass
+    nuisance = slice(0, size - n)
+    try:
+        inverse = np.linalg.inv(normal[:, nuisance, nuisance])
+        couple = normal[:, jj, nuisance]
+        schur = normal[:, jj, jj] - couple @ inverse @ couple.transpose(0, 2, 1)
+        residual = rhs[:, jj] - (couple @ (inverse @ rhs[:, nuisance, None]))[..., 0]
+        impulse = np.linalg.solve(schur, residual[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        impulse = residual = np.zeros((len(starts), n))
+    values = np.einsum('ij,ij->i', residual, impulse)
+    best = int(np.argmax(values))
+    try:
+        joint = np.linalg.inv(normal[best])
+    except np.linalg.LinAlgError:
+        joint = np.linalg.pinv(normal[best])
+    detection = (int(stamps[hi] + round(starts[best] * 1e9)),
+                 int(stamps[hi] + round(ends[best] * 1e9)), float(test.windows[window]),
+                 float(values[best]), (joint @ rhs[best])[:n],
+                 joint[:n, :n] + test._common[max(lo, 0)])
+    return detection, normal, rhs
+
+
+def _pushed_blocks(rng: np.random.Generator, positions: bool,
+                   positions_until: int = 700) -> MomentumBlocks:
+    """Return blocks fed 700 samples at 1 kHz with a push at 0.5-0.56 s."""
+    from reduced_dynamics.estimator import multiscale
+    test = MomentumBlocks(6, multiscale.window_bank())
+    mu = np.zeros(6)
+    for k in range(700):
+        stamp = 1_000_000_000 + k * 1_000_000 + int(rng.integers(-50_000, 50_000))
+        if 500 <= k < 560:  # a push: the momentum ramps
+            mu = mu + np.array([0.02, -0.01, 0.0, 0.0, 0.005, 0.0])
+        centre = np.array([0.001 * k, 0.0, 0.5]) + 1e-4 * rng.standard_normal(3)
+        position = (centre, 1e-8 * np.eye(3), 12.0, (0, 1, 2))
+        test.add(stamp, mu + 1e-3 * rng.standard_normal(6), 1e-6 * np.eye(6),
+                 1e-8 * np.eye(6), position if positions and k < positions_until else None)
+    return test
+
+
+def test_the_pulse_fits_normal_equations_are_numpys_bit_for_bit(monkeypatch) -> None:
+    """Locate's compiled normal equations and once-inverted nuisance give numpy's bits."""
+    written = []
+    pulse_normals = blocks.pulse_normals
+
+    def kept(*args):
+        pulse_normals(*args)
+        written.append((args[-2].copy(), args[-1].copy()))
+    monkeypatch.setattr(blocks, 'pulse_normals', kept)
+    rng = np.random.default_rng(11)
+    # With positions; without (d = 0); positions ending before the short windows'
+    # span (fewer than two in the fit: the nuisance singular, the pseudo-inverse).
+    cases = [(_pushed_blocks(rng, True), (0, 1, 2, 3, 5)), (_pushed_blocks(rng, False), (1, 2)),
+             (_pushed_blocks(rng, True, 300), (0, 1))]
+    for test, windows in cases:
+        stamp = int(test._stamps[test._end - 1])
+        for window in windows:
+            for floor in (None, stamp - 100_000_000):
+                written.clear()
+                detection = test.locate(stamp, window, floor)
+                expected, normal, rhs = _numpy_locate(test, stamp, window, floor)
+                assert written[0][0].tobytes() == normal.tobytes()
+                assert written[0][1].tobytes() == rhs.tobytes()
+                assert _detection_fields(detection) == _detection_fields(expected)
+
+
 def test_a_sample_due_for_the_excess_decomposition_takes_the_compiled_path() -> None:
     """Every 16th sample (the excess re-decomposed) is common too, with add's bits."""
     from reduced_dynamics.estimator import multiscale
@@ -353,3 +483,36 @@ def test_a_sample_due_for_the_excess_decomposition_takes_the_compiled_path() -> 
     for ours, theirs in zip(compiled._positions, reference._positions):
         assert ours.tobytes() == theirs.tobytes()
     assert compiled._end == reference._end
+
+
+def test_the_samples_inverses_on_work_arrays_are_the_solves_bits() -> None:
+    """add_sample's gesv on work arrays gives sample_information's bits; fails as it raised."""
+    from numba.np.linalg import F_INT_nptype
+    rng = np.random.default_rng(13)
+    work, pivots = np.empty(72), np.empty(6, dtype=F_INT_nptype)
+    for trial in range(3000):
+        m = rng.standard_normal((6, 9))
+        cov = m @ m.T * 10.0 ** rng.integers(-9, 3)
+        if trial % 3 == 0:  # not symmetric
+            cov = rng.standard_normal((6, 6))
+        excess = 1e-9 * np.diag(rng.random(6))
+        p = rng.standard_normal((3, 4))
+        position = p @ p.T * 1e-8
+        info, lam = blocks.sample_information(cov, excess, position)
+        out, out_position = np.empty((6, 6)), np.empty((3, 3))
+        assert blocks.inverse_into(cov, excess, True, out, work, pivots)
+        assert blocks.inverse_into(position, position, False, out_position, work, pivots)
+        assert out.tobytes() == info.tobytes()
+        assert out_position.tobytes() == lam.tobytes()
+    singular = np.ones((6, 6))
+    bad = np.eye(6)
+    bad[2, 3] = np.nan
+    for matrix in (singular, bad):
+        try:
+            blocks.sample_information(matrix, np.zeros((6, 6)), np.zeros((0, 0)))
+            raised = False
+        except np.linalg.LinAlgError:
+            raised = True
+        assert raised
+        assert not blocks.inverse_into(matrix, np.zeros((6, 6)), True, np.empty((6, 6)),
+                                       work, pivots)

@@ -937,30 +937,33 @@ class MomentumBlocks:
         keep = ends > starts
         starts, ends = starts[keep], ends[keep]
         # clip((t - s) / (e - s), 0, 1) and its square, compiled (numpy's bits).
-        ramp, ramp_square, _ = self._fit_arrays(len(starts), len(times))
+        ramp, ramp_square = self._work((len(starts), len(times)), (len(starts), len(times)))
         blocks.pulse_ramps(times, starts, ends, ramp, ramp_square)
         flat_info = info_k.reshape(len(index), n * n)
-        total = flat_info.sum(axis=0).reshape(n, n)
-        cross = (ramp @ flat_info).reshape(-1, n, n)           # sum r Lambda
-        square = (ramp_square @ flat_info).reshape(-1, n, n)   # sum r^2 Lambda
-        score_j = ramp @ score_k                                 # sum r Lambda y
-        score_mu = score_k.sum(axis=0)
+        # sum r Lambda and sum r Lambda y in one product (BLAS reads the ramps once; each
+        # column the bits of its own product: test_multiscale_kernels.py), sum r^2 Lambda.
+        both = ramp @ np.hstack((flat_info, score_k))
+        cross, score_j = both[:, :n * n], both[:, n * n:]
+        square = ramp_square @ flat_info
         # Unknowns (mu0, c0, J): the twists' rows, then the positions' (_position_rows).
+        # The (mu0, c0) block and its right-hand side are the same in every fit.
         size = 2 * n + len(self.linear)
-        normal = np.zeros((len(starts), size, size))
-        rhs = np.zeros((len(starts), size))
-        mu0, jj = slice(0, n), slice(size - n, size)
-        normal[:, mu0, mu0] = total
-        normal[:, jj, mu0] = cross
-        normal[:, mu0, jj] = cross.transpose(0, 2, 1)
-        normal[:, jj, jj] = square
-        rhs[:, mu0] = score_mu
-        rhs[:, jj] = score_j
-        self._position_rows(index, previous, times, starts, ends, normal, rhs)
-        # The GLR of J with (mu0, c0) a nuisance: J^T S J, S the Schur complement.
-        nuisance = slice(0, size - n)
+        nuisance, jj = slice(0, size - n), slice(size - n, size)
+        block = np.zeros((size - n, size - n))
+        rhs_block = np.zeros(size - n)
+        block[:n, :n] = flat_info.sum(axis=0).reshape(n, n)
+        rhs_block[:n] = score_k.sum(axis=0)
+        sums = self._position_rows(index, previous, times, starts, ends, block, rhs_block)
+        normal, rhs = self._work((len(starts), size, size), (len(starts), size))
+        empty = np.zeros((0, 0))
+        blocks.pulse_normals(block, rhs_block, cross, square, score_j,
+                             *(sums if sums is not None else (empty,) * 4), self.linear,
+                             self.mass, self.mass ** 2, sums is not None, normal, rhs)
+        # The GLR of J with (mu0, c0) a nuisance: J^T S J, S the Schur complement;
+        # the nuisance block, the same in every fit, is inverted once (numpy's inv per
+        # matrix: the bits of the stacked call).
         try:
-            inverse = np.linalg.inv(normal[:, nuisance, nuisance])
+            inverse = np.linalg.inv(block)
             couple = normal[:, jj, nuisance]
             schur = normal[:, jj, jj] - couple @ inverse @ couple.transpose(0, 2, 1)
             residual = rhs[:, jj] - (couple @ (inverse @ rhs[:, nuisance, None]))[..., 0]
@@ -980,36 +983,39 @@ class MomentumBlocks:
         return BlockDetection(start, end, float(self.windows[window]), float(values[best]),
                               before, cov + self._common[max(lo, 0)])
 
-    def _fit_arrays(self, fits: int, samples: int) -> list[np.ndarray]:
+    def _work(self, *shapes: tuple) -> list[np.ndarray]:
         """
-        Return three (fits, samples) arrays for the pulse fits' ramps (contents undefined).
+        Return arrays of ``shapes`` for a pulse fit's work (contents undefined).
 
         Fresh arrays of a few MB cost mostly their page faults (~0.5 ms per MB here, more
-        than filling them): up to FIT_SCRATCH elements they are views of one buffer kept
-        between detections; larger fits (long windows) allocate as numpy did.
+        than filling them): up to FIT_SCRATCH elements in all they are views of one
+        buffer kept between detections; larger fits (long windows) allocate as numpy did.
         """
-        size = fits * samples
-        if 3 * size > FIT_SCRATCH:
-            return [np.empty((fits, samples)) for _ in range(3)]
+        sizes = [int(np.prod(shape)) for shape in shapes]
+        if sum(sizes) > FIT_SCRATCH:
+            return [np.empty(shape) for shape in shapes]
         if self._fit_scratch is None:
             self._fit_scratch = np.empty(FIT_SCRATCH)
-        return [self._fit_scratch[k * size:(k + 1) * size].reshape(fits, samples)
-                for k in range(3)]
+        offsets = np.cumsum([0] + sizes)
+        return [self._fit_scratch[offsets[k]:offsets[k + 1]].reshape(shape)
+                for k, shape in enumerate(shapes)]
 
     def _position_rows(self, index: np.ndarray, previous: np.ndarray, times: np.ndarray,
-                       starts: np.ndarray, ends: np.ndarray, normal: np.ndarray,
-                       rhs: np.ndarray) -> None:
+                       starts: np.ndarray, ends: np.ndarray, block: np.ndarray,
+                       rhs: np.ndarray) -> Optional[tuple[np.ndarray, ...]]:
         """
         Add the measured centre of mass to the pulse fits of :meth:`locate`.
 
         A pulse from s to e moves c by J R(t) / M, R the ramp's integral (0 before s,
         (t - s)^2 / 2 (e - s) during it, (e - s) / 2 + t - e after), so
         c_k = c0 + t_k E mu0 / M + R_k E J / M (E: the linear coordinates), with the
-        sample's information P_k.
+        sample's information P_k. Adds the (mu0, c0) part, the same in every fit, to
+        ``block`` and ``rhs``; returns the per-fit sums blocks.pulse_normals takes
+        (sum R P, sum R t P, sum R^2 P, sum R P c), None without positions.
         """
         d = len(self.linear)
         if not d:
-            return
+            return None
         s0, _, _, y0, _, counts = self._positions
         low = np.maximum(previous, 0)
         first = (previous < 0)[:, None, None]
@@ -1017,37 +1023,31 @@ class MomentumBlocks:
         weighted = y0[index] - np.where(first[..., 0], 0.0, y0[low])
         present = (counts[index] - np.where(previous < 0, 0, counts[low])) > 0
         if present.sum() < 2:
-            return
+            return None
         lam, weighted, t = lam[present], weighted[present], times[present]
         c = np.linalg.solve(lam, weighted[..., None])[..., 0]
         c = c - c.mean(axis=0)
         # R, R t and R^2 per fit and sample, compiled (numpy's expressions' bits), in
-        # the arrays locate's ramps used (no longer needed).
-        ramp, timed, squared = self._fit_arrays(len(starts), len(t))
+        # the work space locate's ramps used (no longer needed).
+        ramp, timed, squared = self._work(*[(len(starts), len(t))] * 3)
         blocks.position_ramps(t, starts, ends, ramp, timed, squared)
         flat = lam.reshape(len(t), d * d)
-        mass, n = self.mass, self.n
-        sums = {name: (weights @ flat).reshape(-1, d, d) for name, weights in (
-            ('R', ramp), ('tR', timed), ('RR', squared))}
-        p0, p1, p2 = (((t ** j)[None, :] @ flat).reshape(d, d) for j in range(3))
         pc = np.einsum('kij,kj->ki', lam, c)
+        mass, n = self.mass, self.n
+        both = ramp @ np.hstack((flat, pc))  # sum R P, sum R P c: one product, as above
+        sums = [both[:, :d * d]] + [weights @ flat for weights in (timed, squared)]
+        p0, p1, p2 = (((t ** j)[None, :] @ flat).reshape(d, d) for j in range(3))
         select = np.zeros((d, n))
         select[np.arange(d), self.linear] = 1.0
         st = select.T
-        mu0, c0, jj = slice(0, n), slice(n, n + d), slice(n + d, 2 * n + d)
-        normal[:, mu0, mu0] += st @ p2 @ select / mass ** 2
-        normal[:, mu0, c0] += st @ p1 / mass
-        normal[:, c0, mu0] += p1 @ select / mass
-        normal[:, c0, c0] += p0
-        coupling = st @ sums['tR'] @ select / mass ** 2  # the same products for both
-        normal[:, mu0, jj] += coupling
-        normal[:, jj, mu0] += coupling
-        normal[:, c0, jj] += sums['R'] @ select / mass
-        normal[:, jj, c0] += st @ sums['R'] / mass
-        normal[:, jj, jj] += st @ sums['RR'] @ select / mass ** 2
-        rhs[:, mu0] += (st @ (t @ pc)) / mass
-        rhs[:, c0] += pc.sum(axis=0)
-        rhs[:, jj] += (ramp @ pc) @ select / mass
+        mu0, c0 = slice(0, n), slice(n, n + d)
+        block[mu0, mu0] += st @ p2 @ select / mass ** 2
+        block[mu0, c0] += st @ p1 / mass
+        block[c0, mu0] += p1 @ select / mass
+        block[c0, c0] += p0
+        rhs[mu0] += (st @ (t @ pc)) / mass
+        rhs[c0] += pc.sum(axis=0)
+        return (*sums, both[:, d * d:])
 
     def mean(self, lo_ns: int, hi_ns: int) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """Return the mean measured momentum over (lo_ns, hi_ns] and its covariance."""

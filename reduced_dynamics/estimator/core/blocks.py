@@ -34,8 +34,15 @@ Prefix rows: ``info`` (k, n, n), ``score`` (k, n); the positions' ``s0``, ``s1``
 the linear momentum. Index -1 is the empty prefix.
 """
 
+import math
+
 import numpy as np
-from numba import njit
+from numba import njit, types
+# The LAPACK gesv entry numba's np.linalg.solve calls (scipy's LAPACK): called here on
+# work arrays kept by the caller, the same routine on the same inputs (the same bits).
+from numba.np.linalg import _LAPACK, F_INT_nptype
+
+_GESV = _LAPACK().numba_xgesv(types.float64)
 
 
 @njit(cache=True)
@@ -221,6 +228,35 @@ def sample_information(cov: np.ndarray, excess: np.ndarray,
 
 
 @njit(cache=True)
+def inverse_into(a: np.ndarray, extra: np.ndarray, with_extra: bool, out: np.ndarray,
+                 work: np.ndarray, pivots: np.ndarray) -> bool:
+    """
+    Write (a + extra)^-1 (``with_extra``; else a^-1) into ``out`` as solve(., I) gives it.
+
+    numba's np.linalg.solve(A, I) on preallocated work: A (checked finite) copied in
+    Fortran order, I as the right-hand side, the same LAPACK gesv call, the solution
+    copied out in C order (:func:`sample_information`'s bits: test_multiscale_kernels.py).
+    ``work``: 2 d^2 floats, ``pivots``: d LAPACK ints. False: not finite or singular
+    (where the solve raised).
+    """
+    d = a.shape[0]
+    lu, rhs = work[:d * d], work[d * d:2 * d * d]
+    for j in range(d):
+        for i in range(d):
+            value = a[i, j] + extra[i, j] if with_extra else a[i, j]
+            if not math.isfinite(value):
+                return False
+            lu[j * d + i] = value
+            rhs[j * d + i] = 1.0 if i == j else 0.0
+    if _GESV(100, d, d, lu.ctypes, d, pivots.ctypes, rhs.ctypes, d) != 0:  # 100: 'd'
+        return False
+    for i in range(d):
+        for j in range(d):
+            out[i, j] = rhs[j * d + i]
+    return True
+
+
+@njit(cache=True)
 def add_sample(raw: np.ndarray, mu: np.ndarray, cov: np.ndarray, last_mu: np.ndarray,
                last_cov: np.ndarray, divisor: float, excess: np.ndarray,
                position_cov: np.ndarray, info: np.ndarray, score: np.ndarray,
@@ -236,8 +272,34 @@ def add_sample(raw: np.ndarray, mu: np.ndarray, cov: np.ndarray, last_mu: np.nda
     :func:`accumulate_position`. A singular covariance raises after the excess was
     learnt and before the row is written, as the separate calls did.
     """
+    n = cov.shape[0]
+    add_sample_into(raw, mu, cov, last_mu, last_cov, divisor, excess, position_cov, info,
+                    score, common_ring, common, stamps, stamp_ns, k, s0, s1, s2, y0, t1,
+                    counts, t, c, with_positions, np.empty(4 * n * n))
+
+
+@njit(cache=True)
+def add_sample_into(raw: np.ndarray, mu: np.ndarray, cov: np.ndarray, last_mu: np.ndarray,
+                    last_cov: np.ndarray, divisor: float, excess: np.ndarray,
+                    position_cov: np.ndarray, info: np.ndarray, score: np.ndarray,
+                    common_ring: np.ndarray, common: np.ndarray, stamps: np.ndarray,
+                    stamp_ns: int, k: int, s0: np.ndarray, s1: np.ndarray, s2: np.ndarray,
+                    y0: np.ndarray, t1: np.ndarray, counts: np.ndarray, t: float,
+                    c: np.ndarray, with_positions: bool, work: np.ndarray) -> None:
+    """
+    :func:`add_sample` with the sample's inverses in ``work`` (4 n^2 floats, contents undefined).
+
+    sample_information's two solves as :func:`inverse_into` on the work (its bits,
+    without its allocations).
+    """
     learn_excess(raw, mu, cov, last_mu, last_cov, divisor)
-    sample_info, lam = sample_information(cov, excess, position_cov)
+    n, d = cov.shape[0], position_cov.shape[0]
+    sample_info = work[2 * n * n:3 * n * n].reshape(n, n)
+    lam = work[3 * n * n:3 * n * n + d * d].reshape(d, d)
+    pivots = np.empty(n, dtype=F_INT_nptype)
+    if not inverse_into(cov, excess, True, sample_info, work, pivots) or (
+            d and not inverse_into(position_cov, position_cov, False, lam, work, pivots)):
+        raise np.linalg.LinAlgError('Matrix is singular or not finite.')
     stamps[k] = stamp_ns
     common_ring[k] = common
     accumulate(info, score, k, sample_info, mu)
@@ -296,3 +358,70 @@ def position_ramps(times: np.ndarray, starts: np.ndarray, ends: np.ndarray, ramp
             ramp[i, k] = r
             timed[i, k] = r * t
             square[i, k] = r * r
+
+
+@njit(cache=True)
+def _selected(x: float, mapped: bool, scale: float) -> float:
+    """Return an entry of E^T X E / scale as numpy's products give it (E selects coordinates)."""
+    # A 0/1 selection product is exact: the entry plus +0.0 (a -0.0 turns +0.0) where
+    # selected, +0.0 elsewhere; then divided as numpy divided it.
+    return ((x + 0.0) if mapped else 0.0) / scale
+
+
+@njit(cache=True)
+def pulse_normals(block: np.ndarray, rhs_block: np.ndarray, cross: np.ndarray,
+                  square: np.ndarray, score: np.ndarray, moment: np.ndarray,
+                  timed: np.ndarray, moment2: np.ndarray, pulled: np.ndarray,
+                  linear: np.ndarray, mass: float, mass2: float, with_positions: bool,
+                  normal: np.ndarray, rhs: np.ndarray) -> None:
+    """
+    Write MomentumBlocks.locate's normal equations, one per pulse fit, as numpy wrote them.
+
+    Unknowns (mu0, c0, J): ``block`` and ``rhs_block`` are the (mu0, c0) part, the
+    same in every fit; per fit f the twists' sums ``cross`` (sum r Lambda), ``square``
+    (sum r^2 Lambda) (flat n x n) and ``score`` (sum r Lambda y), and with positions
+    the ramp integrals' sums ``moment`` (sum R P), ``timed`` (sum R t P), ``moment2``
+    (sum R^2 P) (flat d x d) and ``pulled`` (sum R P c). Each entry is the sum numpy's
+    assignments and in-place additions formed, in their order (the same bits).
+    """
+    n = score.shape[1]
+    d = linear.shape[0]
+    m = block.shape[0]
+    jj = n + d
+    where = np.full(n, -1, dtype=np.int64)  # the linear coordinate's index, -1: none
+    for i in range(d):
+        where[linear[i]] = i
+    for f in range(cross.shape[0]):
+        for a in range(m):
+            for b in range(m):
+                normal[f, a, b] = block[a, b]
+            rhs[f, a] = rhs_block[a]
+        for a in range(n):
+            ia = where[a]
+            for b in range(n):
+                ib = where[b]
+                up = cross[f, b * n + a]  # the (mu0, J) block: cross transposed
+                low = cross[f, a * n + b]
+                both = square[f, a * n + b]
+                if with_positions:
+                    mapped = ia >= 0 and ib >= 0
+                    k = ia * d + ib
+                    coupling = _selected(timed[f, k] if mapped else 0.0, mapped, mass2)
+                    up += coupling
+                    low += coupling
+                    both += _selected(moment2[f, k] if mapped else 0.0, mapped, mass2)
+                normal[f, a, jj + b] = up
+                normal[f, jj + a, b] = low
+                normal[f, jj + a, jj + b] = both
+            value = score[f, a]
+            if with_positions:
+                value += _selected(pulled[f, ia] if ia >= 0 else 0.0, ia >= 0, mass)
+            rhs[f, jj + a] = value
+            for c in range(d):
+                column = row = 0.0
+                if with_positions:
+                    column += _selected(moment[f, c * d + ia] if ia >= 0 else 0.0, ia >= 0,
+                                        mass)
+                    row += _selected(moment[f, ia * d + c] if ia >= 0 else 0.0, ia >= 0, mass)
+                normal[f, n + c, jj + a] = column
+                normal[f, jj + a, n + c] = row
