@@ -483,36 +483,3 @@ def test_a_sample_due_for_the_excess_decomposition_takes_the_compiled_path() -> 
     for ours, theirs in zip(compiled._positions, reference._positions):
         assert ours.tobytes() == theirs.tobytes()
     assert compiled._end == reference._end
-
-
-def test_the_samples_inverses_on_work_arrays_are_the_solves_bits() -> None:
-    """add_sample's gesv on work arrays gives sample_information's bits; fails as it raised."""
-    from numba.np.linalg import F_INT_nptype
-    rng = np.random.default_rng(13)
-    work, pivots = np.empty(72), np.empty(6, dtype=F_INT_nptype)
-    for trial in range(3000):
-        m = rng.standard_normal((6, 9))
-        cov = m @ m.T * 10.0 ** rng.integers(-9, 3)
-        if trial % 3 == 0:  # not symmetric
-            cov = rng.standard_normal((6, 6))
-        excess = 1e-9 * np.diag(rng.random(6))
-        p = rng.standard_normal((3, 4))
-        position = p @ p.T * 1e-8
-        info, lam = blocks.sample_information(cov, excess, position)
-        out, out_position = np.empty((6, 6)), np.empty((3, 3))
-        assert blocks.inverse_into(cov, excess, True, out, work, pivots)
-        assert blocks.inverse_into(position, position, False, out_position, work, pivots)
-        assert out.tobytes() == info.tobytes()
-        assert out_position.tobytes() == lam.tobytes()
-    singular = np.ones((6, 6))
-    bad = np.eye(6)
-    bad[2, 3] = np.nan
-    for matrix in (singular, bad):
-        try:
-            blocks.sample_information(matrix, np.zeros((6, 6)), np.zeros((0, 0)))
-            raised = False
-        except np.linalg.LinAlgError:
-            raised = True
-        assert raised
-        assert not blocks.inverse_into(matrix, np.zeros((6, 6)), True, np.empty((6, 6)),
-                                       work, pivots)

@@ -37,7 +37,7 @@ import math
 import numpy as np
 from numba import njit
 
-from reduced_dynamics.estimator.core.blocks import add_sample_into
+from reduced_dynamics.estimator.core.blocks import add_sample
 from reduced_dynamics.estimator.core.cholesky import lower_factor, solve_factor
 from reduced_dynamics.estimator.core.impulse import measured_momentum_se3
 
@@ -341,12 +341,9 @@ def update_with_sample(raw: np.ndarray, sample_mu: np.ndarray, sample_cov: np.nd
     """
     added = True
     try:
-        # The block windows' scratch planes 0-3 as the sample's work (update rewrites
-        # them before it reads them).
-        add_sample_into(raw, sample_mu, sample_cov, last_mu, last_cov, divisor, excess,
-                        position_cov, info, score, common, common_sample, block_stamps,
-                        sample_stamp, k, s0, s1, s2, y0, t1, counts, t, centre, with_positions,
-                        scratch[:4].reshape(4 * scratch.shape[1] * scratch.shape[2]))
+        add_sample(raw, sample_mu, sample_cov, last_mu, last_cov, divisor, excess,
+                   position_cov, info, score, common, common_sample, block_stamps,
+                   sample_stamp, k, s0, s1, s2, y0, t1, counts, t, centre, with_positions)
     except Exception:  # noqa: B902 numba catches no narrower class (a LinAlgError here)
         added = False
     block_end = k + 1 if added else k

@@ -34,15 +34,8 @@ Prefix rows: ``info`` (k, n, n), ``score`` (k, n); the positions' ``s0``, ``s1``
 the linear momentum. Index -1 is the empty prefix.
 """
 
-import math
-
 import numpy as np
-from numba import njit, types
-# The LAPACK gesv entry numba's np.linalg.solve calls (scipy's LAPACK): called here on
-# work arrays kept by the caller, the same routine on the same inputs (the same bits).
-from numba.np.linalg import _LAPACK, F_INT_nptype
-
-_GESV = _LAPACK().numba_xgesv(types.float64)
+from numba import njit
 
 
 @njit(cache=True)
@@ -228,35 +221,6 @@ def sample_information(cov: np.ndarray, excess: np.ndarray,
 
 
 @njit(cache=True)
-def inverse_into(a: np.ndarray, extra: np.ndarray, with_extra: bool, out: np.ndarray,
-                 work: np.ndarray, pivots: np.ndarray) -> bool:
-    """
-    Write (a + extra)^-1 (``with_extra``; else a^-1) into ``out`` as solve(., I) gives it.
-
-    numba's np.linalg.solve(A, I) on preallocated work: A (checked finite) copied in
-    Fortran order, I as the right-hand side, the same LAPACK gesv call, the solution
-    copied out in C order (:func:`sample_information`'s bits: test_multiscale_kernels.py).
-    ``work``: 2 d^2 floats, ``pivots``: d LAPACK ints. False: not finite or singular
-    (where the solve raised).
-    """
-    d = a.shape[0]
-    lu, rhs = work[:d * d], work[d * d:2 * d * d]
-    for j in range(d):
-        for i in range(d):
-            value = a[i, j] + extra[i, j] if with_extra else a[i, j]
-            if not math.isfinite(value):
-                return False
-            lu[j * d + i] = value
-            rhs[j * d + i] = 1.0 if i == j else 0.0
-    if _GESV(100, d, d, lu.ctypes, d, pivots.ctypes, rhs.ctypes, d) != 0:  # 100: 'd'
-        return False
-    for i in range(d):
-        for j in range(d):
-            out[i, j] = rhs[j * d + i]
-    return True
-
-
-@njit(cache=True)
 def add_sample(raw: np.ndarray, mu: np.ndarray, cov: np.ndarray, last_mu: np.ndarray,
                last_cov: np.ndarray, divisor: float, excess: np.ndarray,
                position_cov: np.ndarray, info: np.ndarray, score: np.ndarray,
@@ -272,34 +236,8 @@ def add_sample(raw: np.ndarray, mu: np.ndarray, cov: np.ndarray, last_mu: np.nda
     :func:`accumulate_position`. A singular covariance raises after the excess was
     learnt and before the row is written, as the separate calls did.
     """
-    n = cov.shape[0]
-    add_sample_into(raw, mu, cov, last_mu, last_cov, divisor, excess, position_cov, info,
-                    score, common_ring, common, stamps, stamp_ns, k, s0, s1, s2, y0, t1,
-                    counts, t, c, with_positions, np.empty(4 * n * n))
-
-
-@njit(cache=True)
-def add_sample_into(raw: np.ndarray, mu: np.ndarray, cov: np.ndarray, last_mu: np.ndarray,
-                    last_cov: np.ndarray, divisor: float, excess: np.ndarray,
-                    position_cov: np.ndarray, info: np.ndarray, score: np.ndarray,
-                    common_ring: np.ndarray, common: np.ndarray, stamps: np.ndarray,
-                    stamp_ns: int, k: int, s0: np.ndarray, s1: np.ndarray, s2: np.ndarray,
-                    y0: np.ndarray, t1: np.ndarray, counts: np.ndarray, t: float,
-                    c: np.ndarray, with_positions: bool, work: np.ndarray) -> None:
-    """
-    :func:`add_sample` with the sample's inverses in ``work`` (4 n^2 floats, contents undefined).
-
-    sample_information's two solves as :func:`inverse_into` on the work (its bits,
-    without its allocations).
-    """
     learn_excess(raw, mu, cov, last_mu, last_cov, divisor)
-    n, d = cov.shape[0], position_cov.shape[0]
-    sample_info = work[2 * n * n:3 * n * n].reshape(n, n)
-    lam = work[3 * n * n:3 * n * n + d * d].reshape(d, d)
-    pivots = np.empty(n, dtype=F_INT_nptype)
-    if not inverse_into(cov, excess, True, sample_info, work, pivots) or (
-            d and not inverse_into(position_cov, position_cov, False, lam, work, pivots)):
-        raise np.linalg.LinAlgError('Matrix is singular or not finite.')
+    sample_info, lam = sample_information(cov, excess, position_cov)
     stamps[k] = stamp_ns
     common_ring[k] = common
     accumulate(info, score, k, sample_info, mu)
