@@ -83,14 +83,18 @@ class ChunkProcessing:
     def _process_chunk(self) -> None:
         chunk = self._chunk
         count = len(chunk.rows)
-        if count == 1 and not self.commanded_wrench and self._cyclic_view is None:
-            # The streaming path's chunk: the same operations on one row, unstacked.
-            self._process_row(chunk)
-            return
         if not count:
             return
         # A new chunk first: if the update raises, these samples are lost, not retried.
         self._chunk = RowChunk()
+        if count == 1 and not self.commanded_wrench and self._cyclic_view is None:
+            # The streaming path's chunk: the same operations on one row, unstacked.
+            self._process_row(chunk)
+        else:
+            self._process_rows(chunk, count)
+
+    def _process_rows(self, chunk: RowChunk, count: int) -> None:
+        """Update a chunk of ``count`` rows (any chunk: the general path)."""
         rejected_at, self._rejected_at = self._rejected_at, 0
         m, n = self.robot.m, self.robot.n
         stamp_list, qbar, qbar_dot, taus, bases, measured = zip(*chunk.rows)
@@ -242,7 +246,6 @@ class ChunkProcessing:
         calls (the kernel, the filter's row, the event tests, the drift and
         energy, Welford's one-row update): the same bits (test_streaming_row.py).
         """
-        self._chunk = RowChunk()
         rejected_at, self._rejected_at = self._rejected_at, 0
         stamp, qbar_row, qbar_dot_row, tau, base, samples = chunk.rows[0]
         n = self.robot.n
