@@ -77,7 +77,7 @@ def _both(make, stream, send=feed_stream):
 
 
 def _pulse(robot, odometry: bool, late: bool = True):
-    """Simulated samples with a wrench pulse; base samples late and jittered (``late``)."""
+    """Return simulated samples of a wrench pulse, base samples late and jittered (``late``)."""
     scenario = random_scenario(robot, MomentumClass.GENERIC, 5, drift_speed=0.1,
                                shape_speed=0.2)
     times = np.arange(401) / 200.0
