@@ -148,6 +148,9 @@ class ChunkProcessing:
                 measurements = [None]
                 sigma = noise = None
                 at_row = True
+            elif not samples:
+                # A row between base samples (_filter_measurements gives nothing).
+                measurements, at_row, sigma, noise = [], False, None, None
             else:
                 measurements = filter_measurements(samples, stamp)
                 at_row = bool(measurements) and measurements[-1] is None
@@ -170,9 +173,10 @@ class ChunkProcessing:
                                        f'improbable under the filter (chi-square {nis:.3g})')
             g = flt.g  # one pin.SE3 per row (the property builds a new one each time)
             # Each accepted twist's own momentum, for the event tests (multiscale.py).
-            measured_mu = twist_momenta(flt, before, lins[k], start_ns, stamp, measurements,
-                                        gated_at, g) \
-                if twists is not None and commands is None else None
+            # (No measurement: twist_momenta finds none; [] without its pose products.)
+            measured_mu = None if twists is None or commands is not None else \
+                twist_momenta(flt, before, lins[k], start_ns, stamp, measurements, gated_at,
+                              g) if measurements else []
             if lagged is not None and lagged._ready:
                 # Rows whose lag passed during this row's steps go out with it.
                 fixed_lag[k] = lagged.take()
@@ -271,6 +275,8 @@ class ChunkProcessing:
             measurements = [None]
             sigma = noise = None
             at_row = True
+        elif not samples:
+            measurements, at_row, sigma, noise = [], False, None, None
         else:
             measurements = self._filter_measurements(samples, stamp)
             at_row = bool(measurements) and measurements[-1] is None
@@ -290,8 +296,9 @@ class ChunkProcessing:
             self.last_rejection = (f'innovation_gate: base measurement at {gated} '
                                    f'improbable under the filter (chi-square {nis:.3g})')
         g = flt.g
-        measured_mu = twist_momenta(flt, before, lin, start_ns, stamp, measurements,
-                                    gated_at, g) if twists is not None else None
+        measured_mu = None if twists is None else \
+            twist_momenta(flt, before, lin, start_ns, stamp, measurements, gated_at, g) \
+            if measurements else []
         fixed_lag = {}
         lagged = self.fixed_lag
         if lagged is not None and lagged._ready:
