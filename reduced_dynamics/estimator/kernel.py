@@ -160,7 +160,7 @@ class UpdateKernel:
 
     __slots__ = ('robot', 'n', 'm', 'nv', '_model', '_data', '_base_q', '_nq_base',
                  '_mirror', '_lift', '_restrict', '_embed', '_coords', '_stack', '_spatial',
-                 '_q', '_thin')
+                 '_q', '_thin', '_row_q', '_row_shape', '_row_stack')
 
     def __init__(self, robot: RobotModel) -> None:
         """Precompute what does not change between samples."""
@@ -188,6 +188,7 @@ class UpdateKernel:
             else np.tril_indices(self.nv, -1)
         self._stack = np.empty((0, self.nv, self.nv))
         self._q = np.empty((0, self._model.nq))
+        self._row_views(1)
         # pbar of 1 to 3 shape joints: numpy's matmul takes other BLAS paths for such
         # thin products than core/inputs.py's; numpy computes it then (same bits).
         self._thin = 0 < self.m < 4
@@ -209,14 +210,30 @@ class UpdateKernel:
         """Return wrenches, shape (K, 6), lifting covectors of the subalgebra, (K, n)."""
         return covectors if self._lift is None else _row_times(covectors, self._lift)
 
+    def _row_views(self, count: int) -> None:
+        """Allocate the stack and configurations for ``count`` rows (and the row's views)."""
+        self._stack = np.empty((count, self.nv, self.nv))
+        # Configurations: the base part (identity) is written once, here.
+        self._q = np.empty((count, self._model.nq))
+        self._q[:, :self._nq_base] = self._base_q
+        # A one-row chunk's (streaming) views: no slicing per row.
+        self._row_q, self._row_shape = self._q[0], self._q[0, self._nq_base:]
+        self._row_stack = self._stack[:1]
+
     def mass_matrices(self, qbar: np.ndarray) -> np.ndarray:
         """Return the stack (K, nv, nv) of M(qbar_k) = crba(e, qbar_k) (Lemma 52)."""
         count = len(qbar)
+        if count == 1:
+            # The streaming path's row: the same crba into the same stack's first row.
+            self._row_shape[:] = qbar[0]
+            stack = self._row_stack
+            stack[0] = pin.crba(self._model, self._data, self._row_q)
+            if self._mirror is not None:
+                rows, cols = self._mirror
+                stack[:, rows, cols] = stack[:, cols, rows]
+            return stack
         if len(self._stack) < count:
-            self._stack = np.empty((count, self.nv, self.nv))
-            # Configurations: the base part (identity) is written once, here.
-            self._q = np.empty((count, self._model.nq))
-            self._q[:, :self._nq_base] = self._base_q
+            self._row_views(count)
         stack, q = self._stack[:count], self._q
         q[:count, self._nq_base:] = qbar
         model, data, crba = self._model, self._data, pin.crba
@@ -266,8 +283,10 @@ class UpdateKernel:
         if thin:
             shape_qd = np.matmul(mass[:, n:, n:], qbar_dot[:, :, None])[:, :, 0]
             pbar = shape_qd - np.matmul(connection_qd[:, None, :], mass[:, :n, n:])[:, 0]
-        return FilterInputs(locked, inverse, connection_qd, joint_cov, pbar, rotation,
-                            bases[:, :3], self.coordinates(bases[:, 7:]), mass)
+        # tuple.__new__: the NamedTuple's fields as they are (its __new__ is Python).
+        return tuple.__new__(FilterInputs, (locked, inverse, connection_qd, joint_cov, pbar,
+                                            rotation, bases[:, :3],
+                                            self.coordinates(bases[:, 7:]), mass))
 
     def evaluate(self, qbar: np.ndarray, qbar_dot: np.ndarray,
                  bases: np.ndarray) -> KernelResult:

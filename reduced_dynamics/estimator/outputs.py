@@ -153,6 +153,12 @@ class OutputChunk:
 
     def outputs(self) -> list[EstimatorOutput]:
         """Return one :class:`EstimatorOutput` per row (message-ready samples)."""
+        if self.cyclic is None and self.disturbance is None and len(self.stamps_ns) == 1:
+            return [self._one_output()]
+        return self._row_outputs()
+
+    def _row_outputs(self) -> list[EstimatorOutput]:
+        """Return the outputs of any chunk, row by row (the general path)."""
         kernel = self._kernel
         # Rows of the chunk's own contiguous float64 arrays: the samples skip their
         # validation (hot path).
@@ -203,6 +209,42 @@ class OutputChunk:
                                               self.mu.shape[1])
             out.append(output)
         return out
+
+    def _one_output(self) -> EstimatorOutput:
+        """
+        Return the output of a one-row chunk (streaming): :meth:`outputs` without the zip.
+
+        The same views of the same columns (row 0 of each), so the same samples.
+        """
+        kernel = self._kernel
+        momentum = kernel.wrenches(self.mu)[0]
+        body = kernel.wrenches(self.pi)[0]
+        rate = kernel.wrenches(self.momentum_rate)[0]
+        drift = kernel.twists(self.drift)[0]
+        world, base = self._world, self._base
+        wrench = WrenchSample
+        stamp = self.stamps_ns.item()
+        output = EstimatorOutput(
+            stamp,
+            trusted_sample(wrench, stamp, world, momentum[:3], momentum[3:]),
+            trusted_sample(wrench, stamp, base, body[:3], body[3:]),
+            trusted_sample(JointStateSample, stamp, '', self._names, self.qbar[0],
+                           self.qbar_dot[0], self.pbar[0]),
+            trusted_sample(wrench, stamp, world, rate[:3], rate[3:]),
+            trusted_sample(TwistSample, stamp, base, drift[:3], drift[3:]),
+            self.mu[0], self.energy.item())
+        extras = self.extras
+        extra = extras.get(0) if extras else None
+        if extra:
+            _set_extra(output, extra)
+        if self.mu_cov is not None:
+            output.momentum_covariance = self.mu_cov[0]
+            output.wrench_covariance = self.w_cov[0]
+        if self.fixed_lag:
+            output.fixed_lag = self.fixed_lag.get(0)
+        if self.events and 0 in self.events:
+            output.events = event_samples(self.events[0], kernel.wrenches, self.mu.shape[1])
+        return output
 
     def records(self) -> Optional[dict[str, np.ndarray]]:
         """

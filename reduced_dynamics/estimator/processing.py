@@ -34,7 +34,7 @@ import numpy as np
 import pinocchio as pin
 
 from reduced_dynamics.estimator.base_motion import BaseMotionAnswer, predict_base_motion
-from reduced_dynamics.estimator.core.inputs import drift_energy
+from reduced_dynamics.estimator.core.inputs import drift_energy, welford_row
 from reduced_dynamics.estimator.covariance import NoisyRow
 from reduced_dynamics.estimator.cyclic import CyclicColumns
 from reduced_dynamics.estimator.filter import Command, Linearisation, MAX_COAST_S, Measurement
@@ -87,6 +87,14 @@ class ChunkProcessing:
             return
         # A new chunk first: if the update raises, these samples are lost, not retried.
         self._chunk = RowChunk()
+        if count == 1 and not self.commanded_wrench and self._cyclic_view is None:
+            # The streaming path's chunk: the same operations on one row, unstacked.
+            self._process_row(chunk)
+        else:
+            self._process_rows(chunk, count)
+
+    def _process_rows(self, chunk: RowChunk, count: int) -> None:
+        """Update a chunk of ``count`` rows (any chunk: the general path)."""
         rejected_at, self._rejected_at = self._rejected_at, 0
         m, n = self.robot.m, self.robot.n
         stamp_list, qbar, qbar_dot, taus, bases, measured = zip(*chunk.rows)
@@ -140,6 +148,9 @@ class ChunkProcessing:
                 measurements = [None]
                 sigma = noise = None
                 at_row = True
+            elif not samples:
+                # A row between base samples (_filter_measurements gives nothing).
+                measurements, at_row, sigma, noise = [], False, None, None
             else:
                 measurements = filter_measurements(samples, stamp)
                 at_row = bool(measurements) and measurements[-1] is None
@@ -162,9 +173,10 @@ class ChunkProcessing:
                                        f'improbable under the filter (chi-square {nis:.3g})')
             g = flt.g  # one pin.SE3 per row (the property builds a new one each time)
             # Each accepted twist's own momentum, for the event tests (multiscale.py).
-            measured_mu = twist_momenta(flt, before, lins[k], start_ns, stamp, measurements,
-                                        gated_at, g) \
-                if twists is not None and commands is None else None
+            # (No measurement: twist_momenta finds none; [] without its pose products.)
+            measured_mu = None if twists is None or commands is not None else \
+                twist_momenta(flt, before, lins[k], start_ns, stamp, measurements, gated_at,
+                              g) if measurements else []
             if lagged is not None and lagged._ready:
                 # Rows whose lag passed during this row's steps go out with it.
                 fixed_lag[k] = lagged.take()
@@ -224,6 +236,108 @@ class ChunkProcessing:
                           energy, extras, cyclic)
         out.mu_cov, out.w_cov = mu_cov, w_cov
         out.disturbance = disturbance
+        out.fixed_lag = fixed_lag
+        out.events = events
+        self._done.append(out)
+
+    def _process_row(self, chunk: RowChunk) -> None:
+        """
+        Update a chunk of one row (streaming): :meth:`_process_chunk`'s operations, unstacked.
+
+        No commanded wrench and no second stage (those chunks take the general
+        path). The columns are the general path's (1, ...) arrays, made from the
+        row's own values without stacking, and every value goes through the same
+        calls (the kernel, the filter's row, the event tests, the drift and
+        energy, Welford's one-row update): the same bits (test_streaming_row.py).
+        """
+        rejected_at, self._rejected_at = self._rejected_at, 0
+        stamp, qbar_row, qbar_dot_row, tau, base, samples = chunk.rows[0]
+        n = self.robot.n
+        # (1, m) copies of the row (np.concatenate of one row copies it too).
+        qbar = qbar_row[None].copy()
+        qbar_dot = qbar_dot_row[None].copy()
+        if base.__class__ is np.ndarray:
+            bases = base[None].copy()
+        else:
+            bases = np.fromiter(base, float, 13).reshape(1, 13)
+        result = self.kernel.filter_inputs(qbar, qbar_dot, bases,
+                                           self.config.joint_velocity_noise ** 2)
+        inverse = result.inverse
+        # tuple.__new__: the NamedTuple's fields as they are (its __new__ is Python).
+        lin = tuple.__new__(Linearisation, (result.locked[0], inverse[0],
+                                            result.connection_qd[0], result.joint_cov[0]))
+        flt = self.filter
+        twists = result.xi if self.use_odometry else None
+        prior = None
+        if len(samples) == 1 and samples[0][0] == stamp and len(samples[0]) == 2 \
+                and samples[0][1].__class__ is not NoisyRow:
+            # The common row (see _process_chunk).
+            measurements = [None]
+            sigma = noise = None
+            at_row = True
+        elif not samples:
+            measurements, at_row, sigma, noise = [], False, None, None
+        else:
+            measurements = self._filter_measurements(samples, stamp)
+            at_row = bool(measurements) and measurements[-1] is None
+            sigma, noise = (self._row_stamp_sigma, self._row_noise) if at_row \
+                else (None, None)
+        if at_row or flt._g is None or stamp - flt.stamp_ns > COAST_NS:
+            prior = tuple.__new__(Measurement, (
+                stamp, pin.SE3(result.rotation[0], result.translation[0]),
+                None if twists is None else twists[0], sigma, noise))
+            if at_row:
+                measurements[-1] = prior
+        gated_at, before, start_ns = [], flt._lin, flt.stamp_ns
+        for gated, nis in flt.row(stamp, lin, prior, measurements, None):
+            gated_at.append(gated)
+            self.rejected['innovation_gate'] += 1
+            self._period_rejected += 1
+            self.last_rejection = (f'innovation_gate: base measurement at {gated} '
+                                   f'improbable under the filter (chi-square {nis:.3g})')
+        g = flt.g
+        measured_mu = None if twists is None else \
+            twist_momenta(flt, before, lin, start_ns, stamp, measurements, gated_at, g) \
+            if measurements else []
+        fixed_lag = {}
+        lagged = self.fixed_lag
+        if lagged is not None and lagged._ready:
+            fixed_lag[0] = lagged.take()
+        x, p = flt.x, flt.p
+        # The (1, ...) columns as copies of the filter's state (the general path's stores).
+        mu = x[None, :n].copy()
+        rate = x[None, n:].copy()
+        mu_cov = p[None, n:2 * n, n:2 * n].copy()
+        w_cov = p[None, 2 * n:, 2 * n:].copy()
+        peak = rate[0]
+        detector = self.detector
+        # ndarray.dot: the same BLAS call as @ (see _process_chunk).
+        pi = (g.action if flt._whole else flt._adjoint(g)).T.dot(x[:n])[None]
+        detector.update(stamp, mu[0], math.sqrt(float(peak.dot(peak))),
+                        flt.wrench_significance(), flt.step_detected is not None,
+                        mu_cov[0], measured_mu)
+        events = {0: detector.take_notices()} if detector.notices else {}
+        drift, energy = drift_energy(inverse, pi, qbar_dot, result.pbar)
+        if self.robot.has_potential:
+            energy += [self.robot.potential_energy(row) for row in qbar]
+        extras: dict = {}
+        if self.predictor.active or self._prediction_enabled():
+            self._per_sample((stamp,), qbar, qbar_dot, (tau,), result, extras, rejected_at,
+                             None, [g], mu, [not detector.in_event], [(x, p)])
+        self.latest_state = (stamp, result.rotation[0], result.translation[0], qbar[0],
+                             qbar_dot[0])
+        if self.first_stamp_ns is None:
+            self.first_stamp_ns = stamp
+        # _accumulate_statistics of one row.
+        self.processed = total = self.processed + 1
+        welford_row(self._mu_mean, self._mu_m2, mu[0], total)
+        self._last_mu, self._last_energy = mu[0], float(energy[0])
+        if chunk.diagnose:
+            previous = extras.get(0, (None, None, None))
+            extras[0] = previous[:2] + (self.diagnostics(stamp),) + previous[3:]
+        out = OutputChunk(self, np.array((stamp,), dtype=np.int64), mu, pi, rate, drift, qbar,
+                          qbar_dot, result.pbar, energy, extras, None)
+        out.mu_cov, out.w_cov = mu_cov, w_cov
         out.fixed_lag = fixed_lag
         out.events = events
         self._done.append(out)
