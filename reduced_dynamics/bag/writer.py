@@ -139,18 +139,7 @@ class _McapAppender:
         bio.write(_MCAP_MESSAGE.pack(0x05, 22 + len(data), connection_id, 0, timestamp,
                                      timestamp))
         bio.write(data)
-        if timestamp < chunk.message_start_time:
-            chunk.message_start_time = timestamp
-        if timestamp > chunk.message_end_time:
-            chunk.message_end_time = timestamp
-        if timestamp < storage.message_start_time:
-            storage.message_start_time = timestamp
-        if timestamp > storage.message_end_time:
-            storage.message_end_time = timestamp
-        if timestamp < writer.min_timestamp:
-            writer.min_timestamp = timestamp
-        if timestamp > writer.max_timestamp:
-            writer.max_timestamp = timestamp
+        self._widen(timestamp, timestamp)
         storage.channel_stats[connection_id] += 1
         writer.counts[connection_id] += 1
         if bio.tell() > _CHUNK_BYTES:
@@ -243,15 +232,16 @@ class _McapAppender:
             chunk.msgs[cid].extend(zip(stamps, range(tell + at, tell + at + count * row, row)))
             storage.channel_stats[cid] += count
             writer.counts[cid] += count
-        low, high = min(stamps), max(stamps)
-        if low < chunk.message_start_time:
-            chunk.message_start_time = low
-        if high > chunk.message_end_time:
-            chunk.message_end_time = high
-        if low < storage.message_start_time:
-            storage.message_start_time = low
-        if high > storage.message_end_time:
-            storage.message_end_time = high
+        self._widen(min(stamps), max(stamps))
+
+    def _widen(self, low: int, high: int) -> None:
+        """Widen the chunk's, the file's and the writer's time ranges to [low, high]."""
+        for holder in (self.storage.chunk, self.storage):
+            if low < holder.message_start_time:
+                holder.message_start_time = low
+            if high > holder.message_end_time:
+                holder.message_end_time = high
+        writer = self.writer
         if low < writer.min_timestamp:
             writer.min_timestamp = low
         if high > writer.max_timestamp:

@@ -131,7 +131,7 @@ class ChunkProcessing:
         disturbance = None if commands is None else np.empty((count, n))
         lagged, fixed_lag, events = self.fixed_lag, {}, {}
         coast_ns = COAST_NS
-        filter_measurements = self._filter_measurements
+        row_measurements = self._row_measurements
         # Ad_g on the subalgebra: the whole algebra's is the pose's action (filter._adjoint).
         whole = flt._whole
         # Poses, states and quiet flags serve the predictions only (_per_sample); nothing
@@ -140,22 +140,7 @@ class ChunkProcessing:
         for k in range(count):
             stamp = stamp_list[k]
             prior = None
-            samples = measured[k]
-            if len(samples) == 1 and samples[0][0] == stamp and len(samples[0]) == 2 \
-                    and samples[0][1].__class__ is not NoisyRow:
-                # The common row: one base sample, at the row's own stamp, no stamp sigma
-                # and no message noise (what _filter_measurements gives, without its loop).
-                measurements = [None]
-                sigma = noise = None
-                at_row = True
-            elif not samples:
-                # A row between base samples (_filter_measurements gives nothing).
-                measurements, at_row, sigma, noise = [], False, None, None
-            else:
-                measurements = filter_measurements(samples, stamp)
-                at_row = bool(measurements) and measurements[-1] is None
-                sigma, noise = (self._row_stamp_sigma, self._row_noise) if at_row \
-                    else (None, None)
+            measurements, at_row, sigma, noise = row_measurements(measured[k], stamp)
             if at_row or flt._g is None or stamp - flt.stamp_ns > coast_ns:
                 # The base state at the row's stamp (a measurement there, the start, or
                 # a restart after a coast beyond the filter's cap).
@@ -163,14 +148,9 @@ class ChunkProcessing:
                                     None if twists is None else twists[k], sigma, noise)
                 if at_row:
                     measurements[-1] = prior
-            gated_at, before, start_ns = [], flt._lin, flt.stamp_ns
-            for gated, nis in flt.row(stamp, lins[k], prior, measurements,
-                                      None if commands is None else commands[k]):
-                gated_at.append(gated)
-                self.rejected['innovation_gate'] += 1
-                self._period_rejected += 1
-                self.last_rejection = (f'innovation_gate: base measurement at {gated} '
-                                       f'improbable under the filter (chi-square {nis:.3g})')
+            before, start_ns = flt._lin, flt.stamp_ns
+            gated_at = self._filter_row(stamp, lins[k], prior, measurements,
+                                        None if commands is None else commands[k])
             g = flt.g  # one pin.SE3 per row (the property builds a new one each time)
             # Each accepted twist's own momentum, for the event tests (multiscale.py).
             # (No measurement: twist_momenta finds none; [] without its pose products.)
@@ -269,32 +249,15 @@ class ChunkProcessing:
         flt = self.filter
         twists = result.xi if self.use_odometry else None
         prior = None
-        if len(samples) == 1 and samples[0][0] == stamp and len(samples[0]) == 2 \
-                and samples[0][1].__class__ is not NoisyRow:
-            # The common row (see _process_chunk).
-            measurements = [None]
-            sigma = noise = None
-            at_row = True
-        elif not samples:
-            measurements, at_row, sigma, noise = [], False, None, None
-        else:
-            measurements = self._filter_measurements(samples, stamp)
-            at_row = bool(measurements) and measurements[-1] is None
-            sigma, noise = (self._row_stamp_sigma, self._row_noise) if at_row \
-                else (None, None)
+        measurements, at_row, sigma, noise = self._row_measurements(samples, stamp)
         if at_row or flt._g is None or stamp - flt.stamp_ns > COAST_NS:
             prior = tuple.__new__(Measurement, (
                 stamp, pin.SE3(result.rotation[0], result.translation[0]),
                 None if twists is None else twists[0], sigma, noise))
             if at_row:
                 measurements[-1] = prior
-        gated_at, before, start_ns = [], flt._lin, flt.stamp_ns
-        for gated, nis in flt.row(stamp, lin, prior, measurements, None):
-            gated_at.append(gated)
-            self.rejected['innovation_gate'] += 1
-            self._period_rejected += 1
-            self.last_rejection = (f'innovation_gate: base measurement at {gated} '
-                                   f'improbable under the filter (chi-square {nis:.3g})')
+        before, start_ns = flt._lin, flt.stamp_ns
+        gated_at = self._filter_row(stamp, lin, prior, measurements, None)
         g = flt.g
         measured_mu = None if twists is None else \
             twist_momenta(flt, before, lin, start_ns, stamp, measurements, gated_at, g) \
@@ -352,6 +315,32 @@ class ChunkProcessing:
         the freeflyer2 PD bag: Fx gain 0.07 instead of 0.57), so it is off there.
         """
         return 0.0 if self.commanded_wrench else self.config.event_significance
+
+    def _row_measurements(self, samples: list, stamp: int) -> tuple:
+        """Return (measurements, one at the row's stamp, its sigma, noise) of a row's samples."""
+        if len(samples) == 1 and samples[0][0] == stamp and len(samples[0]) == 2 \
+                and samples[0][1].__class__ is not NoisyRow:
+            # The common row: one base sample, at the row's own stamp, no stamp sigma and
+            # no message noise (what _filter_measurements gives, without its loop).
+            return [None], True, None, None
+        if not samples:
+            return [], False, None, None  # a row between base samples
+        measurements = self._filter_measurements(samples, stamp)
+        if measurements and measurements[-1] is None:
+            return measurements, True, self._row_stamp_sigma, self._row_noise
+        return measurements, False, None, None
+
+    def _filter_row(self, stamp: int, lin: Linearisation, prior: Optional[Measurement],
+                    measurements: list, commands: Optional[list[Optional[Command]]]) -> list:
+        """Run the filter's row; count each measurement its gate refused; return their stamps."""
+        gated_at = []
+        for gated, nis in self.filter.row(stamp, lin, prior, measurements, commands):
+            gated_at.append(gated)
+            self.rejected['innovation_gate'] += 1
+            self._period_rejected += 1
+            self.last_rejection = (f'innovation_gate: base measurement at {gated} '
+                                   f'improbable under the filter (chi-square {nis:.3g})')
+        return gated_at
 
     def _filter_measurements(self, measured: tuple, stamp: int) -> list:
         """
