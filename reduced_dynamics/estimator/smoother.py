@@ -45,8 +45,8 @@ import numpy as np
 
 from reduced_dynamics.estimator.core import smoother as kernels
 from reduced_dynamics.estimator.filter import FilterStep
-from reduced_dynamics.estimator.outputs import (EstimatorOutput, smoothed_fields,
-                                                SmoothedColumns)
+from reduced_dynamics.estimator.outputs import EstimatorOutput
+from reduced_dynamics.estimator.smoothed_outputs import smoothed_fields, SmoothedColumns
 from reduced_dynamics.geometry.lie_group import BaseGroup
 
 #: Steps per block: ~8 MiB for the paper robot (3n = 18), big enough for large writes.
@@ -323,7 +323,7 @@ class Smoothing:
         """
         Yield, per output since :meth:`enable_smoothing`, its RTS-smoothed fields.
 
-        :func:`~.outputs.smoothed_fields` lists them; the shape state,
+        :func:`~.smoothed_outputs.smoothed_fields` lists them; the shape state,
         predictions, diagnostics and events stay those of the causal run.
         Memory stays a block of rows whatever the length.
         """
@@ -337,7 +337,7 @@ class Smoothing:
 
     def smoothed_columns(self) -> Iterator[SmoothedColumns]:
         """
-        Yield once the smoothed rows as :class:`~.outputs.SmoothedColumns` (replay).
+        Yield once the smoothed rows as :class:`~.smoothed_outputs.SmoothedColumns` (replay).
 
         The same rows as :meth:`smoothed_rows`, as CDR columns; the files are
         closed when the generator is.
