@@ -19,7 +19,7 @@ numpy and scipy each ship their own OpenBLAS (two libraries in one process; numb
 compiled ``np.dot`` calls scipy's). With OpenBLAS's default threads (one per core) the
 pulse fit at a detection costs several times the CPU, small LAPACK calls are much
 slower, and the large products' last bits depend on the thread count: the node's and
-replay's outputs would depend on the machine (docs/performance.md, "BLAS threads").
+replay's outputs would depend on the machine (docs/performance.md, "Stop 26").
 
 The entry points (the CLI's subcommands, the node, replay-many's workers on every
 backend) call :func:`limit_blas_threads`; :func:`limited_blas_threads` scopes the same limit
