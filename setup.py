@@ -73,6 +73,8 @@ setup(
         'numpy',
         'scipy',
         'numba',  # the filter core's compiled kernels (estimator/core)
+        # one BLAS thread in every entry point (reduced_dynamics/blas_threads.py)
+        'threadpoolctl',
         'pin',
         'rosbags',
         'mcap',

@@ -232,9 +232,13 @@ def _main(argv: Optional[Sequence[str]]) -> int:
         argv = sys.argv[1:]
     parser = build_parser(_command_of(argv))
     args = parser.parse_args(argv)
+    from reduced_dynamics.blas_threads import limit_blas_threads
     from reduced_dynamics.robot.model import ModelError
     _INTERRUPTS.install()  # imports done: the subcommand's cleanup runs on a signal
     try:
+        # One BLAS thread for the process (every subcommand): outputs and CPU per call
+        # independent of the machine's core count (reduced_dynamics.blas_threads).
+        limit_blas_threads()
         return int(args.func(args) or 0)
     except (ModelError, FileNotFoundError, ValueError) as error:
         print(f'reduced-dynamics {args.command}: error: {error}', file=sys.stderr)

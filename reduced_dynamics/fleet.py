@@ -317,11 +317,15 @@ def _write_json(path: str, data: dict) -> None:
 def run_bag(job: BagJob) -> dict:
     """Replay one bag where this worker runs; return its table row (never raises)."""
     from reduced_dynamics.bag.reader import open_bag
+    from reduced_dynamics.blas_threads import limit_blas_threads
     from reduced_dynamics.replay import replay
     started = time.perf_counter()
     summary_path = os.path.join(job.out_dir, SUMMARY)
     out_bag = os.path.join(job.out_dir, OUTPUT_BAG)
     try:
+        # Whichever backend's process this is (a pool worker, Ray, Dask): one BLAS thread
+        # for it, also for the correlation after the replay (reduced_dynamics.blas_threads).
+        limit_blas_threads()
         os.makedirs(job.out_dir, exist_ok=True)
         if os.path.exists(summary_path):
             os.remove(summary_path)  # outputs of other options: not this job's

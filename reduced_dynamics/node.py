@@ -64,6 +64,7 @@ from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
+from reduced_dynamics.blas_threads import limit_blas_threads
 from reduced_dynamics.estimator import Estimator, EstimatorConfig, EstimatorOutput
 from reduced_dynamics.estimator.base_motion import answer_messages
 from reduced_dynamics.estimator.config import PARAMETERS as ESTIMATOR_PARAMETERS
@@ -1495,6 +1496,13 @@ def main(args: Optional[Sequence[str]] = None, lifecycle: bool = False) -> int:
     if rclpy is None:
         print(ROS_NOT_SOURCED, file=sys.stderr)
         return 1
+    try:
+        # One BLAS thread for the process, the prediction worker's included: the node's
+        # outputs are replay's, whatever the machine's core count (blas_threads).
+        limit_blas_threads()
+    except ValueError as error:
+        print(f'reduced_dynamics_node: {error}', file=sys.stderr)
+        return 2
     stopper = _StopOnSignal()  # first: a signal during start-up also ends cleanly
     try:
         if options.lifecycle:

@@ -41,6 +41,7 @@ from reduced_dynamics.bag.damage import Damage
 from reduced_dynamics.bag.errors import BagError
 from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.bag.writer import BagWriter
+from reduced_dynamics.blas_threads import limited_blas_threads
 from reduced_dynamics.estimator.config import check_parameter, EstimatorConfig
 from reduced_dynamics.estimator.outputs import EstimatorBatch, OutputChunk
 from reduced_dynamics.estimator.pipeline import Estimator
@@ -314,8 +315,19 @@ def load_robot_from_params(params: dict, urdf: str = '',
 
 def replay(bag_path: str, out_path: str, robot: RobotModel,
            options: Optional[ReplayOptions] = None) -> dict[str, Any]:
-    """Replay ``bag_path`` through the estimator into ``out_path``; return the summary."""
-    options = options or ReplayOptions()
+    """
+    Replay ``bag_path`` through the estimator into ``out_path``; return the summary.
+
+    With one BLAS thread (:mod:`reduced_dynamics.blas_threads`; the caller's counts
+    are restored after it): the outputs do not depend on the machine's thread count.
+    """
+    with limited_blas_threads():
+        return _replay(bag_path, out_path, robot, options or ReplayOptions())
+
+
+def _replay(bag_path: str, out_path: str, robot: RobotModel,
+            options: ReplayOptions) -> dict[str, Any]:
+    """Replay ``bag_path`` into ``out_path`` with the BLAS threads as they are."""
     # Offline, a prediction's budget is its evaluations alone: a wall-time budget would
     # make the output depend on the machine's load (the node keeps its own).
     config = EstimatorConfig.from_mapping(options.params).replaced(
