@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from filter_helpers import filter_problem
-from reduced_dynamics.estimator.core import kernels
+from reduced_dynamics.estimator.core import kernels, update
 
 
 def _problem(offset: float) -> tuple:
@@ -46,13 +46,14 @@ def _problem(offset: float) -> tuple:
 def _relinearisations(args: tuple) -> tuple[int, tuple]:
     """Run the update's source with the compiled kernels; return its re-linearisations."""
     calls = []
-    blocks = kernels._twist_blocks
+    blocks = update._twist_blocks
 
     def counted(*a):
         calls.append(1)
         return blocks(*a)
 
-    with mock.patch.object(kernels, '_twist_blocks', counted):
+    # The module whose globals _corrected's source reads (kernels re-exports it).
+    with mock.patch.object(update, '_twist_blocks', counted):
         out = kernels._corrected.py_func(*args)
     return len(calls), out
 
