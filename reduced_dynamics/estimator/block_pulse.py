@@ -130,7 +130,7 @@ def locate(bank: Any, stamp_ns: int, window: int, floor_ns: Optional[int],
 
 def work(bank: Any, *shapes: tuple) -> list[np.ndarray]:
     """
-    Return arrays of ``shapes`` for a pulse fit's work (contents undefined).
+    Return arrays of ``shapes``, a pulse fit's work space (contents undefined).
 
     Fresh arrays of a few MB cost mostly their page faults (~0.5 ms per MB here, more
     than filling them): up to FIT_SCRATCH elements in all they are views of one
