@@ -39,7 +39,8 @@ class MomentumBlocks:
     """
     GLR of a momentum change from measured momenta: before a gap against after it.
 
-    With a twist measured, every sample gives mu (:func:`.twist_momentum`) with its
+    With a twist measured, every sample gives mu
+    (:func:`~reduced_dynamics.estimator.measured_momentum.twist_momentum`) with its
     own, independent noise C_k. Without a wrench mu is constant, so the
     information-weighted mean of a block of samples, m = (sum C^-1)^-1 sum C^-1 y,
     has covariance (sum C^-1)^-1, and for window L (before (t-3L, t-2L], gap
@@ -136,7 +137,7 @@ class MomentumBlocks:
         ``common``: the covariance of its slowly changing error (the filter pose's),
         which a block's mean keeps whole. ``position``: the measured centre of mass
         at the same stamp, (c, its covariance, total mass, linear coordinates)
-        (:func:`.centre_of_mass`; None: none).
+        (:func:`~reduced_dynamics.estimator.measured_momentum.centre_of_mass`; None: none).
         """
         if self._end and stamp_ns <= self._stamps[self._end - 1]:
             return

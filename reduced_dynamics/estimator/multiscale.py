@@ -37,13 +37,15 @@ conservative twice (the bound; V_L above the true variance), which the measured
 rates in the docs show.
 
 Cost per update: one compiled call for both banks (core/bank_step.py; with a
-measured twist its momentum too: :class:`.TwistSample`; docs/multiscale_events.md,
-"Cost").
+measured twist its momentum too:
+:class:`~reduced_dynamics.estimator.measured_momentum.TwistSample`;
+docs/multiscale_events.md, "Cost").
 
 The filtered momentum's covariance is set mostly by the filter's random-walk
 wrench, so this test cannot see a slow push below ~sqrt(threshold 2 P_mu)
 whatever its length. Where a twist is measured, :class:`.MomentumBlocks` runs
-the same bank on the momenta each twist gives (:func:`.twist_momentum`): block
+the same bank on the momenta each twist gives
+(:func:`~reduced_dynamics.estimator.measured_momentum.twist_momentum`): block
 means of every sample, chi2_n exactly under no wrench (docs/multiscale_events.md).
 """
 
@@ -167,8 +169,9 @@ class MultiScaleTest(TwistUpdate):
         Take one filtered momentum and its covariance; return the detecting window.
 
         ``measured``: (stamp, mu, covariance) the measured twists since the last
-        update give (:func:`.twist_momenta`; None or empty: none). The block test on
-        them runs beside the test on the filtered momentum, each at half the rate.
+        update give (:func:`~reduced_dynamics.estimator.measured_momentum.twist_momenta`;
+        None or empty: none). The block test on them runs beside the test on the
+        filtered momentum, each at half the rate.
         ``wanted`` False: the caller has no use for a detection now (an event is
         open); the statistics are updated, nothing is located, None is returned.
         """
