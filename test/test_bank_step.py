@@ -29,9 +29,15 @@ import math
 import numpy as np
 import pytest
 
-from reduced_dynamics.estimator import multiscale
+from reduced_dynamics.estimator import momentum_blocks, multiscale, multiscale_twist
 from reduced_dynamics.estimator.core import bank_step, blocks
 from reduced_dynamics.estimator.multiscale import MultiScaleTest
+
+
+def _excess_minimum(monkeypatch: pytest.MonkeyPatch, value: int) -> None:
+    """Set EXCESS_MINIMUM in every module that reads it (the multi-scale test's parts)."""
+    for module in (multiscale, momentum_blocks, multiscale_twist):
+        monkeypatch.setattr(module, 'EXCESS_MINIMUM', value)
 
 
 def _full_block_statistics(test: MultiScaleTest, stamp_ns: int) -> np.ndarray:
@@ -86,7 +92,7 @@ def _state(test: MultiScaleTest) -> list:
 @pytest.mark.parametrize('n,d', [(6, 3), (3, 2), (3, 0)])
 def test_the_block_bank_is_evaluated_on_its_grid_and_held_between(n, d, monkeypatch) -> None:
     """At an evaluation the block kernel's T_L (to rounding), between them the last one."""
-    monkeypatch.setattr(multiscale, 'EXCESS_MINIMUM', 50)
+    _excess_minimum(monkeypatch, 50)
     test = MultiScaleTest(n, 50.0)
     found = {'filtered': 0, 'blocks': 0}
     evaluations = np.zeros(len(test.windows), dtype=int)
@@ -141,7 +147,7 @@ def test_the_block_bank_is_evaluated_on_its_grid_and_held_between(n, d, monkeypa
 
 def test_the_grid_learns_the_block_null_at_the_per_update_rate(monkeypatch) -> None:
     """The learnt fraction above the median on the grid tracks learning at every update."""
-    monkeypatch.setattr(multiscale, 'EXCESS_MINIMUM', 50)
+    _excess_minimum(monkeypatch, 50)
     test = MultiScaleTest(6, 50.0, calibration_memory=1.0)
     reference = np.full(len(test.windows), 0.5)
     for stamp, mu, cov, measured, _, _, _, _ in _inputs(6, 3, 8.0, 100.0, 11):
@@ -231,7 +237,7 @@ def test_the_fused_twist_call_gives_the_bits_of_the_calls_it_replaces(monkeypatc
     ring, calibration and detection bit for bit, through pushes, resets, open events
     (not wanted), an unquiet null, ring growth and the excess decompositions.
     """
-    monkeypatch.setattr(multiscale, 'EXCESS_MINIMUM', 50)
+    _excess_minimum(monkeypatch, 50)
     calls = {'twist_step': 0}
     # (Only the outermost kernel is wrapped: a kernel compiled while one it calls is a
     # Python wrapper could not be.)

@@ -311,7 +311,7 @@ def _detection_fields(detection: tuple) -> bytes:
 
 def test_locate_keeps_its_ramps_work_space_without_changing_a_bit(monkeypatch) -> None:
     """A pulse fit in the kept work space (dirty from the last) equals one in fresh arrays."""
-    from reduced_dynamics.estimator import multiscale
+    from reduced_dynamics.estimator import block_pulse, multiscale
     rng = np.random.default_rng(3)
     test = MomentumBlocks(6, multiscale.window_bank())
     mu = np.zeros(6)
@@ -325,7 +325,7 @@ def test_locate_keeps_its_ramps_work_space_without_changing_a_bit(monkeypatch) -
     stamp = int(test._stamps[test._end - 1])
     kept = [_detection_fields(test.locate(stamp, window, None)) for window in (1, 2, 1)]
     assert test._fit_scratch is not None  # these fits used the kept work space
-    monkeypatch.setattr(multiscale, 'FIT_SCRATCH', 0)
+    monkeypatch.setattr(block_pulse, 'FIT_SCRATCH', 0)
     fresh = [_detection_fields(test.locate(stamp, window, None)) for window in (1, 2, 1)]
     assert kept == fresh
     assert kept[0] == kept[2] and kept[0] != kept[1]

@@ -98,7 +98,7 @@ def measured_momentum_bound(momentum_cov: np.ndarray, direction: Sequence[float]
     """
     Return the impulse along ``direction`` the block test needs to reach its threshold.
 
-    The test of :class:`~reduced_dynamics.estimator.multiscale.MomentumBlocks` at
+    The test of :class:`~reduced_dynamics.estimator.momentum_blocks.MomentumBlocks` at
     window L compares the means of two blocks of L s of measured momenta, each sample
     with covariance ``momentum_cov`` (n x n) at ``rate`` Hz: V = 2 C / (L f). A pulse
     J u inside the gap gives the non-centrality J^2 u^T V^-1 u, which reaches the

@@ -288,7 +288,7 @@ class EventDetector:
         to a thruster switching on before the random-walk w has grown). ``mu_cov``:
         P_mu, for the multi-scale test and the impulse's covariance (None: neither).
         ``measured``: (stamp, mu, covariance) of the twists measured since the last
-        sample (multiscale.twist_momenta; None: none), for the block test and the
+        sample (measured_momentum.twist_momenta; None: none), for the block test and the
         impulse's ends.
         """
         # in_event once (the last event, looked up once): the multi-scale test does not

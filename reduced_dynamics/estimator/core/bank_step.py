@@ -30,6 +30,9 @@ preallocated arrays:
   between evaluations), its statistic held between them; its null calibration
   learns at evaluations, weighted by the updates since the last, so its memory in
   seconds is the same (docs/multiscale_events.md, "Cost").
+
+The per-window kernels (:func:`.bank_windows.quadratic_form`, the filtered bank, a
+block window) are in core/bank_windows.py.
 """
 
 import math
@@ -37,196 +40,15 @@ import math
 import numpy as np
 from numba import njit
 
+from reduced_dynamics.estimator.core.bank_windows import (  # noqa: F401 (re-exported)
+    block_window, filtered_bank, quadratic_form)
 from reduced_dynamics.estimator.core.blocks import add_sample
-from reduced_dynamics.estimator.core.cholesky import lower_factor, solve_factor
 from reduced_dynamics.estimator.core.impulse import measured_momentum_se3
 
 
 #: Evaluations of a block window per its length: window L is evaluated on a grid of
 #: stride L / GRID (docs/multiscale_events.md, "Cost").
 GRID = 16
-
-
-@njit(cache=True)
-def quadratic_form(a: np.ndarray, b: np.ndarray, d: np.ndarray, work: np.ndarray,
-                   y: np.ndarray) -> float:
-    """
-    Return d^T (a + b)^-1 d by Cholesky (``work`` n x n, ``y`` n: scratch); NaN: not positive.
-
-    ||L^-1 d||^2 with a + b = L L^T: a factorisation and one forward substitution,
-    no inverse, no allocation (a LAPACK solve per window allocated and pivoted).
-    """
-    n = d.shape[0]
-    for i in range(n):
-        for j in range(i + 1):
-            s = a[i, j] + b[i, j]
-            for k in range(j):
-                s -= work[i, k] * work[j, k]
-            if i == j:
-                if not s > 0.0:
-                    return math.nan
-                work[i, i] = math.sqrt(s)
-            else:
-                work[i, j] = s / work[j, j]
-    total = 0.0
-    for i in range(n):
-        s = d[i]
-        for k in range(i):
-            s -= work[i, k] * y[k]
-        y[i] = s / work[i, i]
-        total += y[i] * y[i]
-    return total
-
-
-@njit(cache=True)
-def _filtered_bank(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray,
-                   start: int, end: int, lags: np.ndarray, stamp_ns: int, floor_ns: int,
-                   has_floor: bool, mu: np.ndarray, cov: np.ndarray, rows: np.ndarray,
-                   raw: np.ndarray, work: np.ndarray, y: np.ndarray,
-                   d: np.ndarray) -> int:
-    """
-    Store the sample at ring row ``end``; write each window's row and raw T_L.
-
-    Returns the windows covered, or -1 when a V_L is not positive definite (then
-    every raw T_L is 0: :func:`.impulse.window_changes` raised there). Rows and
-    coverage as :func:`.impulse.window_changes`.
-    """
-    stamps[end] = stamp_ns
-    mu_ring[end] = mu
-    cov_ring[end] = cov
-    end += 1
-    n = mu.shape[0]
-    first = stamps[start]
-    lowest = max(floor_ns, first) if has_floor else first
-    covered = 0
-    for w in range(lags.shape[0]):
-        raw[w] = 0.0
-        index = np.searchsorted(stamps[start:end], stamp_ns - lags[w], 'right') - 1
-        rows[w] = -1
-        if index >= 0 and stamps[start + index] >= lowest:
-            rows[w] = start + index
-            covered += 1
-    for w in range(lags.shape[0]):
-        row = rows[w]
-        if row < 0:
-            continue
-        for i in range(n):
-            d[i] = mu[i] - mu_ring[row, i]
-        value = quadratic_form(cov, cov_ring[row], d, work, y)
-        if math.isnan(value) and not math.isnan(d.sum()):
-            raw[:] = 0.0
-            return -1
-        raw[w] = value
-    return covered
-
-
-@njit(cache=True)
-def _block(info: np.ndarray, score: np.ndarray, s0: np.ndarray, s1: np.ndarray,
-           s2: np.ndarray, y0: np.ndarray, t1: np.ndarray, counts: np.ndarray, lo: int,
-           hi: int, mass: float, linear: np.ndarray, cov: np.ndarray, mean: np.ndarray,
-           work: np.ndarray) -> bool:
-    """
-    Write the block (lo, hi]'s mean momentum and covariance (:func:`.blocks.block_mean`).
-
-    The same algebra by Cholesky factors on ``work`` ((6, n, n) scratch), no allocation:
-    the slope's information a2 - a1 a0^-1 a1 and score b1 - a1 a0^-1 b0 (a1 and a0
-    symmetric), then the inverse of the information. False: a factor not positive.
-    """
-    n = mean.shape[0]
-    lam, factor, inverse = work[0], work[1], work[2]
-    for i in range(n):
-        mean[i] = score[hi, i] - (score[lo, i] if lo >= 0 else 0.0)
-        for j in range(n):
-            lam[i, j] = info[hi, i, j] - (info[lo, i, j] if lo >= 0 else 0.0)
-    d = linear.shape[0]
-    count = counts[hi] - (counts[lo] if lo >= 0 else 0) if d else 0
-    if d and mass > 0.0 and count >= 2:
-        a0, a1, x = work[3][:d, :d], work[4][:d, :d], work[5][:d, :d]
-        chol0 = inverse[:d, :d]
-        b0, b1 = factor[0, :d], factor[1, :d]
-        for i in range(d):
-            b0[i] = y0[hi, i] - (y0[lo, i] if lo >= 0 else 0.0)
-            b1[i] = t1[hi, i] - (t1[lo, i] if lo >= 0 else 0.0)
-            for j in range(d):
-                a0[i, j] = s0[hi, i, j] - (s0[lo, i, j] if lo >= 0 else 0.0)
-                a1[i, j] = s1[hi, i, j] - (s1[lo, i, j] if lo >= 0 else 0.0)
-        if not lower_factor(a0, chol0):
-            return False
-        for j in range(d):
-            # x = a0^-1 a1, column by column; a1 a0^-1 = x^T.
-            for i in range(d):
-                x[i, j] = a1[i, j]
-            solve_factor(chol0, d, x[:, j])
-        for i in range(d):
-            residual = b1[i]
-            for k in range(d):
-                residual -= x[k, i] * b0[k]
-            mean[linear[i]] += residual / mass
-        for i in range(d):
-            for j in range(d):
-                schur_ij = s2[hi, i, j] - (s2[lo, i, j] if lo >= 0 else 0.0)
-                schur_ji = s2[hi, j, i] - (s2[lo, j, i] if lo >= 0 else 0.0)
-                for k in range(d):
-                    schur_ij -= a1[i, k] * x[k, j]
-                    schur_ji -= a1[j, k] * x[k, i]
-                lam[linear[i], linear[j]] += 0.5 * (schur_ij + schur_ji) / (mass * mass)
-    if not lower_factor(lam, factor):
-        return False
-    solve_factor(factor, n, mean)
-    # cov = lam^-1 = L^-T L^-1: the inverse factor, then its product.
-    for j in range(n):
-        for i in range(n):
-            if i < j:
-                inverse[i, j] = 0.0
-                continue
-            s = 1.0 if i == j else 0.0
-            for k in range(j, i):
-                s -= factor[i, k] * inverse[k, j]
-            inverse[i, j] = s / factor[i, i]
-    for i in range(n):
-        for j in range(i + 1):
-            s = 0.0
-            for k in range(i, n):
-                s += inverse[k, i] * inverse[k, j]
-            cov[i, j] = s
-            cov[j, i] = s
-    return True
-
-
-@njit(cache=True)
-def _block_window(info: np.ndarray, score: np.ndarray, s0: np.ndarray, s1: np.ndarray,
-                  s2: np.ndarray, y0: np.ndarray, t1: np.ndarray, counts: np.ndarray,
-                  common: np.ndarray, stamps: np.ndarray, end: int, lag: int,
-                  stamp_ns: int, mass: float, linear: np.ndarray,
-                  work: np.ndarray) -> float:
-    """
-    Return window ``lag``'s block T_L (:func:`.blocks.window_statistics`); 0: not formed.
-
-    Before (t-3L, t-2L] against after (t-L, t] (prefix rows up to ``end``); 0 when a
-    block is empty or an information not positive. ``work``: (12, n, n) scratch.
-    """
-    rows = stamps[:end]
-    r0 = np.searchsorted(rows, stamp_ns - 3 * lag, 'right') - 1
-    r1 = np.searchsorted(rows, stamp_ns - 2 * lag, 'right') - 1
-    r2 = np.searchsorted(rows, stamp_ns - lag, 'right') - 1
-    r3 = np.searchsorted(rows, stamp_ns, 'right') - 1
-    if not (r1 > r0 and r3 > r2):
-        return 0.0
-    n = info.shape[1]
-    before_cov, after_cov, v = work[6], work[7], work[8]
-    before, after = work[9][0], work[9][1]
-    if not _block(info, score, s0, s1, s2, y0, t1, counts, r0, r1, mass, linear,
-                  before_cov, before, work[:6]):
-        return 0.0
-    if not _block(info, score, s0, s1, s2, y0, t1, counts, r2, r3, mass, linear,
-                  after_cov, after, work[:6]):
-        return 0.0
-    for i in range(n):
-        after[i] -= before[i]
-        for j in range(n):
-            v[i, j] = before_cov[i, j] + common[r1, i, j] + after_cov[i, j]
-    value = quadratic_form(v, common[r3], after, work[10], work[11][0])
-    return 0.0 if math.isnan(value) else value
 
 
 @njit(cache=True)
@@ -245,7 +67,7 @@ def update(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray, start:
 
     The filtered bank (every window, every update): the sample stored at ring row
     ``end``, each window's row (``rows``, -1: not covered) and T_L by Cholesky
-    (:func:`quadratic_form`), calibrated into ``statistics``; its best as
+    (:func:`.bank_windows.quadratic_form`), calibrated into ``statistics``; its best as
     :func:`.impulse.calibrated_best` (-1: none covered or a V_L not positive).
 
     The block bank on a grid: window L is evaluated at the first update in each
@@ -263,9 +85,9 @@ def update(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray, start:
     Cholesky factor, its two work vectors.
     """
     count = lags.shape[0]
-    covered = _filtered_bank(stamps, mu_ring, cov_ring, start, end, lags, stamp_ns,
-                             floor_ns, has_floor, mu, cov, rows, statistics, scratch[12],
-                             scratch[13][0], scratch[13][1])
+    covered = filtered_bank(stamps, mu_ring, cov_ring, start, end, lags, stamp_ns,
+                            floor_ns, has_floor, mu, cov, rows, statistics, scratch[12],
+                            scratch[13][0], scratch[13][1])
     best, value = -1, 0.0
     if covered > 0:
         for w in range(count):
@@ -300,9 +122,9 @@ def update(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray, start:
         slot = stamp_ns // grid[0, w]
         if slot != grid[1, w]:
             grid[1, w] = slot
-            raw = _block_window(info, score, s0, s1, s2, y0, t1, counts, common,
-                                block_stamps, block_end, lag, stamp_ns, mass, linear,
-                                scratch[:12])
+            raw = block_window(info, score, s0, s1, s2, y0, t1, counts, common,
+                               block_stamps, block_end, lag, stamp_ns, mass, linear,
+                               scratch[:12])
             if learn and raw > 0.0 and grid[2, w] > 0:
                 step = min(1.0, rate * grid[2, w])
                 above[1, w] += step * ((1.0 if raw > median else 0.0) - above[1, w])
@@ -381,7 +203,7 @@ def update_with_twist(ad_inverse: np.ndarray, locked: np.ndarray, twist: np.ndar
     momentum, its covariances and the measured centre of mass
     (:func:`.impulse.measured_momentum_se3`, the locked inertia of the row for both),
     the sample into block row ``k`` and both banks' update, the same kernels in the
-    same order as the calls it replaces (multiscale.TwistSample.momentum, then
+    same order as the calls it replaces (measured_momentum.TwistSample.momentum, then
     MomentumBlocks.prepare's arguments and :func:`update_with_sample`). The sample's
     momentum and white covariance are copied into ``keep_mu``, ``keep_cov`` (the
     next sample's successive difference reads them: MomentumBlocks._last) after

@@ -15,7 +15,7 @@
 """
 The block test's arithmetic, compiled (numba): block means of measured momenta.
 
-:class:`~reduced_dynamics.estimator.multiscale.MomentumBlocks` keeps prefix sums
+:class:`~reduced_dynamics.estimator.momentum_blocks.MomentumBlocks` keeps prefix sums
 of every sample's information; a block (lo, hi] of samples is a difference of
 two rows. Two kinds of sample enter a block's estimate of the momentum:
 
@@ -273,7 +273,7 @@ def pulse_ramps(times: np.ndarray, starts: np.ndarray, ends: np.ndarray, ramp: n
 def position_ramps(times: np.ndarray, starts: np.ndarray, ends: np.ndarray, ramp: np.ndarray,
                    timed: np.ndarray, square: np.ndarray) -> None:
     """
-    Write the ramp integrals R (fits x samples) of MomentumBlocks._position_rows, R t, R^2.
+    Write the ramp integrals R (fits x samples) of block_pulse.position_rows, R t, R^2.
 
     R = clip(t - s, 0, e - s)^2 / (2 (e - s)) + max(t - e, 0), numpy's expression
     element by element in one pass (the same operations in the same order).

@@ -178,9 +178,9 @@ def measured_momentum_se3(ad_inverse: np.ndarray, locked: np.ndarray, twist: np.
                           com_locked: np.ndarray, rotation: np.ndarray,
                           translation: np.ndarray, com_pose_cov: np.ndarray) -> tuple:
     """
-    Return multiscale.twist_momentum's and :func:`centre_of_mass_se3`'s results in one call.
+    Return measured_momentum.twist_momentum's and :func:`centre_of_mass_se3`'s results in one call.
 
-    A measured twist of an SE(3) base gives both per row (multiscale.twist_momenta):
+    A measured twist of an SE(3) base gives both per row (measured_momentum.twist_momenta):
     pi = I (xi + A qbar_dot), its Kirillov form and the two kernels in one dispatch,
     the same operations.
     """
