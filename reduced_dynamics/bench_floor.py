@@ -46,7 +46,11 @@ from __future__ import annotations
 import time
 from typing import Any, Callable
 
+from numba import njit
 import numpy as np
+
+from reduced_dynamics.estimator import step_kernels
+from reduced_dynamics.estimator.core import kernels, reference, smoother, smoother_reference
 
 #: Steady state: the step test's bank is full after 2 s of 1 kHz samples.
 WARMUP_SAMPLES = 2100
@@ -55,9 +59,8 @@ WARMUP_SAMPLES = 2100
 def _capture(robot) -> dict:
     """Run the estimator to steady state; return the arguments of its compiled calls."""
     from reduced_dynamics.bench import update_samples
-    from reduced_dynamics.estimator import step_kernels, step_row
+    from reduced_dynamics.estimator import step_row
     from reduced_dynamics.estimator.config import EstimatorConfig
-    from reduced_dynamics.estimator.core import kernels
     from reduced_dynamics.estimator.pipeline import Estimator
     joints, bases = update_samples(robot, WARMUP_SAMPLES + 2)
     # Without the multi-scale event test (not part of the floor): the bench's motion is not
@@ -126,23 +129,51 @@ def _smoother_args(robot) -> tuple:
             group.is_whole)
 
 
-_LOOPS: dict = {}
+@njit(cache=True)
+def _loop_propagate_update(count: int, args: tuple) -> int:
+    for _ in range(count):
+        kernels.propagate_update(*args)
+    return count
 
 
-def _compiled_loop(function: Callable) -> Callable:
-    """Return a compiled ``loop(count, args)`` calling ``function(*args)`` count times."""
-    if function in _LOOPS:
-        return _LOOPS[function]
-    from numba import njit
+@njit(cache=True)
+def _loop_reference_propagate_update(count: int, args: tuple) -> int:
+    for _ in range(count):
+        reference.propagate_update(*args)
+    return count
 
-    @njit
-    def loop(count: int, args: tuple) -> int:
-        for _ in range(count):
-            function(*args)
-        return count
 
-    _LOOPS[function] = loop
-    return loop
+@njit(cache=True)
+def _loop_absorb_evaluate(count: int, args: tuple) -> int:
+    for _ in range(count):
+        step_kernels.absorb_evaluate(*args)
+    return count
+
+
+@njit(cache=True)
+def _loop_backward_step(count: int, args: tuple) -> int:
+    for _ in range(count):
+        smoother.backward_step(*args)
+    return count
+
+
+@njit(cache=True)
+def _loop_reference_backward_step(count: int, args: tuple) -> int:
+    for _ in range(count):
+        smoother_reference.backward_step(*args)
+    return count
+
+
+#: A compiled ``loop(count, args)`` per timed kernel. One function each, in numba's disk
+#: cache: a loop closed over the kernel (not cacheable) was compiled in every process that
+#: ran the floor, ~34 s of CPU (measured, the five loops), twice in a CI run. Like every
+#: cached kernel calling another module's, a loop keeps the kernel's code of when it was
+#: compiled: after changing a kernel, clear the cache (docs/filter_row.md).
+_LOOPS: dict = {kernels.propagate_update: _loop_propagate_update,
+                reference.propagate_update: _loop_reference_propagate_update,
+                step_kernels.absorb_evaluate: _loop_absorb_evaluate,
+                smoother.backward_step: _loop_backward_step,
+                smoother_reference.backward_step: _loop_reference_backward_step}
 
 
 def _seconds_per_call(run: Callable[[], Any], calls: int) -> float:
@@ -153,8 +184,8 @@ def _seconds_per_call(run: Callable[[], Any], calls: int) -> float:
 
 
 def _looped(function: Callable, args: tuple, calls: int) -> float:
-    loop = _compiled_loop(function)
-    loop(1, args)  # compiles
+    loop = _LOOPS[function]
+    loop(1, args)  # compiles or loads from the cache
     start = time.perf_counter()
     loop(calls, args)
     return (time.perf_counter() - start) / calls
@@ -171,9 +202,7 @@ def measure_floor(robot, calls: int = 2000) -> dict:
     ``floor_streaming`` and ``floor_batched`` (the sums with the compiled parts).
     """
     from reduced_dynamics.bench import time_crba
-    from reduced_dynamics.estimator import step_kernels, step_row
-    from reduced_dynamics.estimator.core import kernels, reference, smoother
-    from reduced_dynamics.estimator.core import smoother_reference
+    from reduced_dynamics.estimator import step_row
     captured = _capture(robot)
     kernel, variance = captured['kernel'], captured['variance']
     qbar, qbar_dot, bases = captured['qbar'], captured['qbar_dot'], captured['bases']

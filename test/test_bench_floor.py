@@ -16,11 +16,16 @@
 
 import math
 
+import pytest
+
 from reduced_dynamics import bench_floor
 from reduced_dynamics.estimator.step_state import COUNT
 from reduced_dynamics.robot.model import load_robot
 
 
+#: In test_bench.py's worker, after or before its tiny bench: the floor's compiled loops are
+#: compiled once and loaded from numba's cache by the other (two workers compiled them both).
+@pytest.mark.xdist_group('bench_tiny_report')
 def test_floor_times_the_steady_state_calls_and_adds_them_up() -> None:
     """Captured in steady state (a full step-test bank), each part timed, sums consistent."""
     robot = load_robot()
