@@ -143,7 +143,13 @@ class ChunkProcessing(RowPredictions):
         for k in range(count):
             stamp = stamp_list[k]
             prior = None
-            measurements, at_row, sigma, noise = row_measurements(measured[k], stamp)
+            samples = measured[k]
+            if len(samples) == 1 and samples[0][0] == stamp and len(samples[0]) == 2 \
+                    and samples[0][1].__class__ is not NoisyRow:
+                # _row_measurements' common row, inline (one base sample at the row's stamp).
+                measurements, at_row, sigma, noise = [None], True, None, None
+            else:
+                measurements, at_row, sigma, noise = row_measurements(samples, stamp)
             restart = flt._g is None or stamp - flt.stamp_ns > coast_ns
             if at_row or restart:
                 # The base state at the row's stamp (a measurement there, the start, or
