@@ -154,7 +154,7 @@ def test_chunk_homogeneous_poses_are_the_bits_of_se3_homogeneous() -> None:
 
 
 def _batched_outputs(row_at) -> tuple:
-    """The bench's motion (2.5 s, events found), batched, with ``row_at`` as given."""
+    """Return the bench motion's outputs (2.5 s, events found), batched, with ``row_at`` given."""
     from unittest import mock
 
     from reduced_dynamics.bench import update_samples
