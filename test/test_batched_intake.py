@@ -134,3 +134,65 @@ def test_stall_detector_matches_its_reference_bit_for_bit() -> None:
             assert detector.in_burst(stamp) == reference.in_burst(stamp)
             assert detector.interval == reference.interval
             assert detector.stall_from_ns == reference.stall_from_ns
+
+
+def test_chunk_homogeneous_poses_are_the_bits_of_se3_homogeneous() -> None:
+    # processing.py passes the filter's row step the chunk's poses stacked from R and t
+    # instead of pin.SE3(R, t).homogeneous: the golden outputs rely on the same bits.
+    rng = np.random.default_rng(5)
+    for _ in range(500):
+        g = pin.SE3.Random()
+        g.translation = g.translation * 10.0 ** float(rng.integers(-3, 4))
+        rotation, translation = g.rotation.copy(), g.translation.copy()
+        stacked = np.zeros((1, 4, 4))
+        stacked[:, :3, :3] = rotation
+        stacked[:, :3, 3] = translation
+        stacked[:, 3, 3] = 1.0
+        expected = np.ascontiguousarray(pin.SE3(rotation, translation).homogeneous)
+        assert stacked[0].tobytes() == expected.tobytes()
+        assert stacked[0].flags.c_contiguous
+
+
+def _batched_outputs(row_at) -> tuple:
+    """Return the bench motion's outputs (2.5 s, events found), batched, with ``row_at`` given."""
+    from unittest import mock
+
+    from reduced_dynamics.bench import update_samples
+    from reduced_dynamics.estimator.config import EstimatorConfig
+    from reduced_dynamics.estimator.filter import MomentumFilter
+    from reduced_dynamics.estimator.pipeline import Estimator
+    from reduced_dynamics.robot.model import load_robot
+    robot = load_robot()
+    joints, bases = update_samples(robot, 2500)
+    messages = [m for pair in zip(joints, bases) for m in pair]
+    calls = []
+
+    def counted(self, *args):
+        calls.append(1)
+        return row_at(self, *args)
+
+    estimator = Estimator(robot, EstimatorConfig(prediction_rate=0.0))
+    with mock.patch.object(MomentumFilter, 'row_at', counted):
+        batch = estimator.add_samples(messages)
+    names = ('mu', 'pi', 'momentum_rate', 'drift', 'energy', 'mu_cov', 'w_cov')
+    columns = [batch.column(name).tobytes() for name in names]
+    flt = estimator.filter
+    state = (flt.x.tobytes(), flt.p.tobytes(), flt._g.tobytes(), flt.log_likelihood,
+             flt.nis_sum, flt.steps_taken, flt.step_test.evaluated, flt.stalls.interval)
+    events = [(e.start_ns, e.end_ns, e.detected_ns) for e in estimator.detector.events]
+    return columns, state, events, len(calls)
+
+
+def test_the_common_row_equals_the_general_row_bit_for_bit() -> None:
+    # MomentumFilter.row_at (the common row: one measurement at the row's stamp, with the
+    # chunk's 4 x 4 pose) against the general row() with the same measurement.
+    from reduced_dynamics.estimator.filter import MomentumFilter
+
+    def general(self, stamp_ns, lin, measurement, pose=None):
+        return self.row(stamp_ns, lin, measurement, [measurement])
+
+    mine = _batched_outputs(MomentumFilter.row_at)
+    expected = _batched_outputs(general)
+    assert mine[3] == expected[3] > 2000  # (the first row starts the filter: row())
+    assert expected[2], 'the bench motion finds events'
+    assert mine[:3] == expected[:3]

@@ -130,6 +130,32 @@ class FilterRows:
                       before if midway else None)
         return gated
 
+    def row_at(self, stamp_ns: int, lin: Linearisation, measurement: Measurement,
+               pose: Optional[np.ndarray] = None) -> list[tuple[int, float]]:
+        """
+        Run :meth:`row` of the common row: its one base measurement, at its own stamp.
+
+        ``row(stamp_ns, lin, measurement, [measurement])`` with what the caller checked
+        (the filter started, within the coast cap, no commanded wrench) left out, and
+        :meth:`_step_to`'s common branch inline: the same operations in the same order.
+        ``pose``: the measurement's pose as a C-contiguous 4 x 4 array when the caller
+        has one (the chunk's rows: no pin.SE3 round trip per row).
+        """
+        self.step_detected = None
+        before = self._lin if self._lin is not None else lin
+        self._lin = lin
+        gated: list[tuple[int, float]] = []
+        if measurement.noise is None and not self.command and stamp_ns > self.stamp_ns:
+            burst = self.stalls.in_burst(stamp_ns) and measurement.stamp_sigma is None
+            if not burst and self.step_test.active and self._row_measured(
+                    stamp_ns, before, measurement, lin, True, gated, pose):
+                return gated
+            self._measured_step(stamp_ns, None, None, measurement, lin, True, gated, before,
+                                burst)
+            return gated
+        self._step_to(stamp_ns, None, None, measurement, lin, True, gated, before)
+        return gated
+
     def _coasted(self, stamp_ns: int, measurements: Sequence[Measurement]) -> bool:
         """Whether the filter would go more than MAX_COAST_S without a base measurement."""
         cap = MAX_COAST_S * 1e9
@@ -153,7 +179,6 @@ class FilterRows:
         ``lin``), the step test's share of the step joins that call
         (:mod:`~reduced_dynamics.estimator.step_row`).
         """
-        burst = None
         if measurement is not None and not self.command and measurement.noise is None \
                 and stamp_ns > self.stamp_ns:
             burst = self.stalls.in_burst(measurement.stamp_ns) \
@@ -161,16 +186,27 @@ class FilterRows:
             if not burst and before is not None and self.step_test.active \
                     and self._row_measured(stamp_ns, before, measurement, lin, output, gated):
                 return
-            if step is None:
-                step = between(before, lin, 0.5)
-            if not burst:
-                fused = self._fused_step(stamp_ns, step, measurement, lin)
-                if fused is not None:
-                    self._measure(stamp_ns, fused[3], measurement, lin, output, gated,
-                                  burst=False, fused=fused)
-                    return
+            self._measured_step(stamp_ns, step, command, measurement, lin, output, gated,
+                                before, burst)
+            return
         if step is None:
             step = between(before, lin, 0.5)
+        transition = self._propagate(stamp_ns, step, command)
+        self._measure(stamp_ns, transition, measurement, lin, output, gated, burst=None)
+
+    def _measured_step(self, stamp_ns: int, step: Optional[Linearisation],
+                       command: Optional[Command], measurement: Measurement,
+                       lin: Linearisation, output: bool, gated: list,
+                       before: Optional[Linearisation], burst: bool) -> None:
+        """:meth:`_step_to` of a measurement the row step did not take (a burst, no test)."""
+        if step is None:
+            step = between(before, lin, 0.5)
+        if not burst:
+            fused = self._fused_step(stamp_ns, step, measurement, lin)
+            if fused is not None:
+                self._measure(stamp_ns, fused[3], measurement, lin, output, gated,
+                              burst=False, fused=fused)
+                return
         transition = self._propagate(stamp_ns, step, command)
         self._measure(stamp_ns, transition, measurement, lin, output, gated, burst=burst)
 
@@ -222,7 +258,8 @@ class FilterRows:
         return sigma, min(1.0, dt / STAMP_TWIST_TIME)
 
     def _row_measured(self, stamp_ns: int, before: Linearisation, measurement: Measurement,
-                      lin: Linearisation, output: bool, gated: list) -> bool:
+                      lin: Linearisation, output: bool, gated: list,
+                      pose: Optional[np.ndarray] = None) -> bool:
         """
         Run ``step_row.filter_step`` (:meth:`_fused_step` and the step test's share) and measure.
 
@@ -230,6 +267,7 @@ class FilterRows:
         open) is taken here with :meth:`_update`'s bookkeeping in the same order; any
         other goes on to :meth:`_measure` with the call's results, as before. Return
         False when the call raised (nothing changed: the caller takes the separate calls).
+        ``pose``: the measurement's pose as a C-contiguous 4 x 4 array (None: from it).
         """
         twist = measurement.twist
         with_twist = twist is not None
@@ -253,7 +291,7 @@ class FilterRows:
              statistic, top, evaluated) = step_row.filter_step(
                 self._g, self.x, self.p, lin.locked, before.locked_inverse,
                 before.connection_qd, (stamp_ns - self.stamp_ns) * 1e-9,
-                np.ascontiguousarray(measurement.pose.homogeneous),
+                np.ascontiguousarray(measurement.pose.homogeneous) if pose is None else pose,
                 _EMPTY if twist is None else np.asarray(twist, dtype=float), with_twist,
                 lin.locked_inverse, lin.connection_qd, lin.joint_cov, self._stamp_twist, sigma,
                 self._gates[size], weight, stamp_ns, *fixed[1])

@@ -124,6 +124,12 @@ class ChunkProcessing(RowPredictions):
         states: list[tuple] = []
         quiet: list[bool] = []
         rotation, translation = result.rotation, result.translation
+        # The rows' base poses as 4 x 4 arrays, the bits of pin.SE3(R, t).homogeneous (the
+        # filter's row step takes them; one array for the chunk, not one per row).
+        homogeneous = np.zeros((count, 4, 4))
+        homogeneous[:, :3, :3] = rotation
+        homogeneous[:, :3, 3] = translation
+        homogeneous[:, 3, 3] = 1.0
         commands = chunk.commands if self.commanded_wrench else None
         disturbance = None if commands is None else np.empty((count, n))
         lagged, fixed_lag, events = self.fixed_lag, {}, {}
@@ -137,17 +143,31 @@ class ChunkProcessing(RowPredictions):
         for k in range(count):
             stamp = stamp_list[k]
             prior = None
-            measurements, at_row, sigma, noise = row_measurements(measured[k], stamp)
-            if at_row or flt._g is None or stamp - flt.stamp_ns > coast_ns:
+            samples = measured[k]
+            if len(samples) == 1 and samples[0][0] == stamp and len(samples[0]) == 2 \
+                    and samples[0][1].__class__ is not NoisyRow:
+                # _row_measurements' common row, inline (one base sample at the row's stamp).
+                measurements, at_row, sigma, noise = [None], True, None, None
+            else:
+                measurements, at_row, sigma, noise = row_measurements(samples, stamp)
+            restart = flt._g is None or stamp - flt.stamp_ns > coast_ns
+            if at_row or restart:
                 # The base state at the row's stamp (a measurement there, the start, or
-                # a restart after a coast beyond the filter's cap).
-                prior = Measurement(stamp, pin.SE3(rotation[k], translation[k]),
-                                    None if twists is None else twists[k], sigma, noise)
+                # a restart after a coast beyond the filter's cap). (tuple.__new__: the
+                # NamedTuple's fields as they are, without its Python __new__.)
+                prior = tuple.__new__(Measurement, (
+                    stamp, pin.SE3(rotation[k], translation[k]),
+                    None if twists is None else twists[k], sigma, noise))
                 if at_row:
                     measurements[-1] = prior
             before, start_ns = flt._lin, flt.stamp_ns
-            gated_at = self._filter_row(stamp, lins[k], prior, measurements,
-                                        None if commands is None else commands[k])
+            if at_row and not restart and commands is None and len(measurements) == 1:
+                # The common row: its one measurement at its stamp (filter.row_at).
+                gated = flt.row_at(stamp, lins[k], prior, homogeneous[k])
+                gated_at = self._count_gated(gated) if gated else []
+            else:
+                gated_at = self._filter_row(stamp, lins[k], prior, measurements,
+                                            None if commands is None else commands[k])
             g = flt.g  # one pin.SE3 per row (the property builds a new one each time)
             # Each accepted twist's own momentum, for the event tests (multiscale.py).
             # (No measurement: twist_momenta finds none; [] without its pose products.)
@@ -247,14 +267,19 @@ class ChunkProcessing(RowPredictions):
         twists = result.xi if self.use_odometry else None
         prior = None
         measurements, at_row, sigma, noise = self._row_measurements(samples, stamp)
-        if at_row or flt._g is None or stamp - flt.stamp_ns > COAST_NS:
+        restart = flt._g is None or stamp - flt.stamp_ns > COAST_NS
+        if at_row or restart:
             prior = tuple.__new__(Measurement, (
                 stamp, pin.SE3(result.rotation[0], result.translation[0]),
                 None if twists is None else twists[0], sigma, noise))
             if at_row:
                 measurements[-1] = prior
         before, start_ns = flt._lin, flt.stamp_ns
-        gated_at = self._filter_row(stamp, lin, prior, measurements, None)
+        if at_row and not restart and len(measurements) == 1:
+            gated = flt.row_at(stamp, lin, prior)  # the common row (see _process_rows)
+            gated_at = self._count_gated(gated) if gated else []
+        else:
+            gated_at = self._filter_row(stamp, lin, prior, measurements, None)
         g = flt.g
         measured_mu = None if twists is None else \
             twist_momenta(flt, before, lin, start_ns, stamp, measurements, gated_at, g) \
@@ -330,8 +355,12 @@ class ChunkProcessing(RowPredictions):
     def _filter_row(self, stamp: int, lin: Linearisation, prior: Optional[Measurement],
                     measurements: list, commands: Optional[list[Optional[Command]]]) -> list:
         """Run the filter's row; count each measurement its gate refused; return their stamps."""
+        return self._count_gated(self.filter.row(stamp, lin, prior, measurements, commands))
+
+    def _count_gated(self, refused: list) -> list:
+        """Count each (stamp, NIS) the innovation gate refused; return their stamps."""
         gated_at = []
-        for gated, nis in self.filter.row(stamp, lin, prior, measurements, commands):
+        for gated, nis in refused:
             gated_at.append(gated)
             self.rejected['innovation_gate'] += 1
             self._period_rejected += 1
