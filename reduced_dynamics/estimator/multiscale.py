@@ -174,7 +174,7 @@ class MultiScaleTest(TwistUpdate):
         ``wanted`` False: the caller has no use for a detection now (an event is
         open); the statistics are updated, nothing is located, None is returned.
         """
-        if not self.active:
+        if not self.rate > 0.0:  # not self.active (a property call per sample)
             return None
         if measured is not None and len(measured) == 1 and \
                 measured[0].__class__ is TwistSample:
@@ -245,21 +245,25 @@ class MultiScaleTest(TwistUpdate):
         call is made) the measured momentum is taken in the same call (a twist too:
         :meth:`_update_twist`).
         """
-        if self._end > self._start:
-            dt = (stamp_ns - int(self._stamps[self._end - 1])) * 1e-9
+        # The state read once (attributes of the state arrays: TwistUpdate).
+        end, start, period = self._end, self._start, self._period
+        if end > start:
+            dt = (stamp_ns - int(self._stamps[end - 1])) * 1e-9
             if dt > 0.0:
-                self._period = dt if self._period is None else \
-                    self._period + 0.01 * (dt - self._period)
-        if self._period is None:
+                period = dt if period is None else period + 0.01 * (dt - period)
+                self._period = period
+        if period is None:
             self._store(stamp_ns, mu, cov)
             return None, -1
-        if self._end == self._capacity:
+        if end == self._capacity:
             self._make_room(stamp_ns)
-        if abs(self._period - self._threshold_period) > \
-                PERIOD_TOLERANCE * self._threshold_period or not self._threshold_period:
+            end, start = self._end, self._start
+        threshold_period = self._threshold_period
+        if abs(period - threshold_period) > PERIOD_TOLERANCE * threshold_period or \
+                not threshold_period:
             # chi2.isf is ~50 us: recomputed only when the update rate changes.
-            self._threshold_period = self._period
-            self.threshold = float(chi2.isf(self.significance(self._period), self.n))
+            self._threshold_period = period
+            self.threshold = float(chi2.isf(self.significance(period), self.n))
         floor = self.floor_ns
         measured = self.blocks
         # MomentumBlocks.update's conditions: it runs with a twist measured, and tests
@@ -267,34 +271,34 @@ class MultiScaleTest(TwistUpdate):
         # MomentumBlocks.update's conditions but its four samples (the kernel counts them,
         # this update's sample included).
         ready = measured.active and measured._differences >= EXCESS_MINIMUM
-        first = 0
-        if measured._end:
+        first, block_end = 0, measured._end
+        if block_end:
             first = int(measured._stamps[0])
             first = first if floor is None else max(floor, first)
         # _calibration, inlined (called per sample).
         learn = self.quiet
-        rate = min(1.0, self._period / self.calibration_memory) if learn else 0.0
+        rate = min(1.0, period / self.calibration_memory) if learn else 0.0
         if sample is None:
             # One compiled call: the sample stored, both banks' statistics, calibrated.
             best, value, block_best = bank_step.update(
-                self._stamps, self._mu, self._cov, self._start, self._end, self._lags_ns,
+                self._stamps, self._mu, self._cov, start, end, self._lags_ns,
                 stamp_ns, 0 if floor is None else floor, floor is not None, mu, cov,
                 self._rows, self.statistics, self._above, self.inflation, self._scratch,
                 self._median, rate, learn, measured.active, ready, *measured._arrays(),
-                measured._common, measured._stamps, measured._end, measured._lags_ns, first,
+                measured._common, measured._stamps, block_end, measured._lags_ns, first,
                 measured.mass, measured.linear, measured.statistics, self._grid)
         else:
             added, best, value, block_best = bank_step.update_with_sample(
-                *sample, self._stamps, self._mu, self._cov, self._start, self._end,
+                *sample, self._stamps, self._mu, self._cov, start, end,
                 self._lags_ns, stamp_ns, 0 if floor is None else floor, floor is not None,
                 mu, cov, self._rows, self.statistics, self._above, self.inflation,
                 self._scratch, self._median, rate, learn, ready, *measured._arrays(),
                 measured._common, measured._stamps, measured._lags_ns, first, measured.mass,
                 measured.linear, measured.statistics, self._grid)
             if added:  # measured.added(), inlined (called per sample)
-                measured._end += 1
+                measured._end = block_end + 1
                 measured.active = True
-        self._end += 1
+        self._end = end + 1
         if not wanted or best < 0 or not value > self.threshold:
             return None, block_best
         return self._detection(best), block_best

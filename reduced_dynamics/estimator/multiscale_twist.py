@@ -141,15 +141,18 @@ class TwistUpdate:
         inflation when due and room in the filtered ring, then the call.
         """
         self._next_common = False
-        blocks, end = self.blocks, self._end
-        last, k = blocks._last, blocks._end
-        differences = blocks._differences + 1
+        blocks = self.blocks
+        # The state arrays read once (their attributes are properties).
+        end, start, updates = self._state.tolist()[:3]
+        k, differences = blocks._state.tolist()[:2]
+        last = blocks._last
+        differences += 1
         if self._period is None or last is None or not k or k == blocks._capacity or \
                 len(blocks.linear) != 3 or sample[0] <= blocks._stamps[k - 1] or \
                 differences % 16 == 1 or differences == EXCESS_MINIMUM or \
-                not blocks.active or end <= self._start:
+                not blocks.active or end <= start:
             return _UNCOMMON
-        if not (self._updates + 1) % CALIBRATION_EVERY:
+        if not (updates + 1) % CALIBRATION_EVERY:
             self._inflate()
         if end == self._capacity:
             self._make_room(stamp_ns)
