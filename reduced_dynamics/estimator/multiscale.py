@@ -195,8 +195,10 @@ class MultiScaleTest(TwistUpdate):
             if sample is None:
                 for item in measured:
                     self.blocks.add(*item)
-        self._updates += 1
-        if not self._updates % CALIBRATION_EVERY:
+        # The update count in its state array (its attribute is a property).
+        state = self._state
+        state[bank_step.UPDATES] += 1
+        if not state[bank_step.UPDATES] % CALIBRATION_EVERY:
             self._inflate()
         # Both banks (the block test's as MomentumBlocks.update, then calibrated).
         found, best = self._filtered(stamp_ns, mu, cov, wanted, sample)
@@ -245,26 +247,29 @@ class MultiScaleTest(TwistUpdate):
         call is made) the measured momentum is taken in the same call (a twist too:
         :meth:`_update_twist`).
         """
-        # The state read once (attributes of the state arrays: TwistUpdate).
-        end, start, period = self._end, self._start, self._period
+        # The state read once (its attributes are properties: TwistUpdate).
+        state, values = self._state, self._values
+        end, start = state.tolist()[:2]
+        period = float(values[bank_step.PERIOD])
+        period = None if math.isnan(period) else period
         if end > start:
             dt = (stamp_ns - int(self._stamps[end - 1])) * 1e-9
             if dt > 0.0:
                 period = dt if period is None else period + 0.01 * (dt - period)
-                self._period = period
+                values[bank_step.PERIOD] = period
         if period is None:
             self._store(stamp_ns, mu, cov)
             return None, -1
         if end == self._capacity:
             self._make_room(stamp_ns)
             end, start = self._end, self._start
-        threshold_period = self._threshold_period
+        threshold_period = float(values[bank_step.THRESHOLD_PERIOD])
         if abs(period - threshold_period) > PERIOD_TOLERANCE * threshold_period or \
                 not threshold_period:
             # chi2.isf is ~50 us: recomputed only when the update rate changes.
             self._threshold_period = period
             self.threshold = float(chi2.isf(self.significance(period), self.n))
-        floor = self.floor_ns
+        floor = int(state[bank_step.FLOOR]) if state[bank_step.HAS_FLOOR] else None
         measured = self.blocks
         # MomentumBlocks.update's conditions: it runs with a twist measured, and tests
         # from four samples with its excess noise known.
@@ -277,7 +282,7 @@ class MultiScaleTest(TwistUpdate):
             first = first if floor is None else max(floor, first)
         # _calibration, inlined (called per sample).
         learn = self.quiet
-        rate = min(1.0, period / self.calibration_memory) if learn else 0.0
+        rate = min(1.0, period / float(values[bank_step.MEMORY])) if learn else 0.0
         if sample is None:
             # One compiled call: the sample stored, both banks' statistics, calibrated.
             best, value, block_best = bank_step.update(
@@ -298,7 +303,7 @@ class MultiScaleTest(TwistUpdate):
             if added:  # measured.added(), inlined (called per sample)
                 measured._end = block_end + 1
                 measured.active = True
-        self._end = end + 1
+        state[bank_step.END] = end + 1
         if not wanted or best < 0 or not value > self.threshold:
             return None, block_best
         return self._detection(best), block_best
