@@ -28,11 +28,13 @@ import numpy as np
 from reduced_dynamics.estimator import block_pulse
 from reduced_dynamics.estimator.block_pulse import BlockDetection
 from reduced_dynamics.estimator.core import blocks
+from reduced_dynamics.estimator.core.bank_step import (BLOCK_END, DIFFERENCES, EXCESS_SAMPLES,
+                                                       ORIGIN)
+from reduced_dynamics.estimator.multiscale_bank import state_slot
 
-#: Successive differences before the block test runs, and the memory of the excess
-#: noise's running mean (samples).
+#: Successive differences before the block test runs (the memory of the excess noise's
+#: running mean, EXCESS_SAMPLES, is core/bank_step.py's).
 EXCESS_MINIMUM = 200
-EXCESS_SAMPLES = 2000
 
 
 class MomentumBlocks:
@@ -58,9 +60,16 @@ class MomentumBlocks:
     most of a slow push's evidence.
     """
 
+    # The ring's end, the successive differences taken and the origin of the times [ns]:
+    # elements of ``_state`` (bank_step.twist_step advances them in place).
+    _end = state_slot('_state', BLOCK_END)
+    _differences = state_slot('_state', DIFFERENCES)
+    _origin_ns = state_slot('_state', ORIGIN)
+
     def __init__(self, n: int, windows: np.ndarray) -> None:
         """Set up for momenta of dimension ``n`` and the bank's ``windows`` [s]."""
         self.n = n
+        self._state = np.zeros(3, dtype=np.int64)
         self.windows = np.asarray(windows, float)
         self._lags_ns = np.round(self.windows * 1e9).astype(np.int64)
         self._capacity = 256

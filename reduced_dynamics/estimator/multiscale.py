@@ -56,7 +56,6 @@ from typing import Any, Optional
 
 import numpy as np
 from reduced_dynamics.chi_square import chi2
-from scipy.special import chdtri
 from reduced_dynamics.estimator.core import bank_step, impulse
 # Re-exported: the names this module held before it was split (stop 26).
 from reduced_dynamics.estimator.block_pulse import (  # noqa: F401
@@ -79,23 +78,21 @@ class MultiScaleTest(TwistUpdate):
                  calibration_memory: float = CALIBRATION_MEMORY) -> None:
         """Set up for momenta of dimension ``n``; ``false_alarm_rate`` [1/h], 0: off."""
         self.n = n
-        self.calibration_memory = calibration_memory
         self.rate = false_alarm_rate
         self.windows = window_bank() if windows is None else np.asarray(windows, float)
-        self._lags_ns = np.round(self.windows * 1e9).astype(np.int64)
+        # The state and per-window arrays bank_step.twist_step takes (TwistUpdate).
+        self._twist_arrays(n, len(self.windows))
+        self.calibration_memory = calibration_memory
+        self._lags_ns[:] = np.round(self.windows * 1e9).astype(np.int64)
         self._capacity = 256
         self._stamps = np.zeros(self._capacity, dtype=np.int64)
         self._mu = np.zeros((self._capacity, n))
         self._cov = np.zeros((self._capacity, n, n))
         self._start = 0
         self._end = 0
-        self._period: Optional[float] = None
-        self._threshold_period = 0.0
         self.threshold = math.inf
-        #: no window reaches back before this stamp (the last event's end or a reset)
-        self.floor_ns: Optional[int] = None
         #: per-window statistics at the last update (0 where the window is not covered)
-        self.statistics = np.zeros(len(self.windows))
+        self.statistics = self._window_values[0]
         #: the same bank on measured momenta (a twist measured: :class:`.MomentumBlocks`)
         self.blocks = MomentumBlocks(n, self.windows)
         self._moving_thresholds: dict[int, float] = {}
@@ -105,22 +102,24 @@ class MultiScaleTest(TwistUpdate):
         self._nearest: dict[float, int] = {}
         #: per test (filtered momentum, blocks) and window: the running fraction of
         #: quiet updates above the chi2_n median, and the inflation of T it implies
-        self._above = np.full((2, len(self.windows)), 0.5)
-        self.inflation = np.ones((2, len(self.windows)))
+        self._above = self._window_values[1:3]
+        self._above[:] = 0.5
+        self.inflation = self._window_values[3:5]
+        self.inflation[:] = 1.0
         self._median = float(chi2.isf(0.5, n))
         self._updates = 0
         # The compiled update's arrays (core/bank_step.py): each window's ring row, the
         # Cholesky work space, and the block bank's grid (stride [ns], last slot, quiet
         # updates since its last evaluation).
-        self._rows = np.full(len(self.windows), -1, dtype=np.int64)
-        self._scratch = np.zeros((14, n, n))
-        self._grid = np.zeros((3, len(self.windows)), dtype=np.int64)
+        self._rows = self._window_ints[0]
+        self._rows[:] = -1
+        self._scratch = self._stack[:14]
+        self._grid = self._window_ints[1:4]
         self._grid[0] = np.maximum(1, self._lags_ns // bank_step.GRID)
         self._grid[1] = -1
+        self._share_with_blocks()
         #: whether no event is open (the detector sets it): only then is the null learnt
         self.quiet = True
-        # bank_step.twist_step's arrays that stay between updates (_kept_arrays).
-        self._kept: Optional[tuple] = None
 
     @property
     def active(self) -> bool:
@@ -175,13 +174,15 @@ class MultiScaleTest(TwistUpdate):
         ``wanted`` False: the caller has no use for a detection now (an event is
         open); the statistics are updated, nothing is located, None is returned.
         """
-        if not self.active:
+        if not self.rate > 0.0:  # not self.active (a property call per sample)
             return None
         if measured is not None and len(measured) == 1 and \
                 measured[0].__class__ is TwistSample:
             out = self._update_twist(stamp_ns, mu, cov, measured[0], wanted)
             if out is not _UNCOMMON:
                 return out
+        # Not the common update: the next one is checked before its call (_update_twist).
+        self._next_common = False
         sample = None
         if measured:
             if not self.blocks.active:
@@ -194,12 +195,11 @@ class MultiScaleTest(TwistUpdate):
             if sample is None:
                 for item in measured:
                     self.blocks.add(*item)
-        self._updates += 1
-        if not self._updates % CALIBRATION_EVERY:
-            # T ~ lambda chi2_n above the median a fraction p of the time: lambda =
-            # median / isf(p). Never below 1 (never looser than the noise model).
-            p = np.clip(self._above, 0.5, 1.0 - 1e-3)
-            self.inflation[:] = np.maximum(1.0, self._median / chdtri(self.n, p))
+        # The update count in its state array (its attribute is a property).
+        state = self._state
+        state[bank_step.UPDATES] += 1
+        if not state[bank_step.UPDATES] % CALIBRATION_EVERY:
+            self._inflate()
         # Both banks (the block test's as MomentumBlocks.update, then calibrated).
         found, best = self._filtered(stamp_ns, mu, cov, wanted, sample)
         if not self.blocks.active or self._period is None:
@@ -247,56 +247,63 @@ class MultiScaleTest(TwistUpdate):
         call is made) the measured momentum is taken in the same call (a twist too:
         :meth:`_update_twist`).
         """
-        if self._end > self._start:
-            dt = (stamp_ns - int(self._stamps[self._end - 1])) * 1e-9
+        # The state read once (its attributes are properties: TwistUpdate).
+        state, values = self._state, self._values
+        end, start = state.tolist()[:2]
+        period = float(values[bank_step.PERIOD])
+        period = None if math.isnan(period) else period
+        if end > start:
+            dt = (stamp_ns - int(self._stamps[end - 1])) * 1e-9
             if dt > 0.0:
-                self._period = dt if self._period is None else \
-                    self._period + 0.01 * (dt - self._period)
-        if self._period is None:
+                period = dt if period is None else period + 0.01 * (dt - period)
+                values[bank_step.PERIOD] = period
+        if period is None:
             self._store(stamp_ns, mu, cov)
             return None, -1
-        if self._end == self._capacity:
+        if end == self._capacity:
             self._make_room(stamp_ns)
-        if abs(self._period - self._threshold_period) > \
-                PERIOD_TOLERANCE * self._threshold_period or not self._threshold_period:
+            end, start = self._end, self._start
+        threshold_period = float(values[bank_step.THRESHOLD_PERIOD])
+        if abs(period - threshold_period) > PERIOD_TOLERANCE * threshold_period or \
+                not threshold_period:
             # chi2.isf is ~50 us: recomputed only when the update rate changes.
-            self._threshold_period = self._period
-            self.threshold = float(chi2.isf(self.significance(self._period), self.n))
-        floor = self.floor_ns
+            self._threshold_period = period
+            self.threshold = float(chi2.isf(self.significance(period), self.n))
+        floor = int(state[bank_step.FLOOR]) if state[bank_step.HAS_FLOOR] else None
         measured = self.blocks
         # MomentumBlocks.update's conditions: it runs with a twist measured, and tests
         # from four samples with its excess noise known.
         # MomentumBlocks.update's conditions but its four samples (the kernel counts them,
         # this update's sample included).
         ready = measured.active and measured._differences >= EXCESS_MINIMUM
-        first = 0
-        if measured._end:
+        first, block_end = 0, measured._end
+        if block_end:
             first = int(measured._stamps[0])
             first = first if floor is None else max(floor, first)
         # _calibration, inlined (called per sample).
         learn = self.quiet
-        rate = min(1.0, self._period / self.calibration_memory) if learn else 0.0
+        rate = min(1.0, period / float(values[bank_step.MEMORY])) if learn else 0.0
         if sample is None:
             # One compiled call: the sample stored, both banks' statistics, calibrated.
             best, value, block_best = bank_step.update(
-                self._stamps, self._mu, self._cov, self._start, self._end, self._lags_ns,
+                self._stamps, self._mu, self._cov, start, end, self._lags_ns,
                 stamp_ns, 0 if floor is None else floor, floor is not None, mu, cov,
                 self._rows, self.statistics, self._above, self.inflation, self._scratch,
                 self._median, rate, learn, measured.active, ready, *measured._arrays(),
-                measured._common, measured._stamps, measured._end, measured._lags_ns, first,
+                measured._common, measured._stamps, block_end, measured._lags_ns, first,
                 measured.mass, measured.linear, measured.statistics, self._grid)
         else:
             added, best, value, block_best = bank_step.update_with_sample(
-                *sample, self._stamps, self._mu, self._cov, self._start, self._end,
+                *sample, self._stamps, self._mu, self._cov, start, end,
                 self._lags_ns, stamp_ns, 0 if floor is None else floor, floor is not None,
                 mu, cov, self._rows, self.statistics, self._above, self.inflation,
                 self._scratch, self._median, rate, learn, ready, *measured._arrays(),
                 measured._common, measured._stamps, measured._lags_ns, first, measured.mass,
                 measured.linear, measured.statistics, self._grid)
             if added:  # measured.added(), inlined (called per sample)
-                measured._end += 1
+                measured._end = block_end + 1
                 measured.active = True
-        self._end += 1
+        state[bank_step.END] = end + 1
         if not wanted or best < 0 or not value > self.threshold:
             return None, block_best
         return self._detection(best), block_best
@@ -361,6 +368,10 @@ class MultiScaleTest(TwistUpdate):
             selector = slice(0, count) if short[:count].all() else short
             known = self._moving_windows[window] = (selector, self._moving_thresholds[count])
         short, threshold = known
+        if short.__class__ is slice:
+            # The first windows: one compiled scan (numpy's slice, compare and any
+            # were ~3 us a sample while an event is open).
+            return bank_step.any_above(self.blocks.statistics, short.stop, threshold)
         return bool((self.blocks.statistics[short] > threshold).any())
 
     def window_statistic(self, window: float) -> float:

@@ -23,20 +23,36 @@ it (docs/multiscale_events.md).
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
+from reduced_dynamics.estimator.core.bank_step import (  # noqa: F401 (re-exported)
+    CALIBRATION_EVERY, PERIOD_TOLERANCE)
 
 #: Shortest and longest window [s] and the ratio between successive windows.
 SHORTEST = 0.05
 LONGEST = 3.0
 RATIO = 1.5
-#: Relative change of the update period after which the threshold is recomputed.
-PERIOD_TOLERANCE = 0.2
 #: Memory [s] of the null calibration (the running fraction of quiet updates whose
-#: statistic is above the chi2_n median), and updates between its inflation's updates.
+#: statistic is above the chi2_n median). Updates between its inflation's updates
+#: (CALIBRATION_EVERY) and the relative change of the update period after which the
+#: threshold is recomputed (PERIOD_TOLERANCE): core/bank_step.py's, which uses them.
 CALIBRATION_MEMORY = 600.0
-CALIBRATION_EVERY = 256
+
+
+def state_slot(array: str, index: int, kind: Callable[[Any], Any] = int) -> property:
+    """
+    Return a property kept in element ``index`` of the instance's array ``array``.
+
+    The state bank_step.twist_step reads and advances in place (one array argument,
+    not one per scalar); Python reads and sets it as an attribute of type ``kind``.
+    """
+    def get(self: Any) -> Any:
+        return kind(getattr(self, array)[index])
+
+    def set_(self: Any, value: Any) -> None:
+        getattr(self, array)[index] = value
+    return property(get, set_)
 
 
 def window_bank(shortest: float = SHORTEST, longest: float = LONGEST,

@@ -224,49 +224,126 @@ def update_with_twist(ad_inverse: np.ndarray, locked: np.ndarray, twist: np.ndar
     return result
 
 
+#: MultiScaleTest's int64 state (``_state``): its ring's end and start, its update count,
+#: the floor [ns] and whether there is one, the last twist_step's best windows.
+END, START, UPDATES, FLOOR, HAS_FLOOR, BEST, BLOCK_BEST = range(7)
+#: its float64 state (``_values``): the update period (NaN: not known yet), the threshold
+#: and the period it was computed for, the calibration memory [s], the last best value.
+PERIOD, THRESHOLD, THRESHOLD_PERIOD, MEMORY, VALUE = range(5)
+#: MomentumBlocks' int64 state (``_state``): its ring's end, the successive differences
+#: taken, the origin [ns] of its times.
+BLOCK_END, DIFFERENCES, ORIGIN = range(3)
+#: twist_step's answers. Nothing moved: not the common update (UNCOMMON), the null's
+#: inflation due first (CALIBRATE), the filtered ring full (ROOM). Done: nothing to
+#: tell (DONE), the threshold due at the new period (THRESHOLD_DUE), a statistic above
+#: the threshold where a detection is wanted (DETECT); plus NEXT_CHECKED when the next
+#: update is not known to be common (an excess decomposition or the inflation due, a
+#: ring full: the caller checks it before the call).
+DONE, UNCOMMON, CALIBRATE, ROOM, THRESHOLD_DUE, DETECT = range(6)
+NEXT_CHECKED = 8
+#: Updates between the null inflation's updates, the relative change of the update
+#: period after which the threshold is recomputed, the memory of the excess noise's
+#: running mean (samples): MultiScaleTest's and MomentumBlocks' settings
+#: (multiscale_bank.py, momentum_blocks.py import them from here).
+CALIBRATION_EVERY, PERIOD_TOLERANCE, EXCESS_SAMPLES = 256, 0.2, 2000
+
+
 @njit(cache=True)
 def twist_step(sample_stamp: int, ad_inverse: np.ndarray, locked: np.ndarray,
                twist: np.ndarray, connection_qd: np.ndarray, twist_cov: np.ndarray,
                joint_cov: np.ndarray, pose_cov: np.ndarray, structure: np.ndarray,
                rotation: np.ndarray, translation: np.ndarray, com_pose_cov: np.ndarray,
-               stamp_ns: int, mu: np.ndarray, cov: np.ndarray, floor_ns: int,
-               has_floor: bool, learn: bool, period: float, memory: float, ready: bool,
-               divisor: float, last_mu: np.ndarray, last_cov: np.ndarray, start: int,
-               end: int, k: int, origin_ns: int, raw: np.ndarray, keep_mu: np.ndarray,
-               keep_cov: np.ndarray, excess: np.ndarray, stamps: np.ndarray,
-               mu_ring: np.ndarray, cov_ring: np.ndarray, lags: np.ndarray, rows: np.ndarray,
-               statistics: np.ndarray, above: np.ndarray, inflation: np.ndarray,
-               scratch: np.ndarray, median: float, info: np.ndarray, score: np.ndarray,
-               s0: np.ndarray, s1: np.ndarray, s2: np.ndarray, y0: np.ndarray,
-               t1: np.ndarray, counts: np.ndarray, common: np.ndarray,
-               block_stamps: np.ndarray, block_lags: np.ndarray, mass: float,
-               linear: np.ndarray, block_statistics: np.ndarray,
-               grid: np.ndarray) -> tuple:
+               stamp_ns: int, mu: np.ndarray, cov: np.ndarray, learn: bool, wanted: bool,
+               calibrated: bool, last_mu: np.ndarray, last_cov: np.ndarray,
+               state: np.ndarray, values: np.ndarray, block_state: np.ndarray,
+               stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray,
+               block_stamps: np.ndarray, info: np.ndarray, score: np.ndarray,
+               common: np.ndarray, s0: np.ndarray, s1: np.ndarray, s2: np.ndarray,
+               y0: np.ndarray, t1: np.ndarray, counts: np.ndarray,
+               window_values: np.ndarray, window_ints: np.ndarray, stack: np.ndarray,
+               excess: np.ndarray, linear: np.ndarray, median: float, mass: float,
+               minimum: int) -> int:
     """
     One common update of the multi-scale test (MultiScaleTest._update_twist) in one call.
 
-    The arguments: a TwistSample's fields, the update's (stamp, mu, P_mu, the floor,
-    whether the null learns), the scalars of the two tests' state, then the arrays
-    that stay between updates (the caller keeps them as one tuple). The update period
-    (a running mean of the stamps' steps), the block test's first stamp and the
-    calibration's rate as MultiScaleTest._filtered computes them, then
-    :func:`update_with_twist`. Returns (whether the sample was added, the new period,
-    the filtered best, its value, the blocks' best).
+    The arguments: a TwistSample's fields, the update's (stamp, mu, P_mu, whether the
+    null learns, whether a detection is wanted, whether the inflation was just
+    updated), the last measured sample, then what stays between updates: the two
+    tests' scalar state (``state``, ``values``, ``block_state``: the indices above),
+    their rings, the per-window rows (``window_values`` (6, windows): the filtered
+    statistics, the two tests' fractions above the median and inflations, the block
+    statistics; ``window_ints`` (6, windows): the filtered rows, the block grid, the
+    two tests' lags), the work space (``stack`` (17, n, n): update's scratch (14), the
+    raw excess, the kept sample's covariance, its momentum in row 0), and the
+    differences before the block test runs (``minimum``: momentum_blocks.EXCESS_MINIMUM).
+
+    Checks the common case first and returns UNCOMMON, CALIBRATE or ROOM with nothing
+    moved; else takes the update as MultiScaleTest.update did in Python around
+    :func:`update_with_twist` (the differences and update count advanced, the period's
+    running mean, the block test's first stamp and the calibration's rate, the same
+    bits), leaves the best windows and value in the state, and returns DONE,
+    THRESHOLD_DUE (the caller recomputes the threshold and compares) or DETECT, plus
+    NEXT_CHECKED unless the next update is common as far as this state tells.
     """
+    end, start, k = state[END], state[START], block_state[BLOCK_END]
+    differences = block_state[DIFFERENCES] + 1
+    period = values[PERIOD]
+    if math.isnan(period) or not k or k == block_stamps.shape[0] or linear.shape[0] != 3 \
+            or sample_stamp <= block_stamps[k - 1] or differences % 16 == 1 or \
+            differences == minimum or end <= start:
+        return UNCOMMON
+    if not calibrated and (state[UPDATES] + 1) % CALIBRATION_EVERY == 0:
+        return CALIBRATE
+    if end == stamps.shape[0]:
+        return ROOM
+    block_state[DIFFERENCES] = differences
+    state[UPDATES] += 1
     # The period as MultiScaleTest._filtered: the int64 step, then in float64.
     dt = (stamp_ns - stamps[end - 1]) * 1e-9
     if dt > 0.0:
         period = period + 0.01 * (dt - period)
+    floor_ns, has_floor = state[FLOOR], state[HAS_FLOOR] != 0
     first = block_stamps[0]
     if has_floor and floor_ns > first:
         first = floor_ns
-    rate = min(1.0, period / memory) if learn else 0.0
-    t = (sample_stamp - origin_ns) * 1e-9
+    rate = min(1.0, period / values[MEMORY]) if learn else 0.0
+    t = (sample_stamp - block_state[ORIGIN]) * 1e-9
+    block_statistics = window_values[5]
     added, best, value, block_best = update_with_twist(
         ad_inverse, locked, twist, connection_qd, twist_cov, joint_cov, pose_cov, structure,
-        rotation, translation, com_pose_cov, raw, last_mu, last_cov, keep_mu, keep_cov,
-        divisor, excess, sample_stamp, k, t, stamps, mu_ring, cov_ring, start, end, lags,
-        stamp_ns, floor_ns, has_floor, mu, cov, rows, statistics, above, inflation, scratch,
-        median, rate, learn, ready, info, score, s0, s1, s2, y0, t1, counts, common,
-        block_stamps, block_lags, first, mass, linear, block_statistics, grid)
-    return added, period, best, value, block_best
+        rotation, translation, com_pose_cov, stack[14], last_mu, last_cov, stack[16][0],
+        stack[15], float(min(differences, EXCESS_SAMPLES)), excess, sample_stamp, k, t,
+        stamps, mu_ring, cov_ring, start, end, window_ints[4], stamp_ns, floor_ns,
+        has_floor, mu, cov, window_ints[0], window_values[0], window_values[1:3],
+        window_values[3:5], stack[:14], median, rate, learn, differences >= minimum,
+        info, score, s0, s1, s2, y0, t1, counts, common, block_stamps, window_ints[5],
+        first, mass, linear, block_statistics, window_ints[1:4])
+    values[PERIOD] = period
+    if added:
+        block_state[BLOCK_END] = k + 1
+    state[END] = end + 1
+    state[BEST], state[BLOCK_BEST], values[VALUE] = best, block_best, value
+    k = block_state[BLOCK_END]
+    following = differences + 1
+    status = DONE
+    if following % 16 == 1 or following == minimum or k == block_stamps.shape[0] or \
+            end + 1 == stamps.shape[0] or (state[UPDATES] + 1) % CALIBRATION_EVERY == 0:
+        status = NEXT_CHECKED
+    threshold_period = values[THRESHOLD_PERIOD]
+    if abs(period - threshold_period) > PERIOD_TOLERANCE * threshold_period or \
+            not threshold_period:
+        return status + THRESHOLD_DUE
+    threshold = values[THRESHOLD]
+    if wanted and ((best >= 0 and value > threshold) or (
+            block_best >= 0 and block_statistics[block_best] > threshold)):
+        return status + DETECT
+    return status
+
+
+@njit(cache=True)
+def any_above(statistics: np.ndarray, count: int, threshold: float) -> bool:
+    """Return whether any of the first ``count`` statistics is above ``threshold``."""
+    for w in range(count):
+        if statistics[w] > threshold:
+            return True
+    return False

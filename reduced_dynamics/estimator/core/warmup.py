@@ -113,6 +113,9 @@ def warm_up() -> None:
                                 SUBGROUPS['SE(3)'].structure_constants, pose.rotation,
                                 pose.translation, eye)]
         multiscale.update(stamp, np.full(6, 1e-3 * k), eye, measured)
+    # The block windows' scan while an event is open (MultiScaleTest.still_moving:
+    # bank_step.any_above).
+    multiscale.still_moving(0.3)
     # Measured momenta and centre of mass (core/impulse.py); the pose covariance is a
     # block of the filter's, a strided view.
     from reduced_dynamics.estimator.core import impulse
