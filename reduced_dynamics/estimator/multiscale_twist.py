@@ -161,7 +161,7 @@ class TwistUpdate:
         return self._twist_status(status, stamp_ns, mu, cov, sample, wanted)
 
     def _inflate(self) -> None:
-        """The null's inflation from the fractions above the median (update's calibration)."""
+        """Set the null's inflation from the fractions above the median (update's calibration)."""
         # T ~ lambda chi2_n above the median a fraction p of the time: lambda =
         # median / isf(p). Never below 1 (never looser than the noise model).
         p = np.clip(self._above, 0.5, 1.0 - 1e-3)
