@@ -266,3 +266,37 @@ def test_the_fused_twist_call_gives_the_bits_of_the_calls_it_replaces(monkeypatc
     assert found
     # The fused call took most samples (not the first two, the decompositions due).
     assert calls['twist_step'] > 700 and fused.blocks._capacity > 256
+
+
+def test_a_compiled_call_that_disagrees_with_the_checks_takes_the_general_path(
+        monkeypatch) -> None:
+    """
+    twist_step answering UNCOMMON after _checked_twist's checks passed: no loop.
+
+    Nothing moves in such a call; the update then takes MultiScaleTest.update's
+    general path once (the bits of a test fed the momenta), never the checks again.
+    """
+    _excess_minimum(monkeypatch, 50)
+    calls = {'twist_step': 0}
+
+    def disagreeing(*args):
+        calls['twist_step'] += 1
+        return bank_step.UNCOMMON
+    monkeypatch.setattr(bank_step, 'twist_step', disagreeing)
+    fused, separate = MultiScaleTest(6, 50.0), MultiScaleTest(6, 50.0)
+    updates = 0
+    for stamp, mu, cov, measured, wanted, quiet, reset in _twist_samples(3.0, 100.0, 5):
+        outs = []
+        for test, items in ((fused, measured), (separate, [m.momentum() for m in measured])):
+            test.quiet = quiet
+            if reset:
+                test.reset(stamp - 10 ** 8)
+            before = calls['twist_step']
+            outs.append(test.update(stamp, mu, cov, items, wanted))
+            assert calls['twist_step'] - before <= 1  # at most one call per update
+        updates += 1
+        assert (outs[0] is None) == (outs[1] is None)
+        for mine, want in zip(_state(fused) + _blocks_state(fused),
+                              _state(separate) + _blocks_state(separate)):
+            np.testing.assert_array_equal(mine, want)
+    assert calls['twist_step'] > updates // 2  # the checked call was made, and refused

@@ -158,7 +158,7 @@ class TwistUpdate:
             self._make_room(stamp_ns)
         status = bank_step.twist_step(*sample, stamp_ns, mu, cov, self.quiet, wanted, True,
                                       last[0], last[1], *self._kept_arrays()[4])
-        return self._twist_status(status, stamp_ns, mu, cov, sample, wanted)
+        return self._twist_status(status, stamp_ns, mu, cov, sample, wanted, checked=True)
 
     def _inflate(self) -> None:
         """Set the null's inflation from the fractions above the median (update's calibration)."""
@@ -168,8 +168,14 @@ class TwistUpdate:
         self.inflation[:] = np.maximum(1.0, self._median / chdtri(self.n, p))
 
     def _twist_status(self, status: int, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
-                      sample: TwistSample, wanted: bool) -> Any:
-        """Act on bank_step.twist_step's answers other than DONE (:meth:`_update_twist`)."""
+                      sample: TwistSample, wanted: bool, checked: bool = False) -> Any:
+        """
+        Act on bank_step.twist_step's answers other than DONE (:meth:`_update_twist`).
+
+        ``checked``: the call came from :meth:`_checked_twist`, whose checks passed; if
+        the compiled call still finds the update uncommon (the two lists of checks
+        disagree), the update takes the general path (_UNCOMMON), never the checks again.
+        """
         if status < bank_step.NEXT_CHECKED:
             self._next_common = True
         else:
@@ -177,8 +183,10 @@ class TwistUpdate:
             status -= bank_step.NEXT_CHECKED
         if status in (bank_step.UNCOMMON, bank_step.CALIBRATE, bank_step.ROOM):
             # Nothing moved: the state changed since the last call told the update
-            # common (a stamp not after the last): the checked path.
+            # common (a stamp not after the last): the checked path, once.
             self._next_common = False
+            if checked:
+                return _UNCOMMON
             return self._checked_twist(stamp_ns, mu, cov, sample, wanted)
         self.blocks._last = self.blocks._keep
         if status == bank_step.THRESHOLD_DUE:
