@@ -37,7 +37,7 @@ source "$REPO_ROOT/scripts/python_env.sh"
 if ! "$PYTHON" -c 'import reduced_dynamics.cli, pinocchio, rosbags, mcap, matplotlib' \
     2>/dev/null; then
   step "pip install -e . (into $VENV)"
-  "$PYTHON" -m pip install -q -e "$REPO_ROOT"
+  rd_pip_install -e "$REPO_ROOT"  # uv unless RD_INSTALLER=pip (scripts/python_env.sh)
 fi
 rd() { "$PYTHON" -m reduced_dynamics.cli "$@"; }
 

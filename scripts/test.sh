@@ -22,8 +22,8 @@
 #      not installed (scripts/linter_packages.sh; test/linters.py runs them from there);
 #      with RD_APT=1 installed system-wide instead (scripts/system_packages.sh: only the
 #      missing ones, --no-upgrade, never upgrading an installed package),
-#   2. creates the checkout's own venv (.colcon/venv, scripts/python_env.sh) and pip-installs
-#      the package there (editable, [test], [docs], [fleet] and [lint] extras: [lint] =
+#   2. creates the checkout's own venv (.colcon/venv, scripts/python_env.sh) and installs
+#      the package there with uv, or pip (RD_INSTALLER) (editable, [test], [docs], [fleet] and [lint] extras: [lint] =
 #      ament_flake8 and ament_pep257 with the flake8/pydocstyle they run; [ros] = the real
 #      rclpy wheels when no ROS 2 install provides rclpy) and colcon; checks that real rclpy
 #      imports and initialises,
@@ -46,6 +46,7 @@
 #                             python3-venv if the venv cannot be made); upgrade: also when
 #                             that upgrades installed packages (.ci/run: a fresh machine)
 #   RD_SKIP_INSTALL=1         skip the apt/pip steps (offline re-runs)
+#   RD_INSTALLER=uv           step 2's installer: uv (from PyPI, ~7x faster here), or pip
 #   RD_SYMLINK_INSTALL=0      plain `colcon build` instead of --symlink-install
 #   RD_README_INSTALL=0       skip running README's install blocks (step 4c)
 #   RD_DEMO=0                 skip running scripts/demo.sh (step 4d)
@@ -101,8 +102,8 @@ if [ "$RD_SKIP_INSTALL" != 1 ]; then
   if ! "$PYTHON" -c 'import rclpy' 2>/dev/null; then
     extras=test,docs,ros,fleet,lint
   fi
-  step "pip install -e '.[$extras]' colcon-common-extensions"
-  "$PYTHON" -m pip install -q -e "$REPO_ROOT[$extras]" colcon-common-extensions
+  step "pip install -e '.[$extras]' colcon-common-extensions (by ${RD_INSTALLER:-uv})"
+  rd_pip_install -e "$REPO_ROOT[$extras]" colcon-common-extensions
 fi
 
 # The node tests run on real rclpy: refuse to go on without it (no test double).
