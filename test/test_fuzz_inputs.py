@@ -43,11 +43,13 @@ no example database, ``deadline=None``. ``RD_FUZZ_STATS=file`` writes the
 measured totals as JSON (the table of docs/fuzz.md).
 """
 
+import bisect
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Optional
 import faulthandler
 import json
+import math
 import os
 
 from hypothesis import given, HealthCheck, note, settings, strategies as st
@@ -120,10 +122,12 @@ JOINTS, BASES = _load()
 
 def _filtered(output):
     """Return the filtered outputs of one sample: name -> array."""
+    # (np.concatenate: np.r_'s values, at a tenth of its cost; this runs per compared row.)
+    join = np.concatenate
     return {'mu': output.mu,
-            'body_momentum': np.r_[output.body_momentum.force, output.body_momentum.torque],
-            'drift': np.r_[output.drift_twist.linear, output.drift_twist.angular],
-            'rate': np.r_[output.momentum_rate.force, output.momentum_rate.torque]}
+            'body_momentum': join((output.body_momentum.force, output.body_momentum.torque)),
+            'drift': join((output.drift_twist.linear, output.drift_twist.angular)),
+            'rate': join((output.momentum_rate.force, output.momentum_rate.torque))}
 
 
 def _scales():
@@ -447,12 +451,28 @@ def _finite(output):
     return all(np.isfinite(a).all() for a in arrays) and np.isfinite(output.energy)
 
 
-def _explained(case, index):
-    """Return whether valid joint item ``index`` has no valid base within the sync tolerance."""
+def _explained(case, index, bases=None):
+    """
+    Return whether valid joint item ``index`` has no valid base within the sync tolerance.
+
+    ``bases``: the sorted stamps of the case's valid base items (:func:`_valid_bases`),
+    when the caller asks for many items (a bisection instead of a scan per item).
+    """
     stamp = case.items[index].sample.stamp_ns
-    tolerance = CONFIG.sync_tolerance * NS
-    return not any(not item.joint and not item.damage
-                   and abs(item.sample.stamp_ns - stamp) <= tolerance for item in case.items)
+    # |base - stamp| <= tolerance for integer stamps, in integers (exact at ~1e18 ns).
+    tolerance = math.floor(CONFIG.sync_tolerance * NS)
+    if bases is None:
+        bases = _valid_bases(case)
+    # The first valid base not before stamp - tolerance: explained unless it is within
+    # stamp + tolerance.
+    first = bisect.bisect_left(bases, stamp - tolerance)
+    return first == len(bases) or bases[first] > stamp + tolerance
+
+
+def _valid_bases(case) -> list:
+    """Return the sorted stamps of ``case``'s undamaged base items."""
+    return sorted(item.sample.stamp_ns for item in case.items
+                  if not item.joint and not item.damage)
 
 
 def _record(case, **counts):
@@ -475,7 +495,8 @@ def check(case, batched, values=True):
     damaged_bases = sum(1 for i in case.items if not i.joint and i.damage)
     assert base_rejections == damaged_bases
     valid = {i: item for i, item in enumerate(case.items) if item.joint and not item.damage}
-    explained = {i for i in valid if _explained(case, i)}
+    bases = _valid_bases(case)
+    explained = {i for i in valid if _explained(case, i, bases)}
     expected = Counter(item.damage for item in case.items if item.damage)
     expected['stale_base_state'] += len(explained)
     expected = +expected
