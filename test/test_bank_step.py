@@ -228,6 +228,35 @@ def _blocks_state(test: MultiScaleTest) -> list:
             *(np.array(a, copy=True) for a in (b._last or ()))]
 
 
+def _fed_alike(fused: MultiScaleTest, separate: MultiScaleTest, seconds: float,
+               each=None) -> int:
+    """
+    Feed ``fused`` twists and ``separate`` their momenta (the calls before); return detections.
+
+    Every statistic, ring, calibration and detection must be equal bit for bit after each
+    update; ``each`` (if given) is called after each update of ``fused``.
+    """
+    found = 0
+    for stamp, mu, cov, measured, wanted, quiet, reset in _twist_samples(seconds, 100.0, 5):
+        outs = []
+        for test, items in ((fused, measured), (separate, [m.momentum() for m in measured])):
+            test.quiet = quiet
+            if reset:
+                test.reset(stamp - 10 ** 8)
+            outs.append(test.update(stamp, mu, cov, items, wanted))
+            if each is not None and test is fused:
+                each()
+        assert (outs[0] is None) == (outs[1] is None)
+        if outs[0] is not None:
+            found += 1
+            for mine, want in zip(outs[0], outs[1]):
+                np.testing.assert_array_equal(mine, want)
+        for mine, want in zip(_state(fused) + _blocks_state(fused),
+                              _state(separate) + _blocks_state(separate)):
+            np.testing.assert_array_equal(mine, want)
+    return found
+
+
 def test_the_fused_twist_call_gives_the_bits_of_the_calls_it_replaces(monkeypatch) -> None:
     """
     bank_step.twist_step = TwistSample.momentum, prepare and update_with_sample.
@@ -246,24 +275,8 @@ def test_the_fused_twist_call_gives_the_bits_of_the_calls_it_replaces(monkeypatc
         calls['twist_step'] += 1
         return _function(*args)
     monkeypatch.setattr(bank_step, 'twist_step', counted)
-    fused, separate = MultiScaleTest(6, 50.0), MultiScaleTest(6, 50.0)
-    found = 0
-    for stamp, mu, cov, measured, wanted, quiet, reset in _twist_samples(8.0, 100.0, 5):
-        outs = []
-        for test, items in ((fused, measured), (separate, [m.momentum() for m in measured])):
-            test.quiet = quiet
-            if reset:
-                test.reset(stamp - 10 ** 8)
-            outs.append(test.update(stamp, mu, cov, items, wanted))
-        assert (outs[0] is None) == (outs[1] is None)
-        if outs[0] is not None:
-            found += 1
-            for mine, want in zip(outs[0], outs[1]):
-                np.testing.assert_array_equal(mine, want)
-        for mine, want in zip(_state(fused) + _blocks_state(fused),
-                              _state(separate) + _blocks_state(separate)):
-            np.testing.assert_array_equal(mine, want)
-    assert found
+    fused = MultiScaleTest(6, 50.0)
+    assert _fed_alike(fused, MultiScaleTest(6, 50.0), 8.0)
     # The fused call took most samples (not the first two, the decompositions due).
     assert calls['twist_step'] > 700 and fused.blocks._capacity > 256
 
@@ -283,20 +296,11 @@ def test_a_compiled_call_that_disagrees_with_the_checks_takes_the_general_path(
         calls['twist_step'] += 1
         return bank_step.UNCOMMON
     monkeypatch.setattr(bank_step, 'twist_step', disagreeing)
-    fused, separate = MultiScaleTest(6, 50.0), MultiScaleTest(6, 50.0)
-    updates = 0
-    for stamp, mu, cov, measured, wanted, quiet, reset in _twist_samples(3.0, 100.0, 5):
-        outs = []
-        for test, items in ((fused, measured), (separate, [m.momentum() for m in measured])):
-            test.quiet = quiet
-            if reset:
-                test.reset(stamp - 10 ** 8)
-            before = calls['twist_step']
-            outs.append(test.update(stamp, mu, cov, items, wanted))
-            assert calls['twist_step'] - before <= 1  # at most one call per update
-        updates += 1
-        assert (outs[0] is None) == (outs[1] is None)
-        for mine, want in zip(_state(fused) + _blocks_state(fused),
-                              _state(separate) + _blocks_state(separate)):
-            np.testing.assert_array_equal(mine, want)
-    assert calls['twist_step'] > updates // 2  # the checked call was made, and refused
+    updates = []
+
+    def one_call_at_most():
+        updates.append(calls['twist_step'])
+        assert len(updates) < 2 or updates[-1] - updates[-2] <= 1  # per update
+
+    _fed_alike(MultiScaleTest(6, 50.0), MultiScaleTest(6, 50.0), 3.0, one_call_at_most)
+    assert calls['twist_step'] > len(updates) // 2  # the checked call was made, and refused
