@@ -23,7 +23,8 @@
 #      with RD_APT=1 installed system-wide instead (scripts/system_packages.sh: only the
 #      missing ones, --no-upgrade, never upgrading an installed package),
 #   2. creates the checkout's own venv (.colcon/venv, scripts/python_env.sh) and installs
-#      the package there with uv, or pip (RD_INSTALLER) (editable, [test], [docs], [fleet] and [lint] extras: [lint] =
+#      the package there with uv (or pip: RD_INSTALLER) (editable, [test], [docs], [fleet]
+#      and [lint] extras: [lint] =
 #      ament_flake8 and ament_pep257 with the flake8/pydocstyle they run; [ros] = the real
 #      rclpy wheels when no ROS 2 install provides rclpy) and colcon; checks that real rclpy
 #      imports and initialises,
