@@ -36,7 +36,7 @@ RD_SKIP_INSTALL=0
 source "$REPO_ROOT/scripts/python_env.sh"
 if ! "$PYTHON" -c 'import reduced_dynamics.cli, pinocchio, rosbags, mcap, matplotlib' \
     2>/dev/null; then
-  step "pip install -e . (into $VENV)"
+  step "install -e . into $VENV (by ${RD_INSTALLER:-uv})"
   rd_pip_install -e "$REPO_ROOT"  # uv unless RD_INSTALLER=pip (scripts/python_env.sh)
 fi
 rd() { "$PYTHON" -m reduced_dynamics.cli "$@"; }
