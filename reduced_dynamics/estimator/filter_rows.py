@@ -136,24 +136,16 @@ class FilterRows:
         Run :meth:`row` of the common row: its one base measurement, at its own stamp.
 
         ``row(stamp_ns, lin, measurement, [measurement])`` with what the caller checked
-        (the filter started, within the coast cap, no commanded wrench) left out, and
-        :meth:`_step_to`'s common branch inline: the same operations in the same order.
-        ``pose``: the measurement's pose as a C-contiguous 4 x 4 array when the caller
-        has one (the chunk's rows: no pin.SE3 round trip per row).
+        (the filter started, within the coast cap, no commanded wrench) left out: the
+        same operations in the same order. ``pose``: the measurement's pose as a
+        C-contiguous 4 x 4 array when the caller has one (the chunk's rows: no pin.SE3
+        round trip per row).
         """
         self.step_detected = None
         before = self._lin if self._lin is not None else lin
         self._lin = lin
         gated: list[tuple[int, float]] = []
-        if measurement.noise is None and not self.command and stamp_ns > self.stamp_ns:
-            burst = self.stalls.in_burst(stamp_ns) and measurement.stamp_sigma is None
-            if not burst and self.step_test.active and self._row_measured(
-                    stamp_ns, before, measurement, lin, True, gated, pose):
-                return gated
-            self._measured_step(stamp_ns, None, None, measurement, lin, True, gated, before,
-                                burst)
-            return gated
-        self._step_to(stamp_ns, None, None, measurement, lin, True, gated, before)
+        self._step_to(stamp_ns, None, None, measurement, lin, True, gated, before, pose)
         return gated
 
     def _coasted(self, stamp_ns: int, measurements: Sequence[Measurement]) -> bool:
@@ -168,7 +160,8 @@ class FilterRows:
     def _step_to(self, stamp_ns: int, step: Optional[Linearisation],
                  command: Optional[Command], measurement: Optional[Measurement],
                  lin: Linearisation, output: bool, gated: list,
-                 before: Optional[Linearisation] = None) -> None:
+                 before: Optional[Linearisation] = None,
+                 pose: Optional[np.ndarray] = None) -> None:
         """
         Propagate to ``stamp_ns`` with inputs ``step``, then measure (:meth:`_measure`).
 
@@ -177,14 +170,15 @@ class FilterRows:
         as :meth:`_propagate` and :meth:`_update` one after the other; with the step
         test on and ``before`` given (``step`` None: the mean of ``before`` and
         ``lin``), the step test's share of the step joins that call
-        (:mod:`~reduced_dynamics.estimator.step_row`).
+        (:mod:`~reduced_dynamics.estimator.step_row`). ``pose``: the measurement's pose
+        as a 4 x 4 array when the caller has one (:meth:`row_at`).
         """
         if measurement is not None and not self.command and measurement.noise is None \
                 and stamp_ns > self.stamp_ns:
             burst = self.stalls.in_burst(measurement.stamp_ns) \
                 and measurement.stamp_sigma is None
-            if not burst and before is not None and self.step_test.active \
-                    and self._row_measured(stamp_ns, before, measurement, lin, output, gated):
+            if not burst and before is not None and self.step_test.active and \
+                    self._row_measured(stamp_ns, before, measurement, lin, output, gated, pose):
                 return
             self._measured_step(stamp_ns, step, command, measurement, lin, output, gated,
                                 before, burst)
