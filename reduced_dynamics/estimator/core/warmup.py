@@ -19,7 +19,12 @@ numba compiles a kernel at its first call and caches the machine code on disk
 (``cache=True``); a process that calls :func:`warm_up` at start-up (the node at
 configuration) pays that load before the first message instead of in it. The
 bench times it in a fresh process (``reduced-dynamics bench``, section update).
+:func:`warm_up_announced` says so when that takes long: the first run after an
+install compiles for minutes, in silence otherwise.
 """
+
+import threading
+from typing import Callable
 
 import numpy as np
 import pinocchio as pin
@@ -27,6 +32,27 @@ import pinocchio as pin
 from reduced_dynamics.estimator.core import kernels
 from reduced_dynamics.estimator.core.state import Command, Linearisation, NoiseModel
 from reduced_dynamics.geometry.lie_group import SUBGROUPS
+
+
+#: Seconds after which :func:`warm_up_announced` says what is going on: loading the
+#: cached kernels takes 1.4-2.4 s of CPU here (more under load); compiling them
+#: after an install ~3.5 min (README).
+NOTICE_AFTER_S = 10.0
+#: What it says then.
+COMPILING_NOTICE = ('the compiled filter kernels are still loading: the first start after '
+                    'an install or an upgrade compiles them (minutes of CPU, once; later '
+                    'starts load them from the cache in seconds)')
+
+
+def warm_up_announced(say: Callable[[str], None], after_s: float = NOTICE_AFTER_S) -> None:
+    """Run :func:`warm_up`; if it still runs after ``after_s`` seconds, ``say`` why, once."""
+    timer = threading.Timer(after_s, say, (COMPILING_NOTICE,))
+    timer.daemon = True  # never keeps a process alive
+    timer.start()
+    try:
+        warm_up()
+    finally:
+        timer.cancel()
 
 
 def warm_up() -> None:
