@@ -108,9 +108,11 @@ def test_a_signal_at_any_point_of_start_up_exits_0_without_a_traceback(
 def test_a_signal_while_the_kernels_compile_stops_the_node_at_once(install, monkeypatch,
                                                                    tmp_path):
     """
-    The first start after an install compiles the kernels (~3.5 min of CPU): it says so, and
-    Ctrl-C then ends it at once, not after the compilation (README's way B sends SIGINT
-    after 5 s; it used to run for ~4 min). An empty numba cache makes this start one.
+    Say why a first start takes long, and stop it at once on Ctrl-C.
+
+    The first start after an install compiles the kernels (~3.5 min of CPU); a signal used
+    to wait for the compilation (README's way B sends SIGINT after 5 s; it ran ~4 min).
+    An empty numba cache makes this start one.
     """
     monkeypatch.setenv('NUMBA_CACHE_DIR', str(tmp_path))
     proc = start_node(install, '-p', f'urdf_path:={paper_robot_urdf()}')
