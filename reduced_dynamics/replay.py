@@ -773,6 +773,10 @@ def _run(args: argparse.Namespace) -> int:
         print(f'reduced-dynamics replay: error: output {args.output} exists already '
               '(pass --overwrite to replace it)', file=sys.stderr)
         return 2
+    if not args.quiet:  # the first run after an install compiles for minutes: say so
+        from reduced_dynamics.estimator.core.warmup import warm_up_announced
+        warm_up_announced(lambda text: print(f'reduced-dynamics replay: {text}',
+                                             file=sys.stderr, flush=True))
     try:
         summary = replay(args.bag, args.output, robot, options)
     except BagError as error:

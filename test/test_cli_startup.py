@@ -99,3 +99,27 @@ def test_validate_loads_only_the_model_and_the_integrators():
     loaded = _loaded_after('import reduced_dynamics.validation\n'
                            'import reduced_dynamics.robot.symmetry')
     assert loaded == ['pinocchio']
+
+
+def test_warm_up_announced_says_why_only_when_it_takes_long(monkeypatch):
+    """A slow warm_up (compiling) is announced once; a quick one (loading) is not."""
+    import time
+    from reduced_dynamics.estimator.core import warmup
+    for seconds, expected in ((0.0, []), (0.6, [warmup.COMPILING_NOTICE])):
+        said = []
+        monkeypatch.setattr(warmup, 'warm_up', lambda seconds=seconds: time.sleep(seconds))
+        warmup.warm_up_announced(said.append, after_s=0.2)
+        time.sleep(0.3)  # a timer left running would speak now
+        assert said == expected
+
+
+@pytest.mark.parametrize('quiet', [False, True])
+def test_replay_announces_a_long_warm_up_unless_quiet(monkeypatch, capsys, tmp_path, quiet):
+    """``reduced-dynamics replay`` loads the kernels first and says so if that takes long."""
+    from reduced_dynamics.cli import main
+    from reduced_dynamics.estimator.core import warmup
+    monkeypatch.setattr(warmup, 'warm_up_announced', lambda say: say(warmup.COMPILING_NOTICE))
+    args = ['replay', str(tmp_path / 'missing'), '-o', str(tmp_path / 'out')]
+    assert main(args + ['--quiet'] * quiet) == 2  # then the missing bag: one error line
+    notice = f'reduced-dynamics replay: {warmup.COMPILING_NOTICE}'
+    assert (notice in capsys.readouterr().err.splitlines()) is not quiet

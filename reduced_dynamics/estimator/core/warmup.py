@@ -39,9 +39,9 @@ from reduced_dynamics.geometry.lie_group import SUBGROUPS
 #: after an install ~3.5 min (README).
 NOTICE_AFTER_S = 10.0
 #: What it says then.
-COMPILING_NOTICE = ('the compiled filter kernels are still loading: the first start after '
+COMPILING_NOTICE = ('the compiled filter kernels are still loading: the first run after '
                     'an install or an upgrade compiles them (minutes of CPU, once; later '
-                    'starts load them from the cache in seconds)')
+                    'runs load them from the cache in seconds)')
 
 
 def warm_up_announced(say: Callable[[str], None], after_s: float = NOTICE_AFTER_S) -> None:
