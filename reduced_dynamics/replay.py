@@ -26,14 +26,16 @@ from __future__ import annotations
 
 import argparse
 from collections import Counter
+import contextlib
 from dataclasses import dataclass, field
 import functools
 import json
 import os
 import shutil
 import sys
+import threading
 import time
-from typing import Any, Callable, Optional, TextIO
+from typing import Any, Callable, Iterator, Optional, TextIO
 
 import numpy as np
 
@@ -43,6 +45,7 @@ from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.bag.writer import BagWriter
 from reduced_dynamics.blas_threads import limited_blas_threads
 from reduced_dynamics.estimator.config import check_parameter, EstimatorConfig
+from reduced_dynamics.estimator.core.warmup import compiling_notice
 from reduced_dynamics.estimator.outputs import EstimatorBatch, OutputChunk
 from reduced_dynamics.estimator.pipeline import Estimator
 from reduced_dynamics.estimator.smoother import SmootherFiles
@@ -401,7 +404,12 @@ def _replay(bag_path: str, out_path: str, robot: RobotModel,
                                             done.position_residual))
             estimator.predictor.on_finished = residual_point
         last_report = started
-        with BagWriter(out_path, out_topics, overwrite=options.overwrite) as writer:
+        # The first chunk loads the compiled kernels (a first run after an install compiles
+        # them, minutes): said if it takes long, and only when progress is shown.
+        compiling = None if options.progress is None else compiling_notice(
+            functools.partial(_say, options.progress))
+        with BagWriter(out_path, out_topics, overwrite=options.overwrite) as writer, \
+                _cancelled_at_exit(compiling):
             write = writer.write_raw
             spool = None
             if options.smooth:
@@ -423,6 +431,8 @@ def _replay(bag_path: str, out_path: str, robot: RobotModel,
             rows_out = RowWriter(writer, encoders)
 
             def emit(done: EstimatorBatch, final: bool = False) -> None:
+                if compiling is not None:
+                    compiling.cancel()  # a chunk is done: the kernels are loaded
                 chunks = done.chunks
                 for chunk in chunks:
                     for k in sorted(chunk.events or ()):
@@ -545,6 +555,22 @@ def _replay(bag_path: str, out_path: str, robot: RobotModel,
                                   for a, b in marks['pulses']],
             'pulse_topic': marks['pulse_topic']}
     return summary
+
+
+@contextlib.contextmanager
+def _cancelled_at_exit(timer: Optional[threading.Timer]) -> Iterator[None]:
+    """Cancel ``timer`` (if any) when the block ends, however it ends."""
+    try:
+        yield
+    finally:
+        if timer is not None:
+            timer.cancel()
+
+
+def _say(stream: TextIO, text: str) -> None:
+    """Write ``text`` on its own line of the progress stream."""
+    stream.write(f'\nreplay: {text}\n')
+    stream.flush()
 
 
 def _plot_rows(series: dict, chunk: OutputChunk) -> None:
@@ -773,10 +799,6 @@ def _run(args: argparse.Namespace) -> int:
         print(f'reduced-dynamics replay: error: output {args.output} exists already '
               '(pass --overwrite to replace it)', file=sys.stderr)
         return 2
-    if not args.quiet:  # the first run after an install compiles for minutes: say so
-        from reduced_dynamics.estimator.core.warmup import warm_up_announced
-        warm_up_announced(lambda text: print(f'reduced-dynamics replay: {text}',
-                                             file=sys.stderr, flush=True))
     try:
         summary = replay(args.bag, args.output, robot, options)
     except BagError as error:

@@ -19,7 +19,8 @@ numba compiles a kernel at its first call and caches the machine code on disk
 (``cache=True``); a process that calls :func:`warm_up` at start-up (the node at
 configuration) pays that load before the first message instead of in it. The
 bench times it in a fresh process (``reduced-dynamics bench``, section update).
-:func:`warm_up_announced` says so when that takes long: the first run after an
+:func:`warm_up_announced` says so when that takes long (and :func:`compiling_notice`
+for a process that loads the kernels on first use, as replay): the first run after an
 install compiles for minutes, in silence otherwise.
 """
 
@@ -44,11 +45,18 @@ COMPILING_NOTICE = ('the compiled filter kernels are still loading: the first ru
                     'runs load them from the cache in seconds)')
 
 
-def warm_up_announced(say: Callable[[str], None], after_s: float = NOTICE_AFTER_S) -> None:
-    """Run :func:`warm_up`; if it still runs after ``after_s`` seconds, ``say`` why, once."""
+def compiling_notice(say: Callable[[str], None],
+                     after_s: float = NOTICE_AFTER_S) -> threading.Timer:
+    """Return a started timer: ``say(COMPILING_NOTICE)`` after ``after_s`` s unless cancelled."""
     timer = threading.Timer(after_s, say, (COMPILING_NOTICE,))
     timer.daemon = True  # never keeps a process alive
     timer.start()
+    return timer
+
+
+def warm_up_announced(say: Callable[[str], None], after_s: float = NOTICE_AFTER_S) -> None:
+    """Run :func:`warm_up`; if it still runs after ``after_s`` seconds, ``say`` why, once."""
+    timer = compiling_notice(say, after_s)
     try:
         warm_up()
     finally:
