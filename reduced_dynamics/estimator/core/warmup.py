@@ -16,8 +16,8 @@
 Run every compiled filter kernel once (load or compile them): ``warm_up()``.
 
 numba compiles a kernel at its first call and caches the machine code on disk
-(``cache=True``); a process that calls :func:`warm_up` at start-up (the node at
-configuration) pays that load before the first message instead of in it. The
+(``cache=True``); a process that calls :func:`warm_up` at start-up (the node before
+rclpy starts) pays that load before the first message instead of in it. The
 bench times it in a fresh process (``reduced-dynamics bench``, section update).
 :func:`warm_up_announced` says so when that takes long (and :func:`compiling_notice`
 for a process that loads the kernels on first use, as replay): the first run after an
