@@ -69,7 +69,7 @@ from reduced_dynamics.estimator import Estimator, EstimatorConfig, EstimatorOutp
 from reduced_dynamics.estimator.base_motion import answer_messages
 from reduced_dynamics.estimator.config import PARAMETERS as ESTIMATOR_PARAMETERS
 from reduced_dynamics.estimator.config import ParameterSpec
-from reduced_dynamics.estimator.core.warmup import warm_up, warm_up_announced
+from reduced_dynamics.estimator.core.warmup import compiling_notice, warm_up
 from reduced_dynamics.estimator.outputs import COLUMN_FIELDS, OutputChunk
 from reduced_dynamics.messages import (
     cdr, command_from_ros, DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample,
@@ -1507,14 +1507,15 @@ def main(args: Optional[Sequence[str]] = None, lifecycle: bool = False) -> int:
     # meanwhile still ends the process at once with node_main's start-up line (the
     # node's own handling below would wait for the compilation to finish), and the
     # node's configuration then finds them loaded.
-    managed = lifecycle or options.lifecycle
-    program = 'reduced_dynamics_lifecycle_node' if managed else 'reduced_dynamics_node'
-    warm_up_announced(lambda text: print(f'{program}: {text}', file=sys.stderr, flush=True))
+    if options.lifecycle:
+        argv.remove('--lifecycle')
+        lifecycle = True
+    program = 'reduced_dynamics_lifecycle_node' if lifecycle else 'reduced_dynamics_node'
+    with compiling_notice(lambda text: print(f'{program}: {text}', file=sys.stderr,
+                                             flush=True)):
+        warm_up()
     stopper = _StopOnSignal()  # first: a signal during start-up also ends cleanly
     try:
-        if options.lifecycle:
-            argv.remove('--lifecycle')
-            lifecycle = True
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
         node_class = ReducedDynamicsLifecycleNode if lifecycle else ReducedDynamicsNode
         try:

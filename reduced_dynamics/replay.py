@@ -33,9 +33,8 @@ import json
 import os
 import shutil
 import sys
-import threading
 import time
-from typing import Any, Callable, Iterator, Optional, TextIO
+from typing import Any, Callable, Optional, TextIO
 
 import numpy as np
 
@@ -406,10 +405,10 @@ def _replay(bag_path: str, out_path: str, robot: RobotModel,
         last_report = started
         # The first chunk loads the compiled kernels (a first run after an install compiles
         # them, minutes): said if it takes long, and only when progress is shown.
-        compiling = None if options.progress is None else compiling_notice(
+        notice = contextlib.nullcontext() if options.progress is None else compiling_notice(
             functools.partial(_say, options.progress))
         with BagWriter(out_path, out_topics, overwrite=options.overwrite) as writer, \
-                _cancelled_at_exit(compiling):
+                notice as compiling:
             write = writer.write_raw
             spool = None
             if options.smooth:
@@ -555,16 +554,6 @@ def _replay(bag_path: str, out_path: str, robot: RobotModel,
                                   for a, b in marks['pulses']],
             'pulse_topic': marks['pulse_topic']}
     return summary
-
-
-@contextlib.contextmanager
-def _cancelled_at_exit(timer: Optional[threading.Timer]) -> Iterator[None]:
-    """Cancel ``timer`` (if any) when the block ends, however it ends."""
-    try:
-        yield
-    finally:
-        if timer is not None:
-            timer.cancel()
 
 
 def _say(stream: TextIO, text: str) -> None:

@@ -15,6 +15,7 @@
 
 """Cheap start-up: a subcommand imports what it uses, ``--help`` almost nothing."""
 
+import contextlib
 import json
 import os
 from pathlib import Path
@@ -101,14 +102,14 @@ def test_validate_loads_only_the_model_and_the_integrators():
     assert loaded == ['pinocchio']
 
 
-def test_warm_up_announced_says_why_only_when_it_takes_long(monkeypatch):
-    """A slow warm_up (compiling) is announced once; a quick one (loading) is not."""
+def test_compiling_notice_says_why_only_when_it_takes_long():
+    """A slow block (compiling) is announced once; a quick one (loading) is not."""
     import time
     from reduced_dynamics.estimator.core import warmup
     for seconds, expected in ((0.0, []), (0.6, [warmup.COMPILING_NOTICE])):
         said = []
-        monkeypatch.setattr(warmup, 'warm_up', lambda seconds=seconds: time.sleep(seconds))
-        warmup.warm_up_announced(said.append, after_s=0.2)
+        with warmup.compiling_notice(said.append, after_s=0.2):
+            time.sleep(seconds)
         time.sleep(0.3)  # a timer left running would speak now
         assert said == expected
 
@@ -131,10 +132,11 @@ def test_replay_announces_a_slow_first_chunk_unless_quiet(monkeypatch, capsys, t
     from reduced_dynamics.estimator.core.warmup import COMPILING_NOTICE
     timers = []
 
+    @contextlib.contextmanager
     def at_once(say):  # as if the first chunk took longer than NOTICE_AFTER_S
         say(COMPILING_NOTICE)
         timers.append(_Timer())
-        return timers[-1]
+        yield timers[-1]
     monkeypatch.setattr(replay, 'compiling_notice', at_once)
     bag = REPO / 'test' / 'data' / 'paper_thruster'
     assert main(['replay', str(bag), '-o', str(tmp_path / 'out'), '--no-smooth']

@@ -99,7 +99,7 @@ def test_a_signal_at_any_point_of_start_up_exits_0_without_a_traceback(
     line = start_up_message('reduced_dynamics_node', sig)
     if point == 'up' or line not in output:
         assert 'processed 0 samples' in output, output  # the node's own orderly end
-    else:  # stopped in the imports or warm_up: that one line (after warm_up_announced's)
+    else:  # stopped in the imports or warm_up: that one line (after compiling_notice's)
         notice = f'reduced_dynamics_node: {COMPILING_NOTICE}'
         assert [text for text in output.splitlines() if text != notice] == [line], output
 

@@ -19,13 +19,13 @@ numba compiles a kernel at its first call and caches the machine code on disk
 (``cache=True``); a process that calls :func:`warm_up` at start-up (the node before
 rclpy starts) pays that load before the first message instead of in it. The
 bench times it in a fresh process (``reduced-dynamics bench``, section update).
-:func:`warm_up_announced` says so when that takes long (and :func:`compiling_notice`
-for a process that loads the kernels on first use, as replay): the first run after an
-install compiles for minutes, in silence otherwise.
+:func:`compiling_notice` around it (or, in replay, around the first chunk) says so when
+that takes long: the first run after an install compiles for minutes, in silence otherwise.
 """
 
+import contextlib
 import threading
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import pinocchio as pin
@@ -35,7 +35,7 @@ from reduced_dynamics.estimator.core.state import Command, Linearisation, NoiseM
 from reduced_dynamics.geometry.lie_group import SUBGROUPS
 
 
-#: Seconds after which :func:`warm_up_announced` says what is going on: loading the
+#: Seconds after which :func:`compiling_notice` says what is going on: loading the
 #: cached kernels takes 1.4-2.4 s of CPU here (more under load); compiling them
 #: after an install ~3.5 min (README).
 NOTICE_AFTER_S = 10.0
@@ -45,20 +45,19 @@ COMPILING_NOTICE = ('the compiled filter kernels are still loading: the first ru
                     'runs load them from the cache in seconds)')
 
 
+@contextlib.contextmanager
 def compiling_notice(say: Callable[[str], None],
-                     after_s: float = NOTICE_AFTER_S) -> threading.Timer:
-    """Return a started timer: ``say(COMPILING_NOTICE)`` after ``after_s`` s unless cancelled."""
+                     after_s: float = NOTICE_AFTER_S) -> Iterator[threading.Timer]:
+    """
+    Say ``COMPILING_NOTICE`` (once) if the block still runs after ``after_s`` seconds.
+
+    Yields the timer: cancelling it early (replay's first chunk) keeps it quiet too.
+    """
     timer = threading.Timer(after_s, say, (COMPILING_NOTICE,))
     timer.daemon = True  # never keeps a process alive
     timer.start()
-    return timer
-
-
-def warm_up_announced(say: Callable[[str], None], after_s: float = NOTICE_AFTER_S) -> None:
-    """Run :func:`warm_up`; if it still runs after ``after_s`` seconds, ``say`` why, once."""
-    timer = compiling_notice(say, after_s)
     try:
-        warm_up()
+        yield timer
     finally:
         timer.cancel()
 
