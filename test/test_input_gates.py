@@ -193,6 +193,34 @@ def test_a_sample_after_a_late_one_is_not_an_outlier():
     assert dropped == [] and accepted == stamps
 
 
+def test_a_gap_sent_in_a_burst_then_a_stall_loses_nothing():
+    """
+    A mocap gap (83 ms) in a stream published faster than real time, then a stall.
+
+    CI (stop 38): a bag replayed over DDS as fast as the node takes it; the two samples
+    after the bag's gap arrived 2 ms apart (the gap not in their receive times: held as
+    candidates), the third after the publisher stalled 60 ms (consistent with the old
+    clock again). The two were dropped as outliers; replay, with the bag's record times,
+    kept them. Between two samples of the old clock, in order, they are a gap.
+    """
+    period = 8_333_333
+    stamps = [k * period for k in range(40)]
+    stamps += [stamps[-1] + 83 * MS + k * period for k in range(40)]
+    receives, t = [], 0
+    for k in range(len(stamps)):
+        t += 60 * MS if k == 42 else 2 * MS
+        receives.append(t)
+    accepted, dropped = _details(StampGate('base', S, 3), stamps, receives)
+    assert dropped == [] and accepted == stamps
+    # A candidate ahead of the sample that proves the old clock is still an outlier;
+    # the one before it, in order, is kept.
+    bad = list(stamps)
+    bad[41] = stamps[42] + 10 * MS
+    accepted, dropped = _details(StampGate('base', S, 3), bad, receives)
+    assert [(item, reason) for item, reason, _ in dropped] == [(bad[41], 'outlier')]
+    assert accepted == stamps[:41] + stamps[42:]
+
+
 @pytest.mark.parametrize('with_receive', [True, False])
 def test_an_outlier_names_the_rule_that_fired(with_receive):
     """Issue 21.2: a stamp 85 ms ahead is refused by the cadence rule, and says so."""

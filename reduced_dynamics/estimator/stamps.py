@@ -35,7 +35,10 @@ is rejected as ``backwards``. An inconsistent stamp is held as a candidate, and
 its stream decides what it was:
 
 * a later sample consistent with the old clock proves the candidates isolated
-  outliers: they are dropped (``outlier``) and the sample accepted;
+  outliers: they are dropped (``outlier``) and the sample accepted; those whose
+  stamps lie in order between the old clock's last one and the sample's were a
+  gap in the stream that their receive times did not show (a publisher that
+  sent a burst, then stalled): they are accepted first, in order;
 * ``jump_samples`` consecutive candidates consistent among themselves prove a
   clock jump (simulator restart, ``ros2 bag play --loop``): the gate
   re-synchronises to them and releases them all, so no sample after a jump is
@@ -259,6 +262,16 @@ class StampGate:
         tolerance = self.tolerance()
         relation = self._relation(last, self.last_receive_ns, stamp, receive, tolerance)
         if relation == 'forward':
+            # Candidates between two samples of the old clock, in order, were a gap the
+            # receive times did not show (a publisher that burst, then stalled).
+            held = self._held
+            between = 0
+            while between < len(held) and last < held[between][0] < stamp:
+                between += 1
+            self._held = held[between:]
+            for stamp_k, receive_k, item_k in held[:between]:
+                self._accept(stamp_k, receive_k)
+                result.accepted.append(item_k)
             result.dropped = self._drop_held()
             self._accept(stamp, receive)
             result.accepted.append(item)
