@@ -16,6 +16,7 @@
 
 import os
 
+from hypothesis import given, settings, strategies as st
 import numpy as np
 import pytest
 
@@ -219,6 +220,26 @@ def test_a_gap_sent_in_a_burst_then_a_stall_loses_nothing():
     accepted, dropped = _details(StampGate('base', S, 3), bad, receives)
     assert [(item, reason) for item, reason, _ in dropped] == [(bad[41], 'outlier')]
     assert accepted == stamps[:41] + stamps[42:]
+
+
+@settings(max_examples=300, deadline=None, derandomize=True)
+@given(steps=st.lists(st.one_of(st.integers(1, 20 * MS), st.integers(20 * MS, 300 * MS)),
+                      min_size=30, max_size=120),
+       pacing=st.lists(st.one_of(st.integers(0, 3 * MS), st.integers(3 * MS, 400 * MS)),
+                       min_size=121, max_size=121))
+def test_a_clean_stream_loses_nothing_whatever_its_pacing(steps, pacing):
+    """
+    Increasing stamps with gaps up to 0.3 s, taken at any pace (bursts, stalls up to 0.4 s).
+
+    A publisher faster or slower than real time, a loaded machine: no sample may be dropped,
+    but for the last two, which may still be held as candidates when the input ends.
+    """
+    stamps = list(np.cumsum([5 * S] + steps))
+    receives = list(np.cumsum(pacing[:len(stamps)]) + 7 * S)
+    stamps, receives = [int(s) for s in stamps], [int(r) for r in receives]
+    accepted, dropped = _details(StampGate('base', S, 3), stamps, receives)
+    assert accepted == stamps[:len(accepted)] and len(accepted) >= len(stamps) - 2
+    assert [item for item, _, _ in dropped] == stamps[len(accepted):]
 
 
 @pytest.mark.parametrize('with_receive', [True, False])
