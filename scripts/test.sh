@@ -51,9 +51,9 @@
 #   RD_SYMLINK_INSTALL=0      plain `colcon build` instead of --symlink-install
 #   RD_README_INSTALL=0       skip running README's install blocks (step 4c)
 #   RD_DEMO=0                 skip running scripts/demo.sh (step 4d)
-#   RD_NUMBA_OPT=1            LLVM optimisation level of the kernels the demo and the
-#                             tests compile (into .colcon/numba_cache): 1 compiles ~30 %
-#                             faster, same outputs; 3 is numba's default
+#   RD_NUMBA_OPT=             LLVM optimisation level of the kernels the demo and the
+#                             tests compile (NUMBA_OPT; .ci/run: 1, ~30 % faster to
+#                             compile, same outputs); unset: numba's default, 3
 #   RD_TEST_WORKERS=logical   pytest-xdist workers of step 5 (logical: one per CPU; 0: one
 #                             process, no xdist); each worker has a ROS domain of its own
 
@@ -174,14 +174,15 @@ fi
 
 # ---------------------------------------------- 4d'. the compiled kernels of this run
 # The demo compiles the filter kernels (~4 min of CPU on an empty cache) and the tests load
-# them. At LLVM's optimisation level 1 instead of numba's 3 that compilation takes ~30 %
-# less CPU (151 s against 214 s for warm_up's kernels), the golden outputs stay bit-identical
-# and the kernels' speed differs by less than this machine's noise (docs/parallel_tests.md,
-# "Stop 30"). Its cache is the workspace's own, so a developer's other runs (the default
-# cache beside the modules, level 3) never load these. Set after README's install check
-# started: that one runs as a user's would. RD_NUMBA_OPT=3: numba's default.
-export NUMBA_OPT="${RD_NUMBA_OPT:-1}"
-export NUMBA_CACHE_DIR="${NUMBA_CACHE_DIR:-$WS/numba_cache}"
+# them. RD_NUMBA_OPT=1 (.ci/run sets it: its machine is thrown away) compiles them at LLVM's
+# optimisation level 1 instead of numba's 3: ~30 % less CPU (151 s against 214 s for
+# warm_up's kernels), golden outputs bit-identical, the kernels' speed within this machine's
+# noise (docs/parallel_tests.md, "Stop 30"). Unset elsewhere: numba caches beside the
+# modules without the level in its key, so a developer's later runs would load these.
+# Set after README's install check started: that one runs as a user's would.
+if [ -n "${RD_NUMBA_OPT:-}" ]; then
+  export NUMBA_OPT="$RD_NUMBA_OPT"
+fi
 
 # ---------------------------------------------- 4d. README's other command: demo.sh
 # Same venv (scripts/python_env.sh), outputs under .colcon/demo; about 20 s.
