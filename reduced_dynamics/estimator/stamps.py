@@ -269,9 +269,7 @@ class StampGate:
             while between < len(held) and last < held[between][0] < stamp:
                 between += 1
             self._held = held[between:]
-            for stamp_k, receive_k, item_k in held[:between]:
-                self._accept(stamp_k, receive_k)
-                result.accepted.append(item_k)
+            self._release(held[:between], result)
             result.dropped = self._drop_held()
             self._accept(stamp, receive)
             result.accepted.append(item)
@@ -329,10 +327,14 @@ class StampGate:
             # The stream's rate is unchanged: its local period stays.
             self.last_ns = None
             self._latencies.clear()
-            for stamp_k, receive_k, item_k in held:
-                self._accept(stamp_k, receive_k)
-                result.accepted.append(item_k)
+            self._release(held, result)
         return result
+
+    def _release(self, held: list, result: StampResult) -> None:
+        """Accept held candidates (stamp, receive, item) in order, into ``result``."""
+        for stamp, receive, item in held:
+            self._accept(stamp, receive)
+            result.accepted.append(item)
 
     def _reference_anchor(self) -> Optional[tuple[int, Optional[int]]]:
         """Return the clock a stream without a reference is judged by, if any."""
