@@ -278,8 +278,10 @@ class UpdateKernel:
         # A qbar_dot, A Sigma A^T, pbar and the rotations in one compiled call
         # (core/inputs.py): a streaming chunk is one row, where numpy's calls cost most.
         thin = self._thin
+        # (The quaternions contiguous: a chunk of one row is, and numba compiles one
+        # variant per array layout.)
         locked, inverse, connection_qd, joint_cov, pbar, rotation = inputs.chunk_terms(
-            mass, n, qbar_dot, bases[:, 3:7], joint_variance, not thin)
+            mass, n, qbar_dot, np.ascontiguousarray(bases[:, 3:7]), joint_variance, not thin)
         if thin:
             shape_qd = np.matmul(mass[:, n:, n:], qbar_dot[:, :, None])[:, :, 0]
             pbar = shape_qd - np.matmul(connection_qd[:, None, :], mass[:, :n, n:])[:, 0]

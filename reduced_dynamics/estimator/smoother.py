@@ -72,24 +72,6 @@ class SmootherFiles:
         self._finalizer()
 
 
-def _step_dtype(n: int, dim: int, command: bool) -> np.dtype:
-    """
-    Return the record of one step: stamp, flags, matrices and vectors (float64).
-
-    Aligned (the flags padded): the compiled backward pass reads the fields in place.
-    """
-    fields = [('stamp_ns', '<i8'), ('has_transition', '?'), ('output', '?'),
-              ('transition', '<f8', (dim, dim)),
-              ('pose_pred', '<f8', (4, 4)),
-              ('x_pred', '<f8', (dim - n,)), ('p_pred', '<f8', (dim, dim)),
-              ('pose', '<f8', (4, 4)),
-              ('x', '<f8', (dim - n,)), ('p', '<f8', (dim, dim)),
-              ('locked_inverse', '<f8', (n, n))]
-    if command:
-        fields.append(('command', '<f8', (n,)))
-    return np.dtype(fields, align=True)
-
-
 class StepStore:
     """
     Filter steps on disk: ``append`` in time order, ``len`` and ``store[k]`` to read.
@@ -103,7 +85,7 @@ class StepStore:
                  name: str = 'steps.bin', block: Optional[int] = None) -> None:
         """Open an empty store for steps of a filter of algebra dimension n, error dim."""
         self.n, self.dim, self.command = n, dim, command
-        self.dtype = _step_dtype(n, dim, command)
+        self.dtype = kernels.step_dtype(n, dim, command)
         #: steps per block (of the file, of :meth:`blocks_backward`)
         self.block = self._block = block = block or BLOCK_STEPS
         self._path = files.file(name)

@@ -302,8 +302,10 @@ def propagate_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarr
     step test's arrays are :func:`filter_step`'s (its update's part unused).
     Returns (g, x, P); Phi goes into ``work`` (:func:`work_views`: read only to record).
     """
+    # commanded: u's size (empty here), a runtime bool: a constant False would compile
+    # propagate once more, for that literal (numba specialises on constants).
     g1, x1, p1, phi = propagate(g, x, p, locked, inverse_locked, connection_qd, joint_cov,
-                                dt, u, False, jerk_var, density, basis, pinv, whole,
+                                dt, u, u.shape[0] > 0, jerk_var, density, basis, pinv, whole,
                                 ad_rows, form_rows)
     (floats, onsets, c, b0, j0, bound_inv, _, psi, omega, beta, e, since, _, _, _, _, _,
      _) = test_views(state, ints)

@@ -362,6 +362,26 @@ def row_fields(pose: np.ndarray, x: np.ndarray, p: np.ndarray, locked_inverse: n
         row += 1
 
 
+def step_dtype(n: int, dim: int, command: bool) -> np.dtype:
+    """
+    Return the record of one step: stamp, flags, matrices and vectors (float64).
+
+    Aligned (the flags padded): :func:`backward_block` reads the fields in place, as
+    the replay's store (estimator/smoother.py) and :func:`smooth` give them, so both
+    run the one compiled variant of the pass (numba compiles one per array layout).
+    """
+    fields = [('stamp_ns', '<i8'), ('has_transition', '?'), ('output', '?'),
+              ('transition', '<f8', (dim, dim)),
+              ('pose_pred', '<f8', (4, 4)),
+              ('x_pred', '<f8', (dim - n,)), ('p_pred', '<f8', (dim, dim)),
+              ('pose', '<f8', (4, 4)),
+              ('x', '<f8', (dim - n,)), ('p', '<f8', (dim, dim)),
+              ('locked_inverse', '<f8', (n, n))]
+    if command:
+        fields.append(('command', '<f8', (n,)))
+    return np.dtype(fields, align=True)
+
+
 def smooth_arrays(group: BaseGroup, restart: np.ndarray, transitions: np.ndarray,
                   pose_pred: np.ndarray, x_pred: np.ndarray, p_pred: np.ndarray,
                   pose: np.ndarray, x: np.ndarray, p: np.ndarray,
@@ -390,13 +410,18 @@ def smooth(group: BaseGroup, steps: Sequence[FilterStep]) -> list[FilterState]:
     if not count:
         return []
     dim = steps[0].p.shape[0]
-    restart = np.array([step.transition is None for step in steps])
+    n = dim - steps[0].x.shape[0]
+    # The steps as the store's records (step_dtype): the pass reads the same layouts.
+    records = np.zeros(count, step_dtype(n, dim, False))
     identity = np.eye(dim)
-    transitions = np.array([identity if step.transition is None else step.transition
-                            for step in steps])
+    for k, step in enumerate(steps):
+        record = records[k]
+        record['has_transition'] = step.transition is not None
+        record['transition'] = identity if step.transition is None else step.transition
+        record['pose_pred'], record['x_pred'] = step.pose_pred, step.x_pred
+        record['p_pred'], record['pose'] = step.p_pred, step.pose
+        record['x'], record['p'] = step.x, step.p
     pose, x, p = smooth_arrays(
-        group, restart, transitions, np.array([s.pose_pred for s in steps]),
-        np.array([s.x_pred for s in steps]), np.array([s.p_pred for s in steps]),
-        np.array([s.pose for s in steps]), np.array([s.x for s in steps]),
-        np.array([s.p for s in steps]))
+        group, ~records['has_transition'], records['transition'], records['pose_pred'],
+        records['x_pred'], records['p_pred'], records['pose'], records['x'], records['p'])
     return [FilterState(pin.SE3(pose[k]), x[k], p[k]) for k in range(count)]

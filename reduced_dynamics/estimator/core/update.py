@@ -175,7 +175,8 @@ def correct(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
     n = inverse_locked.shape[0]
     y = np.empty((0, 0))
     if not with_twist:
-        _, _, y, _ = _factor(p, np.empty((0, 0)), np.empty((0, 0)), r, n, False)
+        # (with_twist, not a constant False: one compiled _factor, see _corrected.)
+        _, _, y, _ = _factor(p, np.empty((0, 0)), np.empty((0, 0)), r, n, with_twist)
     return _corrected(g, x, p, pose, measured, with_twist, h, nu, r, gain, y, inverse_locked,
                       connection_qd, basis, pinv, whole, form_rows)
 
@@ -222,7 +223,9 @@ def _corrected(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
             x_i = x + dx[n:n + x_len]
             h1, h2, nu_i = _twist_blocks(g_i, x_i, pose, measured, inverse_locked,
                                          connection_qd, basis, pinv, whole, form_rows)
-            s, _, y, gain = _factor(p, h1, h2, r, n, True)
+            # with_twist (True here), not a constant: numba compiles a callee once more
+            # for each literal argument it is given.
+            s, _, y, gain = _factor(p, h1, h2, r, n, with_twist)
             # nu_i + H_i dx, with H_i's blocks.
             for i in range(n):
                 acc = 0.0
@@ -233,7 +236,7 @@ def _corrected(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
             dx = _mat_vec(gain, nu_i)
             if iteration + 1 < ITERATIONS and converged(previous, dx, p):
                 break
-        h = _dense_h(h1, h2, n, dim, True)
+        h = _dense_h(h1, h2, n, dim, with_twist)
     else:
         s = np.empty((n, n))
         for i in range(n):

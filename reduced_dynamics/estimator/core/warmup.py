@@ -64,7 +64,8 @@ def compiling_notice(say: Callable[[str], None],
 
 def warm_up() -> None:
     """Run each kernel on a tiny problem: SE(3) and a subgroup, poses and twists, a command."""
-    from reduced_dynamics.estimator.filter import MomentumFilter, smooth
+    from reduced_dynamics.estimator.filter import MomentumFilter
+    from reduced_dynamics.estimator.smoother import SmootherFiles, smooth_rows, StepStore
     for name, command in (('SE(3)', False), ('SE(2)', False), ('SE(2)', True)):
         group = SUBGROUPS[name]
         n = group.dim
@@ -81,7 +82,16 @@ def warm_up() -> None:
         # A row without a measurement (joint states between odometry samples).
         flt.step(45_000_000, lin, None, None, held)
         flt.wrench_significance()
-        smooth(group, flt.steps)
+        # The backward pass as replay runs it (the store's records: their layouts).
+        files = SmootherFiles()
+        try:
+            store = StepStore(files, n, flt.dim, command)
+            for step in flt.steps:
+                store.append(step)
+            smooth_rows(group, store, files, flt._form_rows).close()
+            store.close()
+        finally:
+            files.close()
         flt._transition(pin.SE3.Identity(), flt.x, lin, 0.01,
                         np.zeros(n) if command else None)
         # The paths a gate reset and a detected step take.
@@ -169,7 +179,8 @@ def warm_up() -> None:
     inputs.connection_terms(np.tile(np.eye(8), (2, 1, 1)), 6, np.zeros((2, 2)), 1e-4)
     bases = np.zeros((2, 13))
     _, inverse, _, _, pbar, _ = inputs.chunk_terms(np.tile(np.eye(12), (2, 1, 1)), 6,
-                                                   np.zeros((2, 6)), bases[:, 3:7], 1e-4, True)
+                                                   np.zeros((2, 6)), bases[:, 3:7].copy(),
+                                                   1e-4, True)
     inputs.drift_energy(inverse, np.zeros((2, 6)), np.zeros((2, 6)), pbar)
     inputs.welford_row(np.zeros(6), np.zeros(6), np.zeros(6), 1)
     # The re-timer's window fit (core/envelope.py): the strided columns it is given (a
