@@ -133,3 +133,36 @@ def test_smoothed_replay_peak_memory_does_not_grow_with_the_bag(tmp_path):
     # The smoother's files beside the output bags are gone.
     assert sorted(p.name for p in tmp_path.iterdir()) == ['bag', 'long', 'out_long',
                                                           'out_short']
+
+
+def test_warm_up_loads_the_backward_pass_replay_runs() -> None:
+    """A fresh process: after warm_up, smoothed replays compile no new backward pass."""
+    from filter_helpers import fresh_process_words
+    code = f"""
+import os, tempfile
+from reduced_dynamics.estimator.core.warmup import warm_up
+warm_up()
+from reduced_dynamics.estimator.core import smoother
+from reduced_dynamics.replay import replay, ReplayOptions
+from reduced_dynamics.resources import config_path
+from reduced_dynamics.robot.model import load_robot
+kernels = (smoother.backward_block, smoother.row_fields)
+before = [len(k.signatures) for k in kernels]
+for bag, urdf in (('paper_thruster', ''), ('freeflyer_testbed', 'robots/freeflyer.urdf')):
+    robot = load_robot(str(config_path(urdf)) if urdf else '')
+    with tempfile.TemporaryDirectory() as out:
+        replay(os.path.join({str(DATA)!r}, bag), os.path.join(out, 'o'), robot,
+               ReplayOptions(smooth=True))
+print(min(before) > 0, before == [len(k.signatures) for k in kernels])
+"""
+    assert fresh_process_words(code) == ['True', 'True']
+
+
+def test_warm_up_goes_on_without_a_temporary_directory(monkeypatch) -> None:
+    """No writable temporary directory (a node's read-only disk): that warm-up is skipped."""
+    from reduced_dynamics.estimator.core import warmup
+
+    def unwritable(*args, **kwargs):
+        raise PermissionError('read-only file system')
+    monkeypatch.setattr(smoother, 'SmootherFiles', unwritable)
+    warmup.warm_up()

@@ -25,14 +25,17 @@ that takes long: the first run after an install compiles for minutes, in silence
 
 import contextlib
 import threading
-from typing import Callable, Iterator
+from typing import Callable, Iterator, TYPE_CHECKING
 
 import numpy as np
 import pinocchio as pin
 
 from reduced_dynamics.estimator.core import kernels
 from reduced_dynamics.estimator.core.state import Command, Linearisation, NoiseModel
-from reduced_dynamics.geometry.lie_group import SUBGROUPS
+from reduced_dynamics.geometry.lie_group import BaseGroup, SUBGROUPS
+
+if TYPE_CHECKING:  # (imported at run time by warm_up: the filter imports these kernels)
+    from reduced_dynamics.estimator.filter import MomentumFilter
 
 
 #: Seconds after which :func:`compiling_notice` says what is going on: loading the
@@ -62,10 +65,26 @@ def compiling_notice(say: Callable[[str], None],
         timer.cancel()
 
 
+def _warm_backward_pass(group: BaseGroup, flt: 'MomentumFilter', command: bool) -> None:
+    """Run the smoother's backward pass over ``flt``'s steps as replay runs it (its store)."""
+    from reduced_dynamics.estimator.smoother import SmootherFiles, smooth_rows, StepStore
+    try:
+        files = SmootherFiles()
+    except OSError:
+        return  # no writable temporary directory (a node's read-only disk): replay compiles
+    try:
+        store = StepStore(files, group.dim, flt.dim, command)
+        for step in flt.steps:
+            store.append(step)
+        smooth_rows(group, store, files, flt._form_rows).close()
+        store.close()
+    finally:
+        files.close()
+
+
 def warm_up() -> None:
     """Run each kernel on a tiny problem: SE(3) and a subgroup, poses and twists, a command."""
     from reduced_dynamics.estimator.filter import MomentumFilter
-    from reduced_dynamics.estimator.smoother import SmootherFiles, smooth_rows, StepStore
     for name, command in (('SE(3)', False), ('SE(2)', False), ('SE(2)', True)):
         group = SUBGROUPS[name]
         n = group.dim
@@ -82,16 +101,7 @@ def warm_up() -> None:
         # A row without a measurement (joint states between odometry samples).
         flt.step(45_000_000, lin, None, None, held)
         flt.wrench_significance()
-        # The backward pass as replay runs it (the store's records: their layouts).
-        files = SmootherFiles()
-        try:
-            store = StepStore(files, n, flt.dim, command)
-            for step in flt.steps:
-                store.append(step)
-            smooth_rows(group, store, files, flt._form_rows).close()
-            store.close()
-        finally:
-            files.close()
+        _warm_backward_pass(group, flt, command)
         flt._transition(pin.SE3.Identity(), flt.x, lin, 0.01,
                         np.zeros(n) if command else None)
         # The paths a gate reset and a detected step take.
