@@ -242,7 +242,8 @@ def add_sample(raw: np.ndarray, mu: np.ndarray, cov: np.ndarray, last_mu: np.nda
     common_ring[k] = common
     accumulate(info, score, k, sample_info, mu)
     if with_positions:
-        accumulate_position(s0, s1, s2, y0, t1, counts, k, lam, t, c, True)
+        # (with_positions, True here, not a constant: one compiled accumulate_position.)
+        accumulate_position(s0, s1, s2, y0, t1, counts, k, lam, t, c, with_positions)
 
 
 @njit(cache=True)

@@ -115,7 +115,10 @@ def propagate_update(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.nda
     """
     phi, q = transition(g, x, locked, step_inverse, step_connection_qd, step_joint_cov, dt,
                         jerk_var, basis, pinv, whole, ad_rows, form_rows)
-    g0, x0 = propagate_mean(g, x, step_inverse, step_connection_qd, dt, np.empty(0), False,
+    # No command (u empty); commanded as u's size, a runtime bool: a constant False would
+    # compile propagate_mean once more (numba specialises a callee on literal arguments).
+    u = np.empty(0)
+    g0, x0 = propagate_mean(g, x, step_inverse, step_connection_qd, dt, u, u.shape[0] > 0,
                             basis, pinv, whole)
     p0 = _predicted_covariance(phi, p, q, dt)
     accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain = update(

@@ -307,7 +307,8 @@ def propagate_update(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.nda
     """
     phi, q = transition(g, x, locked, step_inverse, step_connection_qd, step_joint_cov, dt,
                         jerk_var, basis, pinv, whole, ad_rows, form_rows)
-    g0, x0 = propagate_mean(g, x, step_inverse, step_connection_qd, dt, np.empty(0), False,
+    u = np.empty(0)  # no command: commanded a runtime bool, as in kernels.propagate_update
+    g0, x0 = propagate_mean(g, x, step_inverse, step_connection_qd, dt, u, u.shape[0] > 0,
                             basis, pinv, whole)
     p0 = symmetric(_chain_product(phi, p, dt) + q)
     accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain = update(
