@@ -414,13 +414,11 @@ def smooth(group: BaseGroup, steps: Sequence[FilterStep]) -> list[FilterState]:
     # The steps as the store's records (step_dtype): the pass reads the same layouts.
     records = np.zeros(count, step_dtype(n, dim, False))
     identity = np.eye(dim)
-    for k, step in enumerate(steps):
-        record = records[k]
-        record['has_transition'] = step.transition is not None
-        record['transition'] = identity if step.transition is None else step.transition
-        record['pose_pred'], record['x_pred'] = step.pose_pred, step.x_pred
-        record['p_pred'], record['pose'] = step.p_pred, step.pose
-        record['x'], record['p'] = step.x, step.p
+    records['has_transition'] = [step.transition is not None for step in steps]
+    records['transition'] = [identity if step.transition is None else step.transition
+                             for step in steps]
+    for name in ('pose_pred', 'x_pred', 'p_pred', 'pose', 'x', 'p'):
+        records[name] = [getattr(step, name) for step in steps]
     pose, x, p = smooth_arrays(
         group, ~records['has_transition'], records['transition'], records['pose_pred'],
         records['x_pred'], records['p_pred'], records['pose'], records['x'], records['p'])
