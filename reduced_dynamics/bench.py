@@ -113,6 +113,8 @@ class Settings:
     shape_joints: tuple = SHAPE_JOINTS
     #: the torque-varying 200 Hz bag of section planned (issue 13: 60 s)
     planned_bag_seconds: float = 60.0
+    #: the shipped bags section planned replays (names of :data:`SHIPPED_BAGS`; None: all)
+    planned_bags: Optional[tuple] = None
     #: measured window and warm-up of each node/relay phase of section node [s]
     node_seconds: float = 5.0
     node_warmup: float = 1.0
@@ -901,6 +903,8 @@ def _bench_replay_predictions(report: Report, settings: Settings, workdir: str) 
                         'test', 'data')
     bags = []
     for name, urdf, joint, gravity in SHIPPED_BAGS:
+        if settings.planned_bags is not None and name not in settings.planned_bags:
+            continue
         if os.path.isdir(os.path.join(data, name)):
             robot = load_robot(str(config_path(urdf)) if urdf else '', joint,
                                None if gravity is None else np.array(gravity))

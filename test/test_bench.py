@@ -25,12 +25,13 @@ from reduced_dynamics.cli import build_parser
 
 
 def _tiny() -> bench.Settings:
-    return bench.Settings(repeats=2, update_samples=60, update_warmup=0.05, crba_calls=50,
+    return bench.Settings(repeats=1, update_samples=60, update_warmup=0.05, crba_calls=50,
                           full_rtols=(1e-6, 1e-9), reduced_rtols=(1e-8,),
                           dg_steps=(0.05,), prediction_points=11, replay_seconds=0.3,
                           memory_short_seconds=0.2, memory_long_seconds=0.4,
                           scaling_samples=40, scaling_evaluations=3,
-                          shape_joints=(6, 12), planned_bag_seconds=2.0, payload_seconds=4.0,
+                          shape_joints=(6, 12), planned_bag_seconds=2.0,
+                          planned_bags=('paper_thruster',), payload_seconds=4.0,
                           step_test_samples=2200, quick=True)
 
 
