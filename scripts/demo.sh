@@ -22,6 +22,9 @@
 # Usage: ./scripts/demo.sh [OUT_DIR]   (default out/demo)
 
 set -euo pipefail
+# Python keeps the bytecode it compiles (.colcon/venv, the checkout) even where
+# PYTHONDONTWRITEBYTECODE is set: the four commands below are four processes (docs/testing.md).
+unset PYTHONDONTWRITEBYTECODE
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 REPO_ROOT="$PWD"
 WS="$REPO_ROOT/.colcon"

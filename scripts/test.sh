@@ -61,7 +61,7 @@
 # modules it compiles (__pycache__ in .colcon/venv and the checkout, both gitignored). With
 # it set (as on this project's CI machine) and uv installing without bytecode, each of the
 # suite's process starts compiled ~1 100 modules from source again: measured, a node's
-# imports 2.6-3.1 s of CPU without the caches, 0.9-1.1 s with them (docs/parallel_tests.md).
+# imports took 3.0-3.9 s of CPU without the caches, 0.8-1.0 s with them (docs/testing.md).
 
 set -euo pipefail
 unset PYTHONDONTWRITEBYTECODE
