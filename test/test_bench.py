@@ -102,6 +102,12 @@ def test_bench_sections_tiny(tiny_report, tmp_path):
     json.dumps(report.to_dict())
 
 
+def test_planned_bags_must_name_shipped_bags(tmp_path):
+    settings = bench.Settings(planned_bags=('paper_thruster', 'paper_thrusters'))
+    with pytest.raises(ValueError, match=r"no shipped bag named \['paper_thrusters'\]"):
+        bench.bench_planned(bench.Report({}, {}), settings, str(tmp_path))
+
+
 def test_cli_registers_bench():
     args = build_parser().parse_args(['bench', '--quick', '--repeats', '2', '--json', 'x.json',
                                       '--csv', 'x.csv', '--sections', 'update'])
