@@ -118,8 +118,10 @@ def finish(proc, timeout=GUARD):
 
     For as long as it prints a line within ``timeout`` (the recorder's progress): at a
     load of 24 the recorder of 6569 messages had not ended 300 s after the player
-    (issue 24); a hang prints nothing and ends the wait.
+    (issue 24). A hang prints nothing: the wait ends, the process is killed and the test
+    fails with what it printed.
     """
+    hung = False
     try:
         seen, since = len(proc.lines), time.monotonic()
         while True:
@@ -130,13 +132,18 @@ def finish(proc, timeout=GUARD):
                 if len(proc.lines) != seen:
                     seen, since = len(proc.lines), time.monotonic()
                 elif time.monotonic() - since > timeout:
-                    raise
+                    hung = True
+                    break
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
     proc.reader.join(timeout=timeout)
-    return proc.returncode, ''.join(proc.lines), proc.stderr.read()
+    out, err = ''.join(proc.lines), proc.stderr.read()
+    # What it printed says where it stopped (a CI run's player once hung here, unexplained).
+    assert not hung, f'{proc.args} printed nothing for {timeout:g} s, then was killed; ' \
+        f'its stdout: {out!r}; its stderr: {err!r}'
+    return proc.returncode, out, err
 
 
 def _bag_raw(bag, topic):
