@@ -147,6 +147,49 @@ def test_the_estimator_with_the_row_step_is_bit_identical() -> None:
     assert mine[1:] == expected[1:]
 
 
+@pytest.mark.parametrize('joint_every,base_every,offset_ns', [
+    (1, 5, 300_000),  # 1 kHz joints, 200 Hz odometry 0.3 ms later: between two rows
+    (2, 1, 0),        # odometry twice as fast: one between the rows, one at the row after it
+])
+def test_measurements_off_the_rows_take_the_row_step_bit_identically(
+        joint_every, base_every, offset_ns) -> None:
+    """
+    Base samples on their own clock: each takes the compiled row step, with the same bits.
+
+    A measurement between two rows (or at a row after another one) steps with the
+    inputs interpolated at its own fraction (state.between), not the rows' mean.
+    """
+    from reduced_dynamics.bench import update_samples
+    from reduced_dynamics.messages.samples import BaseStateSample
+    from reduced_dynamics.robot.model import load_robot
+    robot = load_robot()
+    joints, bases = update_samples(robot, 2500)
+    bases = [BaseStateSample(b.stamp_ns + offset_ns, b.frame_id, b.child_frame_id,
+                             b.position, b.orientation_xyzw, b.twist_linear, b.twist_angular)
+             for b in bases[::base_every]]
+    messages = [m for _, _, m in sorted(
+        [(j.stamp_ns, 0, j) for j in joints[::joint_every]]
+        + [(b.stamp_ns, 1, b) for b in bases], key=lambda e: e[:2])]
+    calls = []
+    compiled = step_row.filter_step
+
+    def counted(*args):
+        calls.append(args[6])  # midway
+        return compiled(*args)
+
+    with mock.patch.object(step_row, 'filter_step', counted):
+        mine = _columns(robot, messages, refuse=False)
+    expected = _columns(robot, messages, refuse=True)
+    assert expected[1], 'the bench motion finds events'
+    assert expected[3] > 0, 'onsets were evaluated'
+    # Every measurement after the filter's start went through the row step (measured:
+    # all but one or two), none of them midway.
+    assert len(calls) >= len(bases) - 2 and not any(calls)
+    for name, value in expected[0].items():
+        np.testing.assert_array_equal(mine[0][name], value, err_msg=name)
+    assert mine[1:] == expected[1:]
+
+
 def test_a_row_is_one_compiled_filter_call() -> None:
     """In steady state: filter_step per row; propagate_update, absorb_evaluate not called."""
     from reduced_dynamics.bench import update_samples

@@ -168,17 +168,20 @@ class FilterRows:
         The common step (no commanded wrench, the noise parameters, not a burst) runs
         as one compiled call (``kernels.propagate_update``) doing the same operations
         as :meth:`_propagate` and :meth:`_update` one after the other; with the step
-        test on and ``before`` given (``step`` None: the mean of ``before`` and
-        ``lin``), the step test's share of the step joins that call
-        (:mod:`~reduced_dynamics.estimator.step_row`). ``pose``: the measurement's pose
-        as a 4 x 4 array when the caller has one (:meth:`row_at`).
+        test on, the step test's share of the step joins that call
+        (:mod:`~reduced_dynamics.estimator.step_row`), with the inputs ``step`` (a
+        measurement between rows, or at a row after others) or, ``step`` None, the
+        mean of ``before`` and ``lin`` (a row's one measurement, at its stamp).
+        ``pose``: the measurement's pose as a 4 x 4 array when the caller has one
+        (:meth:`row_at`).
         """
         if measurement is not None and not self.command and measurement.noise is None \
                 and stamp_ns > self.stamp_ns:
             burst = self.stalls.in_burst(measurement.stamp_ns) \
                 and measurement.stamp_sigma is None
-            if not burst and before is not None and self.step_test.active and \
-                    self._row_measured(stamp_ns, before, measurement, lin, output, gated, pose):
+            if not burst and self.step_test.active and \
+                    self._row_measured(stamp_ns, before, measurement, lin, output, gated, pose,
+                                       step):
                 return
             self._measured_step(stamp_ns, step, command, measurement, lin, output, gated,
                                 before, burst)
@@ -251,18 +254,34 @@ class FilterRows:
         dt = 0.0 if last is None else max(stamp_ns - last, 0) * 1e-9
         return sigma, min(1.0, dt / STAMP_TWIST_TIME)
 
-    def _row_measured(self, stamp_ns: int, before: Linearisation, measurement: Measurement,
-                      lin: Linearisation, output: bool, gated: list,
-                      pose: Optional[np.ndarray] = None) -> bool:
+    def _row_measured(self, stamp_ns: int, before: Optional[Linearisation],
+                      measurement: Measurement, lin: Linearisation, output: bool,
+                      gated: list, pose: Optional[np.ndarray] = None,
+                      step: Optional[Linearisation] = None) -> bool:
         """
         Run ``step_row.filter_step`` (:meth:`_fused_step` and the step test's share) and measure.
 
-        The common outcome (accepted into a healthy covariance, the step test's bank
-        open) is taken here with :meth:`_update`'s bookkeeping in the same order; any
-        other goes on to :meth:`_measure` with the call's results, as before. Return
-        False when the call raised (nothing changed: the caller takes the separate calls).
+        The step's inputs: ``step`` when given (a measurement between two rows, or at a
+        row after others: ``state.between`` at the caller's fraction), else the mean of
+        ``before`` and ``lin`` (formed in the call). The common outcome (accepted into a
+        healthy covariance, the step test's bank open) is taken here with
+        :meth:`_update`'s bookkeeping in the same order; any other goes on to
+        :meth:`_measure` with the call's results, as before. Return False when the call
+        raised, or when ``step``'s I or A Sigma A^T are not ``lin``'s (the call propagates
+        with ``lin``'s): nothing changed, the caller takes the separate calls.
         ``pose``: the measurement's pose as a C-contiguous 4 x 4 array (None: from it).
         """
+        if step is None:
+            if before is None:
+                return False
+            step_inverse, step_connection_qd, midway = \
+                before.locked_inverse, before.connection_qd, True
+        elif step.locked is lin.locked and step.joint_cov is lin.joint_cov:
+            # (state.between keeps the later row's I and A Sigma A^T: the same objects.)
+            step_inverse, step_connection_qd, midway = \
+                step.locked_inverse, step.connection_qd, False
+        else:
+            return False
         twist = measurement.twist
         with_twist = twist is not None
         size = 2 * self.n if with_twist else self.n
@@ -283,8 +302,8 @@ class FilterRows:
         try:
             (g1, x1, p1, accepted, nis, logdet, health, wrench_test, tested, evidence, best,
              statistic, top, evaluated) = step_row.filter_step(
-                self._g, self.x, self.p, lin.locked, before.locked_inverse,
-                before.connection_qd, (stamp_ns - self.stamp_ns) * 1e-9,
+                self._g, self.x, self.p, lin.locked, step_inverse, step_connection_qd,
+                midway, (stamp_ns - self.stamp_ns) * 1e-9,
                 np.ascontiguousarray(measurement.pose.homogeneous) if pose is None else pose,
                 _EMPTY if twist is None else np.asarray(twist, dtype=float), with_twist,
                 lin.locked_inverse, lin.connection_qd, lin.joint_cov, self._stamp_twist, sigma,

@@ -207,8 +207,9 @@ def _put(work: np.ndarray, value: np.ndarray) -> None:
 
 @njit(cache=True)
 def filter_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
-                before_inverse: np.ndarray, before_connection_qd: np.ndarray, dt: float,
-                pose: np.ndarray, measured: np.ndarray, with_twist: bool,
+                before_inverse: np.ndarray, before_connection_qd: np.ndarray,
+                midway: bool, dt: float, pose: np.ndarray, measured: np.ndarray,
+                with_twist: bool,
                 inverse_locked: np.ndarray, connection_qd: np.ndarray, joint_cov: np.ndarray,
                 stamp_twist: np.ndarray, stamp_sigma: float, gate: float,
                 twist_weight: float, stamp_ns: int, jerk_var: np.ndarray,
@@ -217,14 +218,17 @@ def filter_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
                 h_pose: np.ndarray, state: np.ndarray, ints: np.ndarray,
                 bounded: np.ndarray, work: np.ndarray) -> tuple:
     """
-    Run a row's step (a measurement at the row, the step's inputs midway) and its step test.
+    Run a step that ends in a measurement (at a row or between two) and its step test.
 
     The row's values first, then what is fixed for the filter's life (its noise and
     group constants, the step test's buffers, the work buffer: the filter passes these
     as one tuple built once, ``MomentumFilter._row_fixed``).
 
-    The step's inputs are the mean of the previous row's (``before_*``) and this
-    row's (state.between at 0.5); then ``kernels.propagate_update``,
+    ``midway``: the step's inputs are the mean of the previous row's (``before_*``)
+    and this row's (state.between at 0.5), a measurement at the row's stamp; else
+    ``before_*`` are the step's inputs themselves (state.between at the caller's
+    fraction: a measurement between two rows, whose I and A Sigma A^T, ``locked`` and
+    ``joint_cov``, are the step's too); then ``kernels.propagate_update``,
     :func:`test_propagate` on its transition, and, when the measurement was accepted
     into a healthy covariance with an onset open, ``absorb_evaluate`` and :func:`keep`
     (the step test's whole update but its outcome). The step test's state
@@ -240,8 +244,11 @@ def filter_step(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
     step test took the update, whether it was evidence, the best onset, its
     statistic, the largest bound and the onsets evaluated.
     """
-    step_inverse = 0.5 * (before_inverse + inverse_locked)
-    step_connection_qd = 0.5 * (before_connection_qd + connection_qd)
+    if midway:
+        step_inverse = 0.5 * (before_inverse + inverse_locked)
+        step_connection_qd = 0.5 * (before_connection_qd + connection_qd)
+    else:
+        step_inverse, step_connection_qd = before_inverse, before_connection_qd
     (g0, x0, p0, phi, accepted, nis, logdet, nu, r, g1, x1, p1, h, s, gain, health,
      averaged, wrench_test) = propagate_update(
         g, x, p, locked, step_inverse, step_connection_qd, joint_cov, dt, jerk_var, pose,
