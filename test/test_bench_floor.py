@@ -36,9 +36,10 @@ def test_floor_times_the_steady_state_calls_and_adds_them_up() -> None:
     step = captured['propagate_update']
     assert step[2].shape == (3 * robot.n, 3 * robot.n) and step[11]  # an Odometry update
     row = captured['filter_step']  # the row's one compiled call, as the filter made it
-    # (g, x, P, ..., with_twist at 9, ..., the step test's state buffer and int buffer at
-    # 27 and 28, step_row.filter_step's order): an Odometry row with onsets open.
-    assert row[2].shape == step[2].shape and row[9] and row[28][COUNT] >= 10
+    # (g, x, P, ..., midway at 6, with_twist at 10, ..., the step test's state buffer and
+    # int buffer at 28 and 29, step_row.filter_step's order): an Odometry row's own
+    # measurement (the bench's stamps are equal) with onsets open.
+    assert row[2].shape == step[2].shape and row[6] and row[10] and row[29][COUNT] >= 10
     floor = bench_floor.measure_floor(robot, calls=50)
     assert 'row_step_called' in floor
     assert all(math.isfinite(v) and v > 0.0 for v in floor.values())
