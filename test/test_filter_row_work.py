@@ -75,7 +75,7 @@ def test_a_row_with_the_packed_state_equals_the_separate_calls() -> None:
     args = captured[0]
     test = flt.step_test
     n, dim = test.n, test.dim
-    head, fixed = args[:18], args[18:]
+    head, fixed = args[:19], args[19:]
     assert len(fixed) == 13 and test.onsets
     (jerk_var, pose_var, twist_var, basis, pinv, whole, ad_rows, form_rows, h_pose) = fixed[:9]
     arrays, work = fixed[9:12], fixed[12]
@@ -83,14 +83,15 @@ def test_a_row_with_the_packed_state_equals_the_separate_calls() -> None:
     # The packed call, on copies of the state before the row.
     mine = copy.deepcopy(arrays)
     mine_work = work.copy()
-    stamp_twist = head[13].copy()
-    out = compiled(*head[:13], stamp_twist, *head[14:], *fixed[:9], *mine, mine_work)
+    stamp_twist = head[14].copy()
+    out = compiled(*head[:14], stamp_twist, *head[15:], *fixed[:9], *mine, mine_work)
 
     # The separate calls: propagate_update, then a step test holding the same state
     # stepped from Python (WrenchStepTest.propagate and update).
-    (g, x, p, locked, before_inverse, before_qd, dt, pose, measured, with_twist,
+    (g, x, p, locked, before_inverse, before_qd, midway, dt, pose, measured, with_twist,
      inverse_locked, connection_qd, joint_cov, twist_avg, sigma, gate, weight,
      stamp_ns) = head
+    assert midway  # the bench's stamps are equal: each measurement is its row's own
     fused = kernels.propagate_update(
         g, x, p, locked, 0.5 * (before_inverse + inverse_locked),
         0.5 * (before_qd + connection_qd), joint_cov, dt, jerk_var, pose, measured,
