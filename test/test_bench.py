@@ -126,6 +126,15 @@ def test_update_section_times_fixed_lag_smoothing_against_crba_and_without(tiny_
 
 
 @ONE_WORKER
+def test_update_section_times_odometry_off_the_rows(tiny_report):
+    # Sensors on their own clocks: every base sample between two joint-state rows.
+    figures = {f.name: f for f in tiny_report.figures if f.section == 'update'}
+    off = figures['estimator update, 1 kHz joints + 1 kHz odometry off their stamps '
+                  '(paper robot)']
+    assert off.baseline == 'crba' and off.ratio > 0.0 and 'ratio <= 20' in off.target
+
+
+@ONE_WORKER
 def test_replay_rows_against_rosbags(tiny_report):
     # Issue 19's two replay targets: --no-smooth (>= 0.5) and smoothed (>= 0.4) replay,
     # each against rosbags read+deserialize of the same bag, in the same repeats.
