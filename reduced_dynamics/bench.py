@@ -853,10 +853,11 @@ def bench_planned(report: Report, settings: Settings, workdir: str) -> None:
     """
     from reduced_dynamics.full_dynamics import PrescribedShapeDynamics
     from reduced_dynamics.reduction.prescribed import PrescribedReconstruction, relative_angles
-    unknown = set(settings.planned_bags or ()) - {name for name, *_ in SHIPPED_BAGS}
+    shipped = [name for name, *_ in SHIPPED_BAGS]
+    unknown = set(settings.planned_bags or ()) - set(shipped)
     if unknown:
         raise ValueError(f'planned_bags: no shipped bag named {sorted(unknown)} '
-                         f'(known: {", ".join(name for name, *_ in SHIPPED_BAGS)})')
+                         f'(known: {", ".join(shipped)})')
     robot, path, g0, xi0, mu = bench_plan()
     times = np.linspace(0.0, 10.0, 201)
     reference = PrescribedShapeDynamics(robot, path).simulate(g0, xi0, times, 1e-13, 1e-13)
