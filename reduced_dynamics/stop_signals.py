@@ -37,6 +37,13 @@ flag even when our own code then catches it, and the interpreter kills itself
 with SIGINT after finalising (exit -2 after "stopped by SIGINT"). So after the
 exit handlers a finished program ends with ``os._exit(code)``.
 
+A signal can also land in Python code that C code called through a ctypes callback:
+llvmlite's object-cache hooks run while numba compiles a kernel. ctypes prints an
+exception raised there as "Exception ignored" and drops it, so the stop was lost and
+the program went on to exit 0 with a traceback on stderr (seen once in CI, SIGTERM 1 s
+into a replay). :class:`Interrupts` therefore does not raise inside such code: it sends
+the signal again a moment later, until it lands outside.
+
 This module imports only the standard library's ``atexit``, ``os``, ``signal``,
 ``sys``, ``threading`` and ``typing``: entry points import it before anything heavy.
 """
@@ -135,6 +142,24 @@ def restore(handlers: dict) -> None:
                 signal.signal(sig, handler)
 
 
+#: Path parts of the modules whose Python code C calls through ctypes callbacks, where an
+#: exception is printed and dropped (llvmlite's object-cache hooks, its lock callbacks).
+CALLBACK_MODULES = (os.sep + 'llvmlite' + os.sep,)
+
+#: Seconds before a signal that landed in such code is sent again.
+REDELIVERY_S = 0.01
+
+
+def in_callback_code(frame: Any) -> bool:
+    """Return True if ``frame`` or a caller of it runs in :data:`CALLBACK_MODULES`."""
+    while frame is not None:
+        name = frame.f_code.co_filename
+        if any(part in name for part in CALLBACK_MODULES):
+            return True
+        frame = frame.f_back
+    return False
+
+
 class Interrupts:
     """SIGINT and SIGTERM raise KeyboardInterrupt; :attr:`received` says which came."""
 
@@ -153,4 +178,13 @@ class Interrupts:
             _default(signum)
             return
         self.received = signal.Signals(signum)
+        if in_callback_code(frame):
+            # Raised here, ctypes would print and drop it: try again once out of it. To the
+            # main thread: sent to the process, it may reach the timer's thread and leave
+            # a blocking call of the main thread (a sleep, a wait) uninterrupted.
+            timer = threading.Timer(REDELIVERY_S, signal.pthread_kill,
+                                    (threading.main_thread().ident, signum))
+            timer.daemon = True
+            timer.start()
+            return
         raise KeyboardInterrupt(self.received.name)

@@ -183,6 +183,64 @@ def test_the_cli_stopped_in_its_imports_prints_one_line(tmp_path, sig, point):
     assert err.splitlines() == [f'reduced-dynamics: stopped by {sig.name}'], err
 
 
+#: A signal landing in Python code that C called through a ctypes callback, as numba's
+#: compilation calls llvmlite's object-cache hooks: CALLBACK_LIBRARY stands in for llvmlite.
+CALLBACK_LIBRARY = '''
+import ctypes, os, signal
+
+
+def callback():
+    os.kill(os.getpid(), signal.SIGTERM)
+    for _ in range(100000):  # the handler runs here, between two of these bytecodes
+        pass
+    os.write(1, b'callback returned\\n')
+
+
+call = ctypes.CFUNCTYPE(None)(callback)
+'''
+CALLBACK_PROBE = '''
+import os, time
+from reduced_dynamics import stop_signals
+import callback_library
+
+stop_signals.CALLBACK_MODULES += (os.path.abspath(callback_library.__file__),)
+interrupts = stop_signals.Interrupts()
+interrupts.install()
+try:
+    callback_library.call()
+    os.write(1, b'after the callback\\n')
+    time.sleep(30)
+    os.write(1, b'not stopped\\n')
+except KeyboardInterrupt:
+    os.write(1, f'stopped by {interrupts.received.name}\\n'.encode())
+'''
+
+
+def test_a_signal_in_a_ctypes_callback_stops_the_program_once_out_of_it(tmp_path):
+    """ctypes drops an exception raised in a callback: the stop comes after it returns."""
+    (tmp_path / 'callback_library.py').write_text(CALLBACK_LIBRARY)
+    probe = tmp_path / 'callback_probe.py'
+    probe.write_text(CALLBACK_PROBE)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(REPO)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p]))
+    done = subprocess.run([sys.executable, str(probe)], env=env, capture_output=True,
+                          text=True, timeout=HANG)
+    assert done.stderr == '', done.stderr  # no "Exception ignored on calling ctypes callback"
+    assert done.stdout.splitlines() == [
+        'callback returned', 'after the callback', 'stopped by SIGTERM'], done.stdout
+    assert done.returncode == 0
+
+
+def test_the_callback_modules_cover_llvmlites_object_cache_hooks():
+    """The hooks numba's compilation runs are in :data:`stop_signals.CALLBACK_MODULES`."""
+    from llvmlite.binding.executionengine import ExecutionEngine
+    from reduced_dynamics import stop_signals
+    for hook in (ExecutionEngine._raw_object_cache_notify,
+                 ExecutionEngine._raw_object_cache_getbuffer):
+        name = hook.__code__.co_filename
+        assert any(part in name for part in stop_signals.CALLBACK_MODULES), name
+
+
 #: A program's end, as ``python -m end_probe CODE FINISH``: an exit handler that waits
 #: (the window of a late signal), a module global finalised in the module teardown,
 #: and a KeyboardInterrupt that went through C code running Python and was caught.
