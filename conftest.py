@@ -15,6 +15,37 @@
 """Pytest root: its folder goes first on sys.path, so tests import this checkout's package."""
 
 import os
+import platform
+
+
+def pin_blas_kernels() -> str:
+    """
+    Have OpenBLAS run its Haswell kernels on any x86-64 CPU with AVX2 and FMA; return them.
+
+    The golden outputs and the tests that compare compiled kernels with numpy bit for
+    bit hold with those kernels (AVX2 Intel and AMD CPUs run them anyway). On a CPU with
+    AVX-512 OpenBLAS picks its SkylakeX kernels, whose sums round differently in the last
+    bits: measured on a Xeon with AVX-512, 8 such tests failed (the golden outputs, the
+    block test's and the pulse fit's numpy comparisons) and all passed with
+    ``OPENBLAS_CORETYPE=Haswell``. Set here, before anything imports numpy (pytest's
+    plugins do not), so this process and every process the tests start read it. A
+    value already set is kept; ``RD_NATIVE_BLAS=1`` leaves OpenBLAS its own choice.
+    """
+    if 'OPENBLAS_CORETYPE' in os.environ or os.environ.get('RD_NATIVE_BLAS') == '1' or \
+            platform.machine() != 'x86_64':
+        return os.environ.get('OPENBLAS_CORETYPE', '')
+    try:
+        with open('/proc/cpuinfo') as info:
+            flags = next((line.split(':', 1)[1].split() for line in info
+                          if line.startswith('flags')), [])
+    except OSError:  # not Linux: OpenBLAS's own choice
+        return ''
+    if 'avx2' in flags and 'fma' in flags:
+        os.environ['OPENBLAS_CORETYPE'] = 'Haswell'
+    return os.environ.get('OPENBLAS_CORETYPE', '')
+
+
+pin_blas_kernels()
 
 #: Fast DDS maps a domain to ports 7400 + 250 * id (+ offsets): ids up to 101 stay below
 #: Linux's ephemeral ports; 0 (everyone's default) is left out.

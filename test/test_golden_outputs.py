@@ -129,4 +129,17 @@ def test_replay_outputs_are_the_golden_bytes(tmp_path, case, smooth):
     assert not changed, (f'{key}: outputs changed on {changed} (platform: '
                          f'{platform_fingerprint()}); if that is intended, re-bless with '
                          'RD_BLESS_GOLDEN=1, or for unchanged code on another machine '
-                         'RD_BLESS_GOLDEN=variant (docs/estimator_modules.md)')
+                         'RD_BLESS_GOLDEN=variant (docs/estimator_modules.md; OpenBLAS '
+                         'kernels: conftest.pin_blas_kernels)')
+
+
+def test_openblas_runs_the_kernels_the_golden_outputs_were_recorded_with():
+    """conftest.pin_blas_kernels took effect: OpenBLAS was loaded after it set its kernels."""
+    from threadpoolctl import threadpool_info
+    wanted = os.environ.get('OPENBLAS_CORETYPE', '')
+    if not wanted:
+        pytest.skip('OPENBLAS_CORETYPE unset: OpenBLAS picks its kernels (conftest.py)')
+    loaded = [info for info in threadpool_info() if info.get('internal_api') == 'openblas']
+    assert loaded, 'numpy and scipy load OpenBLAS'
+    for info in loaded:
+        assert info.get('architecture', '').lower() == wanted.lower(), info
