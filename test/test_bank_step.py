@@ -212,7 +212,7 @@ def _twist_samples(seconds: float, rate: float, seed: int) -> list:
             stamp, g.actionInverse, locked + rng.standard_normal((6, 6)) * 1e-6,
             xi_true + rng.standard_normal(6) * 1e-2, rng.standard_normal(6) * 1e-3,
             twist_cov, joint_cov, p[:6, :6], structure, g.rotation, g.translation,
-            pose_noise)
+            pose_noise, locked + rng.standard_normal((6, 6)) * 1e-6)
         mu = locked @ xi_true + rng.standard_normal(6) * 1e-3
         out.append((stamp, mu, fixed, [sample], k % 50 < 35, (k // 200) % 3 != 1,
                     k in (450, 900)))

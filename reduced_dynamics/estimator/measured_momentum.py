@@ -53,10 +53,12 @@ def twist_momentum(ad_inverse: np.ndarray, locked: np.ndarray, connection_qd: np
 
 class TwistSample(NamedTuple):
     """
-    One measured twist of an SE(3) base at its row, not yet turned into a momentum.
+    One measured twist of an SE(3) base, not yet turned into a momentum.
 
-    The arguments of :func:`.impulse.measured_momentum_se3` (the row's locked inertia
-    for the momentum and the centre of mass). :class:`.MultiScaleTest` turns it into
+    The arguments of :func:`.impulse.measured_momentum_se3`: the row's locked inertia
+    for the momentum, and for the centre of mass the one at the sample's stamp
+    (``com_locked``: the row's own at the row, interpolated between two rows, as
+    :func:`twist_momenta` does). :class:`.MultiScaleTest` turns it into
     the momentum inside the banks' compiled call (core/bank_step.twist_step);
     :meth:`momentum` gives the (stamp, mu, white, common, position) tuple
     :func:`twist_momenta` gives for other samples, the same bits.
@@ -74,12 +76,13 @@ class TwistSample(NamedTuple):
     rotation: np.ndarray
     translation: np.ndarray
     com_pose_cov: np.ndarray
+    com_locked: np.ndarray
 
     def momentum(self) -> tuple:
         """Return (stamp, mu, white covariance, common covariance, position)."""
         mu, white, common, world, cov, mass = impulse.measured_momentum_se3(
             self.ad_inverse, self.locked, self.twist, self.connection_qd, self.twist_cov,
-            self.joint_cov, self.pose_cov, self.structure, self.locked, self.rotation,
+            self.joint_cov, self.pose_cov, self.structure, self.com_locked, self.rotation,
             self.translation, self.com_pose_cov)
         return self.stamp_ns, mu, white, common, (world, cov, mass, _LINEAR_SE3)
 
@@ -89,9 +92,9 @@ def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stam
     """
     Return (stamp, mu, covariance) of a row's accepted twist measurements.
 
-    The common one (an SE(3) base, at the row, the filter's noise) as a
-    :class:`TwistSample`: the multi-scale test computes its momentum in its own
-    compiled call.
+    An SE(3) base's with the filter's noise as a :class:`TwistSample`, at the row or
+    between two (inputs interpolated): the multi-scale test computes its momentum in its
+    own compiled call.
 
     ``before``, ``lin``: the linearisations of the previous row (at ``start_ns``)
     and of this one (at ``stamp_ns``); A qbar_dot is interpolated to each
@@ -114,29 +117,27 @@ def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stam
         if measurement is None or measurement.twist is None or \
                 measurement.stamp_ns in gated:
             continue
-        if se3 and measurement.noise is None and \
-                not (span and measurement.stamp_ns < stamp_ns):
-            # The common sample (at the row, the filter's noise): the general case
-            # below with nothing to interpolate and no noise of its own, its momentum
-            # computed in the banks' compiled call (TwistSample).
+        connection, locked = lin.connection_qd, lin.locked
+        if span and measurement.stamp_ns < stamp_ns:
+            fraction = (measurement.stamp_ns - start_ns) / span
+            connection = before.connection_qd + fraction * (lin.connection_qd
+                                                            - before.connection_qd)
+            locked = before.locked + fraction * (lin.locked - before.locked)
+        if se3 and measurement.noise is None:
+            # The filter's noise (at the row, or between two rows: sensors on their own
+            # clocks): the same arguments as below, its momentum computed in the banks'
+            # compiled call (TwistSample). A message's own noise keeps the general path
+            # (its covariances' layouts would compile that call again).
             pose = measurement.pose
             # tuple.__new__: the fields as they are (the NamedTuple's own __new__ is a
             # Python function, ~0.5 us a row).
             out.append(tuple.__new__(TwistSample, (
                 measurement.stamp_ns, ad_inverse, lin.locked, measurement.twist,
-                lin.connection_qd, flt._r_twist, lin.joint_cov, pose_cov,
+                connection, flt._r_twist, lin.joint_cov, pose_cov,
                 flt.group.structure_constants, pose.rotation, pose.translation,
-                flt._r_pose)))
+                flt._r_pose, locked)))
             continue
-        connection = lin.connection_qd
-        if span and measurement.stamp_ns < stamp_ns:
-            fraction = (measurement.stamp_ns - start_ns) / span
-            connection = before.connection_qd + fraction * (lin.connection_qd
-                                                            - before.connection_qd)
         own = None if measurement.noise is None else measurement.noise[1]
-        locked = lin.locked
-        if span and measurement.stamp_ns < stamp_ns:
-            locked = before.locked + fraction * (lin.locked - before.locked)
         own_pose = None if measurement.noise is None else measurement.noise[0]
         twist_cov = flt._r_twist if own is None else own
         com_cov = flt._r_pose if own_pose is None else own_pose

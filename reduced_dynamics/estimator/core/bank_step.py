@@ -181,7 +181,8 @@ def update_with_sample(raw: np.ndarray, sample_mu: np.ndarray, sample_cov: np.nd
 def update_with_twist(ad_inverse: np.ndarray, locked: np.ndarray, twist: np.ndarray,
                       connection_qd: np.ndarray, twist_cov: np.ndarray, joint_cov: np.ndarray,
                       pose_cov: np.ndarray, structure: np.ndarray, rotation: np.ndarray,
-                      translation: np.ndarray, com_pose_cov: np.ndarray, raw: np.ndarray,
+                      translation: np.ndarray, com_pose_cov: np.ndarray,
+                      com_locked: np.ndarray, raw: np.ndarray,
                       last_mu: np.ndarray, last_cov: np.ndarray, keep_mu: np.ndarray,
                       keep_cov: np.ndarray, divisor: float, excess: np.ndarray,
                       sample_stamp: int, k: int, t: float, stamps: np.ndarray,
@@ -201,7 +202,8 @@ def update_with_twist(ad_inverse: np.ndarray, locked: np.ndarray, twist: np.ndar
 
     The row's whole intake of the block test in the banks' call: the twist's
     momentum, its covariances and the measured centre of mass
-    (:func:`.impulse.measured_momentum_se3`, the locked inertia of the row for both),
+    (:func:`.impulse.measured_momentum_se3`: the row's locked inertia for the momentum,
+    ``com_locked`` for the centre of mass),
     the sample into block row ``k`` and both banks' update, the same kernels in the
     same order as the calls it replaces (measured_momentum.TwistSample.momentum, then
     MomentumBlocks.prepare's arguments and :func:`update_with_sample`). The sample's
@@ -211,7 +213,7 @@ def update_with_twist(ad_inverse: np.ndarray, locked: np.ndarray, twist: np.ndar
     """
     sample_mu, white, sample_common, centre, position_cov, _ = measured_momentum_se3(
         ad_inverse, locked, twist, connection_qd, twist_cov, joint_cov, pose_cov, structure,
-        locked, rotation, translation, com_pose_cov)
+        com_locked, rotation, translation, com_pose_cov)
     result = update_with_sample(
         raw, sample_mu, white, last_mu, last_cov, divisor, excess, position_cov,
         sample_common, sample_stamp, k, t, centre, True, stamps, mu_ring, cov_ring, start,
@@ -253,8 +255,9 @@ def twist_step(sample_stamp: int, ad_inverse: np.ndarray, locked: np.ndarray,
                twist: np.ndarray, connection_qd: np.ndarray, twist_cov: np.ndarray,
                joint_cov: np.ndarray, pose_cov: np.ndarray, structure: np.ndarray,
                rotation: np.ndarray, translation: np.ndarray, com_pose_cov: np.ndarray,
-               stamp_ns: int, mu: np.ndarray, cov: np.ndarray, learn: bool, wanted: bool,
-               calibrated: bool, last_mu: np.ndarray, last_cov: np.ndarray,
+               com_locked: np.ndarray, stamp_ns: int, mu: np.ndarray, cov: np.ndarray,
+               learn: bool, wanted: bool, calibrated: bool, last_mu: np.ndarray,
+               last_cov: np.ndarray,
                state: np.ndarray, values: np.ndarray, block_state: np.ndarray,
                stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray,
                block_stamps: np.ndarray, info: np.ndarray, score: np.ndarray,
@@ -311,10 +314,10 @@ def twist_step(sample_stamp: int, ad_inverse: np.ndarray, locked: np.ndarray,
     block_statistics = window_values[5]
     added, best, value, block_best = update_with_twist(
         ad_inverse, locked, twist, connection_qd, twist_cov, joint_cov, pose_cov, structure,
-        rotation, translation, com_pose_cov, stack[14], last_mu, last_cov, stack[16][0],
-        stack[15], float(min(differences, EXCESS_SAMPLES)), excess, sample_stamp, k, t,
-        stamps, mu_ring, cov_ring, start, end, window_ints[4], stamp_ns, floor_ns,
-        has_floor, mu, cov, window_ints[0], window_values[0], window_values[1:3],
+        rotation, translation, com_pose_cov, com_locked, stack[14], last_mu, last_cov,
+        stack[16][0], stack[15], float(min(differences, EXCESS_SAMPLES)), excess,
+        sample_stamp, k, t, stamps, mu_ring, cov_ring, start, end, window_ints[4], stamp_ns,
+        floor_ns, has_floor, mu, cov, window_ints[0], window_values[0], window_values[1:3],
         window_values[3:5], stack[:14], median, rate, learn, differences >= minimum,
         info, score, s0, s1, s2, y0, t1, counts, common, block_stamps, window_ints[5],
         first, mass, linear, block_statistics, window_ints[1:4])

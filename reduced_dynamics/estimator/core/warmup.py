@@ -164,7 +164,7 @@ def warm_up() -> None:
         measured = [TwistSample(stamp, pose.actionInverse, rows[0], np.full(6, 1e-3 * k),
                                 np.zeros((2, 6))[0], eye, rows[1], p[:6, :6],
                                 SUBGROUPS['SE(3)'].structure_constants, pose.rotation,
-                                pose.translation, eye)]
+                                pose.translation, eye, rows[0])]
         multiscale.update(stamp, np.full(6, 1e-3 * k), eye, measured)
     # The block windows' scan while an event is open (MultiScaleTest.still_moving:
     # bank_step.any_above).
