@@ -217,7 +217,7 @@ except KeyboardInterrupt:
 
 
 def test_a_signal_in_a_ctypes_callback_stops_the_program_once_out_of_it(tmp_path):
-    """ctypes drops an exception raised in a callback: the stop comes after it returns."""
+    """An exception raised in a ctypes callback is dropped: the stop comes once out of it."""
     (tmp_path / 'callback_library.py').write_text(CALLBACK_LIBRARY)
     probe = tmp_path / 'callback_probe.py'
     probe.write_text(CALLBACK_PROBE)
