@@ -226,8 +226,11 @@ def test_a_signal_in_a_ctypes_callback_stops_the_program_once_out_of_it(tmp_path
     done = subprocess.run([sys.executable, str(probe)], env=env, capture_output=True,
                           text=True, timeout=HANG)
     assert done.stderr == '', done.stderr  # no "Exception ignored on calling ctypes callback"
-    assert done.stdout.splitlines() == [
-        'callback returned', 'after the callback', 'stopped by SIGTERM'], done.stdout
+    # The signal sent again may land before or after "after the callback" (a loaded
+    # machine): the stop comes once the callback returned, and ends the sleep.
+    lines = done.stdout.splitlines()
+    assert lines[0] == 'callback returned' and lines[-1] == 'stopped by SIGTERM', lines
+    assert lines[1:-1] in ([], ['after the callback']), lines
     assert done.returncode == 0
 
 
