@@ -123,33 +123,22 @@ def twist_momenta(flt: Any, before: Any, lin: Any, start_ns: Optional[int], stam
             connection = before.connection_qd + fraction * (lin.connection_qd
                                                             - before.connection_qd)
             locked = before.locked + fraction * (lin.locked - before.locked)
-        if se3 and measurement.noise is None:
-            # The filter's noise (at the row, or between two rows: sensors on their own
-            # clocks): the same arguments as below, its momentum computed in the banks'
-            # compiled call (TwistSample). A message's own noise keeps the general path
-            # (its covariances' layouts would compile that call again).
-            pose = measurement.pose
-            # tuple.__new__: the fields as they are (the NamedTuple's own __new__ is a
-            # Python function, ~0.5 us a row).
-            out.append(tuple.__new__(TwistSample, (
-                measurement.stamp_ns, ad_inverse, lin.locked, measurement.twist,
-                connection, flt._r_twist, lin.joint_cov, pose_cov,
-                flt.group.structure_constants, pose.rotation, pose.translation,
-                flt._r_pose, locked)))
-            continue
-        own = None if measurement.noise is None else measurement.noise[1]
-        own_pose = None if measurement.noise is None else measurement.noise[0]
+        own_pose, own = (None, None) if measurement.noise is None else measurement.noise
         twist_cov = flt._r_twist if own is None else own
         com_cov = flt._r_pose if own_pose is None else own_pose
         if se3:
-            # twist_momentum and centre_of_mass below, in one compiled call.
             pose = measurement.pose
-            mu, white, common, world, cov, mass = impulse.measured_momentum_se3(
-                ad_inverse, lin.locked, measurement.twist, connection, twist_cov,
-                lin.joint_cov, pose_cov, flt.group.structure_constants, locked,
-                pose.rotation, pose.translation, com_cov)
-            out.append((measurement.stamp_ns, mu, white, common,
-                        (world, cov, mass, LINEAR['SE(3)'])))
+            # tuple.__new__: the fields as they are (the NamedTuple's own __new__ is a
+            # Python function, ~0.5 us a row).
+            sample = tuple.__new__(TwistSample, (
+                measurement.stamp_ns, ad_inverse, lin.locked, measurement.twist,
+                connection, twist_cov, lin.joint_cov, pose_cov,
+                flt.group.structure_constants, pose.rotation, pose.translation, com_cov,
+                locked))
+            # The filter's noise (at the row, or between two rows: sensors on their own
+            # clocks): the banks' compiled call computes its momentum. A message's own
+            # noise: computed here (its covariances' layouts would compile that call again).
+            out.append(sample if measurement.noise is None else sample.momentum())
             continue
         out.append((measurement.stamp_ns, *twist_momentum(
             ad_inverse, lin.locked, connection, measurement.twist, twist_cov,
