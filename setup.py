@@ -77,6 +77,11 @@ setup(
         'threadpoolctl',
         'pin',
         'rosbags',
+        # rosbags reads and writes every bag's metadata.yaml and each topic's QoS with
+        # ruamel.yaml, by libyaml's C parser and emitter when this is installed (ruamel.yaml
+        # 0.19 no longer requires it): measured, a 60-sample replay took 246 ms of CPU with
+        # the pure-Python YAML and 92 ms with it (docs/performance.md, "Stop 35").
+        'ruamel.yaml.clib; platform_python_implementation == "CPython"',
         'mcap',
         'pyyaml',
         'matplotlib',

@@ -295,6 +295,33 @@ def test_reads_older_metadata_versions(full_bag: Path, tmp_path: Path, version: 
     check_round_trip(path)
 
 
+def test_rosbags_yaml_runs_on_libyaml_and_reads_what_either_yaml_writes(
+        full_bag: Path, tmp_path: Path, monkeypatch) -> None:
+    """
+    rosbags parses and emits metadata.yaml and the QoS profiles with libyaml (C).
+
+    ruamel.yaml >= 0.19 no longer requires its C extension (setup.py does): without it every
+    bag's open and close ran pure-Python YAML, 60 % of a 60-sample replay's CPU. The two
+    emitters wrap long scalars differently; both files must read back the same.
+    """
+    import ruamel.yaml.main as ruamel_main
+    assert ruamel_main.CParser is not None and ruamel_main.CEmitter is not None
+    with_c = yaml.safe_load((full_bag / 'metadata.yaml').read_text())
+    monkeypatch.setattr(ruamel_main, 'CParser', None)
+    monkeypatch.setattr(ruamel_main, 'CEmitter', None)
+    path = tmp_path / 'run'
+    write_full_bag(path)
+    pure = yaml.safe_load((path / 'metadata.yaml').read_text())
+    for meta in (with_c, pure):
+        info = meta['rosbag2_bagfile_information']
+        info.pop('files')
+        info.pop('relative_file_paths')
+    assert with_c == pure
+    check_round_trip(path)  # the pure-Python reader on the pure-Python bag
+    monkeypatch.undo()
+    check_round_trip(path)  # libyaml's on it
+
+
 def test_time_order_when_written_out_of_order(tmp_path: Path) -> None:
     types_ = RosbagsTypes()
     stamps = [T0 + k for k in (5, 1, 9, 3, 7, 0)]
