@@ -298,7 +298,7 @@ def test_reads_older_metadata_versions(full_bag: Path, tmp_path: Path, version: 
 def test_rosbags_yaml_runs_on_libyaml_and_reads_what_either_yaml_writes(
         full_bag: Path, tmp_path: Path, monkeypatch) -> None:
     """
-    rosbags parses and emits metadata.yaml and the QoS profiles with libyaml (C).
+    Bag metadata.yaml and QoS profiles go through libyaml (C) in rosbags.
 
     ruamel.yaml >= 0.19 no longer requires its C extension (setup.py does): without it every
     bag's open and close ran pure-Python YAML, 60 % of a 60-sample replay's CPU. The two
