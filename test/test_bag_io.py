@@ -312,10 +312,6 @@ def test_rosbags_yaml_runs_on_libyaml_and_reads_what_either_yaml_writes(
     path = tmp_path / 'run'
     write_full_bag(path)
     pure = yaml.safe_load((path / 'metadata.yaml').read_text())
-    for meta in (with_c, pure):
-        info = meta['rosbag2_bagfile_information']
-        info.pop('files')
-        info.pop('relative_file_paths')
     assert with_c == pure
     check_round_trip(path)  # the pure-Python reader on the pure-Python bag
     monkeypatch.undo()
