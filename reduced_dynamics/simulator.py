@@ -574,11 +574,18 @@ def make_excitation(robot: RobotModel, state: FreeFloatingState, scenario_torque
         omegas = rng.uniform(*_MULTISINE_OMEGA, (m, count))
         phases = rng.uniform(0.0, 2.0 * np.pi, (m, count))
 
+        # The products of constants once (the same bits as formed per call: each
+        # product is evaluated left to right), and one sine per call: the integrator
+        # calls this at every stage.
+        rate_amplitudes = amplitudes * omegas
+        acceleration_amplitudes = amplitudes * omegas ** 2
+
         def multisine(t: float, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
             arg = omegas * t + phases
-            q_ref = q0 + np.sum(amplitudes * np.sin(arg), axis=1)
-            qd_ref = np.sum(amplitudes * omegas * np.cos(arg), axis=1)
-            qdd_ref = -np.sum(amplitudes * omegas ** 2 * np.sin(arg), axis=1)
+            sine = np.sin(arg)
+            q_ref = q0 + (amplitudes * sine).sum(axis=1)
+            qd_ref = (rate_amplitudes * np.cos(arg)).sum(axis=1)
+            qdd_ref = -(acceleration_amplitudes * sine).sum(axis=1)
             return kp * (q_ref - q) + kd * (qd_ref - qd) + inertia * qdd_ref
         return Excitation(lambda _t: multisine)
     amplitude = scale * _PD_AMPLITUDE * rng.uniform(0.5, 1.0, m)

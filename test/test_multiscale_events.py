@@ -68,12 +68,43 @@ NS = 1_000_000_000
 NOISE = np.diag([0.05, 0.05, 0.02]) ** 2
 
 
+class Normal:
+    """
+    ``rng.multivariate_normal(zeros, cov)`` for one ``cov``: the same draws, the factor once.
+
+    numpy's Generator (method 'svd') factors and checks ``cov`` on every call (~60 us,
+    most of these tests' data); here the factor is formed once as it forms it, and
+    a draw is ``standard_normal(n) @ factor + 0``: the same bits
+    (:func:`test_normal_draws_are_multivariate_normals`).
+    """
+
+    def __init__(self, cov):
+        _, s, vh = np.linalg.svd(cov)
+        self.factor = np.sqrt(s)[:, None] * vh
+        self.zeros = np.zeros(cov.shape[0])
+
+    def __call__(self, rng):
+        x = rng.standard_normal(self.zeros.shape[0])[None] @ self.factor
+        x += self.zeros
+        return x[0]
+
+
+def test_normal_draws_are_multivariate_normals():
+    for cov in (NOISE, 4.0 * NOISE, 0.05 * NOISE, np.eye(3) * 0.05 ** 2, np.eye(3),
+                np.diag([5.0, 5.0, 0.5]) ** 2, np.eye(2) * 1e-3 ** 2):
+        draw, theirs, ours = Normal(cov), np.random.default_rng(4), np.random.default_rng(4)
+        expected = np.array([theirs.multivariate_normal(np.zeros(len(cov)), cov)
+                             for _ in range(300)])
+        # Bytes, not values: a -0.0 for a 0.0 would be a different draw.
+        assert np.array([draw(ours) for _ in range(300)]).tobytes() == expected.tobytes()
+
+
 def _blocks(seconds: float, rng, scale: float = 1.0, push=None) -> list:
     """Measured momenta at 100 Hz: N(0, scale^2 NOISE), plus a ramp (start, duration, J)."""
-    out = []
+    out, noise = [], Normal(scale ** 2 * NOISE)
     for k in range(int(seconds * 100)):
         t = k / 100
-        mu = rng.multivariate_normal(np.zeros(3), scale ** 2 * NOISE)
+        mu = noise(rng)
         if push is not None:
             start, duration, impulse = push
             mu += np.asarray(impulse) * min(max((t - start) / duration, 0.0), 1.0)
@@ -129,9 +160,9 @@ def test_a_long_weak_push_is_found_by_the_measured_momenta():
     samples = _blocks(30.0, rng, push=push)
     filtered = np.eye(3) * 0.05 ** 2
     plain, measured = MultiScaleTest(3, 1.0), MultiScaleTest(3, 1.0)
-    found = []
+    found, draw = [], Normal(filtered)
     for stamp, mu in samples:
-        mu_hat = rng.multivariate_normal(np.zeros(3), filtered) + \
+        mu_hat = draw(rng) + \
             np.array(push[2]) * min(max((stamp / NS - 20.0) / 3.0, 0.0), 1.0)
         assert plain.update(stamp, mu_hat, filtered) is None
         detection = measured.update(stamp, mu_hat, filtered, [(stamp, mu, NOISE)])
@@ -310,6 +341,7 @@ def _heavy(seconds: float, rng, push=None, velocity=(0.02, -0.01)) -> list:
     """Measured momenta and centre-of-mass positions of a coasting heavy base (push: J)."""
     out, c = [], np.zeros(2)
     p = MASS * np.asarray(velocity, float)
+    heavy, position = Normal(HEAVY), Normal(POSITION)
     for k in range(int(seconds * 100)):
         t = k / 100
         momentum = np.array([*p, 0.0])
@@ -318,8 +350,8 @@ def _heavy(seconds: float, rng, push=None, velocity=(0.02, -0.01)) -> list:
             momentum[0] += impulse * min(max((t - start) / duration, 0.0), 1.0)
         if k:
             c = c + momentum[:2] / MASS * 0.01
-        mu = momentum + rng.multivariate_normal(np.zeros(3), HEAVY)
-        measured = c + rng.multivariate_normal(np.zeros(2), POSITION)
+        mu = momentum + heavy(rng)
+        measured = c + position(rng)
         out.append((k * NS // 100, mu, (measured, POSITION, MASS, (0, 1))))
     return out
 
@@ -351,9 +383,9 @@ def test_a_slow_push_on_a_heavy_base_is_found_by_the_measured_positions():
     push = (20.0, 3.0, 1.5)
     filtered = np.eye(3) * 1.0
     twists, fused = MultiScaleTest(3, 1.0), MultiScaleTest(3, 1.0)
-    found = []
+    found, draw = [], Normal(filtered)
     for stamp, mu, position in _heavy(32.0, rng, push=push):
-        mu_hat = rng.multivariate_normal(np.zeros(3), filtered)
+        mu_hat = draw(rng)
         assert twists.update(stamp, mu_hat, filtered, [(stamp, mu, HEAVY)]) is None
         detection = fused.update(stamp, mu_hat, filtered, [(stamp, mu, HEAVY, None, position)])
         if detection is not None:
@@ -474,12 +506,11 @@ def test_the_null_is_calibrated_from_the_tests_own_median():
     test = MultiScaleTest(3, 1.0, calibration_memory=60.0)
     filtered = np.eye(3) * 1e-2
     slow, keep = np.zeros(3), np.exp(-0.02 / 2.0)
-    late = 0
+    late, slow_noise, noise = 0, Normal(0.05 * NOISE), Normal(NOISE)
     for k in range(50 * 600):
         stamp = k * NS // 50
-        slow = keep * slow + np.sqrt(1 - keep ** 2) * rng.multivariate_normal(
-            np.zeros(3), 0.05 * NOISE)
-        mu = rng.multivariate_normal(np.zeros(3), NOISE) + slow
+        slow = keep * slow + np.sqrt(1 - keep ** 2) * slow_noise(rng)
+        mu = noise(rng) + slow
         detection = test.update(stamp, np.zeros(3), filtered, [(stamp, mu, NOISE)])
         if detection is not None:
             test.reset(stamp)

@@ -93,15 +93,22 @@ class RosbagsTypes(MessageTypes):
             from rosbags.typesys import get_typestore, Stores
             typestore = get_typestore(Stores.ROS2_JAZZY)
         self.typestore = typestore
+        # Classes already looked up: the simulator creates ~30 messages per sample, and
+        # checking the name each time cost as much as the lookup.
+        self._classes: dict[str, type] = {}
 
     def get(self, msgtype: str) -> type:
         """Return the typestore class for ``msgtype``."""
+        cls = self._classes.get(msgtype)
+        if cls is not None:
+            return cls
         split_msgtype(msgtype)
         try:
-            return self.typestore.types[msgtype]
+            cls = self._classes[msgtype] = self.typestore.types[msgtype]
         except KeyError:
             msg = f'message type {msgtype!r} is not in the rosbags typestore'
             raise LookupError(msg) from None
+        return cls
 
     def float_seq(self, values: ArrayLike) -> np.ndarray:
         """Return a contiguous 1-D float64 numpy array."""
