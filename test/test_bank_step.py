@@ -33,6 +33,8 @@ from reduced_dynamics.estimator import momentum_blocks, multiscale, multiscale_t
 from reduced_dynamics.estimator.core import bank_step, blocks
 from reduced_dynamics.estimator.multiscale import MultiScaleTest
 
+from filter_helpers import assert_equal_arrays
+
 
 def _excess_minimum(monkeypatch: pytest.MonkeyPatch, value: int) -> None:
     """Set EXCESS_MINIMUM in every module that reads it (the multi-scale test's parts)."""
@@ -250,10 +252,10 @@ def _fed_alike(fused: MultiScaleTest, separate: MultiScaleTest, seconds: float,
         if outs[0] is not None:
             found += 1
             for mine, want in zip(outs[0], outs[1]):
-                np.testing.assert_array_equal(mine, want)
+                assert_equal_arrays(mine, want)
         for mine, want in zip(_state(fused) + _blocks_state(fused),
                               _state(separate) + _blocks_state(separate)):
-            np.testing.assert_array_equal(mine, want)
+            assert_equal_arrays(mine, want)
     return found
 
 
