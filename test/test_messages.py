@@ -516,9 +516,14 @@ def test_rclpy_types_import_lazily_and_cache(fake_rclpy: FakeRclpyMessages) -> N
 
 def test_rosbags_types_lookup_and_byte() -> None:
     rosbags_types = RosbagsTypes()
-    assert rosbags_types.get('std_msgs/msg/String').__msgtype__ == 'std_msgs/msg/String'
-    with pytest.raises(LookupError):
-        rosbags_types.get('my_pkg/msg/Custom')
+    cls = rosbags_types.get('std_msgs/msg/String')
+    assert cls.__msgtype__ == 'std_msgs/msg/String'
+    assert rosbags_types.get('std_msgs/msg/String') is cls  # cached
+    for _ in range(2):  # a failed lookup is not cached
+        with pytest.raises(LookupError):
+            rosbags_types.get('my_pkg/msg/Custom')
+        with pytest.raises(ValueError):
+            rosbags_types.get('std_msgs/String')
     with pytest.raises(ValueError):
         rosbags_types.byte(256)
     assert RclpyTypes().byte(7) == b'\x07'

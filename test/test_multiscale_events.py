@@ -72,7 +72,7 @@ class Normal:
     """
     ``rng.multivariate_normal(zeros, cov)`` for one ``cov``: the same draws, the factor once.
 
-    numpy's Generator (method 'svd') factors and checks ``cov`` on every call (~60 us,
+    numpy's Generator (method 'svd') factors and checks ``cov`` on every call (~0.1 ms,
     most of these tests' data); here the factor is formed once as it forms it, and
     a draw is ``standard_normal(n) @ factor + 0``: the same bits
     (:func:`test_normal_draws_are_multivariate_normals`).
