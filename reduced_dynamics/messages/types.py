@@ -52,9 +52,22 @@ def split_msgtype(msgtype: str) -> tuple[str, str, str]:
 class MessageTypes(ABC):
     """Source of message classes plus the field-encoding conventions of that source."""
 
-    @abstractmethod
+    def __init__(self) -> None:
+        """Start with no class looked up."""
+        # Classes found so far (a failed lookup is not kept): conversions create several
+        # messages per sample, and a lookup with its name check cost as much as the rest.
+        self._classes: dict[str, type] = {}
+
     def get(self, msgtype: str) -> type:
         """Return the message class for ``'pkg/msg/Name'`` (LookupError if unknown)."""
+        cls = self._classes.get(msgtype)
+        if cls is None:
+            cls = self._classes[msgtype] = self._lookup(msgtype)
+        return cls
+
+    @abstractmethod
+    def _lookup(self, msgtype: str) -> type:
+        """Find the class of ``msgtype`` in the source (LookupError if unknown)."""
 
     @abstractmethod
     def float_seq(self, values: ArrayLike) -> Any:
@@ -92,23 +105,17 @@ class RosbagsTypes(MessageTypes):
         if typestore is None:
             from rosbags.typesys import get_typestore, Stores
             typestore = get_typestore(Stores.ROS2_JAZZY)
+        super().__init__()
         self.typestore = typestore
-        # Classes already looked up: the simulator creates ~30 messages per sample, and
-        # checking the name each time cost as much as the lookup.
-        self._classes: dict[str, type] = {}
 
-    def get(self, msgtype: str) -> type:
+    def _lookup(self, msgtype: str) -> type:
         """Return the typestore class for ``msgtype``."""
-        cls = self._classes.get(msgtype)
-        if cls is not None:
-            return cls
         split_msgtype(msgtype)
         try:
-            cls = self._classes[msgtype] = self.typestore.types[msgtype]
+            return self.typestore.types[msgtype]
         except KeyError:
             msg = f'message type {msgtype!r} is not in the rosbags typestore'
             raise LookupError(msg) from None
-        return cls
 
     def float_seq(self, values: ArrayLike) -> np.ndarray:
         """Return a contiguous 1-D float64 numpy array."""
@@ -129,22 +136,16 @@ class RclpyTypes(MessageTypes):
 
     def __init__(self, importer: Callable[[str], ModuleType] = importlib.import_module) -> None:
         """Create a lazily importing class source."""
+        super().__init__()
         self._importer = importer
-        self._cache: dict[str, type] = {}
 
-    def get(self, msgtype: str) -> type:
+    def _lookup(self, msgtype: str) -> type:
         """Import ``pkg.msg`` and return its ``Name`` attribute."""
-        cls = self._cache.get(msgtype)
-        if cls is not None:
-            return cls
         pkg, sub, name = split_msgtype(msgtype)
         try:
-            module = self._importer(f'{pkg}.{sub}')
-            cls = getattr(module, name)
+            return getattr(self._importer(f'{pkg}.{sub}'), name)
         except (ImportError, AttributeError) as exc:
             raise LookupError(f'cannot import message type {msgtype!r}: {exc}') from exc
-        self._cache[msgtype] = cls
-        return cls
 
     def float_seq(self, values: ArrayLike) -> array.array:
         """Return ``array.array('d')`` (rclpy rejects numpy arrays for ``float64[]``)."""
