@@ -70,6 +70,7 @@ from reduced_dynamics.estimator.base_motion import answer_messages
 from reduced_dynamics.estimator.config import PARAMETERS as ESTIMATOR_PARAMETERS
 from reduced_dynamics.estimator.config import ParameterSpec
 from reduced_dynamics.estimator.core.warmup import compiling_notice, warm_up
+from reduced_dynamics.estimator.fixed_lag import FixedLagRows
 from reduced_dynamics.estimator.outputs import COLUMN_FIELDS, OutputChunk
 from reduced_dynamics.messages import (
     cdr, command_from_ros, DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics, DiagnosticStatusSample,
@@ -483,6 +484,8 @@ class _Shell:
         self._output_topics = OUTPUT_TOPICS
         #: (topic, field) published from a chunk's columns, and the others (_activate)
         self._column_topics: list[tuple[str, str]] = []
+        #: fixed-lag rows published from their columns (their encoder is cdr's)
+        self._fixed_lag_columns = False
         self._occasional_topics: list = []
         self._input_subscriptions: list = []
         #: (subscription, callback) of the sensor inputs, which _drain_inputs takes from
@@ -809,6 +812,8 @@ class _Shell:
                                    if t.field not in COLUMN_FIELDS]
         if not all(self._encoders[t.name] in COLUMN_ENCODERS for t in column):
             self._column_topics = []
+        self._fixed_lag_columns = all(self._encoders[t.name] is cdr.encode_wrench_stamped
+                                      for t in FIXED_LAG_TOPICS)
         self._subscribe_inputs(overridable)
         latched = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL,
@@ -1103,10 +1108,7 @@ class _Shell:
                 publishers[topic.name].publish(encoders[topic.name](sample))
         if output.fixed_lag:
             # smoothing_lag > 0: rows whose lag passed here, stamped with their own time.
-            for row in output.fixed_lag:
-                for topic in FIXED_LAG_TOPICS:
-                    publishers[topic.name].publish(
-                        encoders[topic.name](getattr(row, topic.field)))
+            self._publish_fixed_lag(output.fixed_lag)
         for event in output.events or ():
             publishers[EVENTS_TOPIC.name].publish(encoders[EVENTS_TOPIC.name](event))
         job = output.prediction_job
@@ -1144,15 +1146,34 @@ class _Shell:
                 sample = fields.get(topic.field)
                 if sample is not None:
                     publishers[topic.name].publish(encoders[topic.name](sample))
-            for row in (chunk.fixed_lag.get(k) if chunk.fixed_lag else None) or ():
-                for topic in FIXED_LAG_TOPICS:
-                    publishers[topic.name].publish(
-                        encoders[topic.name](getattr(row, topic.field)))
+            lagged = chunk.fixed_lag.get(k) if chunk.fixed_lag else None
+            if lagged:
+                self._publish_fixed_lag(lagged)
             for event in chunk.row_events(k) or ():
                 publishers[EVENTS_TOPIC.name].publish(encoders[EVENTS_TOPIC.name](event))
             job = fields.get('prediction_job')
             if job is not None and self._worker is not None:
                 self._worker.submit(job)
+
+    def _publish_fixed_lag(self, rows: Any) -> None:
+        """
+        Publish fixed-lag rows (a pass's FixedLagRows, or a list of FixedLagRow).
+
+        A pass's rows go out topic by topic from their columns (one encoding per topic,
+        the bytes of the per-message encoder); other rows message by message.
+        """
+        publishers, encoders = self._publishers_by_topic, self._encoders
+        records = rows.records() \
+            if self._fixed_lag_columns and isinstance(rows, FixedLagRows) else None
+        if records is not None:
+            for topic in FIXED_LAG_TOPICS:
+                publish = publishers[topic.name].publish
+                for data in split(records[topic.field]):
+                    publish(data)
+            return
+        for row in rows:
+            for topic in FIXED_LAG_TOPICS:
+                publishers[topic.name].publish(encoders[topic.name](getattr(row, topic.field)))
 
     def _publish_prediction(self, messages: Any) -> None:
         """Publish a finished prediction (worker thread), stamped with its start sample."""

@@ -22,7 +22,8 @@ import pytest
 
 from reduced_dynamics.bag.reader import open_bag
 from reduced_dynamics.estimator.config import EstimatorConfig
-from reduced_dynamics.estimator.fixed_lag import FixedLagSmoother, PASS_FRACTION
+from reduced_dynamics.estimator import fixed_lag
+from reduced_dynamics.estimator.fixed_lag import FixedLagRows, FixedLagSmoother, PASS_FRACTION
 from reduced_dynamics.estimator.pipeline import Estimator
 from reduced_dynamics.messages import cdr
 from reduced_dynamics.messages.convert import joint_state_from_ros, odometry_from_ros
@@ -98,6 +99,74 @@ def test_lag_zero_is_the_causal_estimate():
             cdr.encode_wrench_stamped(output.momentum)
         assert cdr.encode_wrench_stamped(row.momentum_rate) == \
             cdr.encode_wrench_stamped(output.momentum_rate)
+
+
+def test_passes_keep_columns_whose_messages_are_their_rows_bytes():
+    # A pass's rows stay columns (FixedLagRows); the node publishes each topic's messages
+    # from them at once. Every message must be the per-message encoder's bytes of the row
+    # a reader gets, and the outputs' per-sample lists the same rows.
+    estimator = Estimator(ROBOT, EstimatorConfig.from_mapping({**QUIET, 'smoothing_lag': 0.5}))
+    outputs = estimator.add_samples(SAMPLES).outputs()
+    passes = [output.fixed_lag for output in outputs if output.fixed_lag]
+    tail = estimator.flush_fixed_lag()
+    assert isinstance(tail, FixedLagRows) and len(passes) >= 8
+    assert all(isinstance(rows, list) and rows for rows in passes)
+    assert sorted(len(rows) for rows in passes)[len(passes) // 2] > 10
+    assert estimator.flush_fixed_lag() == []  # nothing left
+    records = tail.records()
+    assert {field: part.shape[0] for field, part in records.items()} == \
+        {'momentum': len(tail), 'momentum_rate': len(tail)}
+    for k, row in enumerate(tail):
+        assert row.stamp_ns == int(tail.stamps_ns[k]) and row.momentum.frame_id == 'world'
+        assert np.array_equal(row.mu, tail.mu[k]) and np.array_equal(row.rate, tail.rate[k])
+        for field, part in records.items():
+            assert part[k].tobytes() == cdr.encode_wrench_stamped(getattr(row, field))
+    assert tail[-1].stamp_ns == int(tail.stamps_ns[-1])
+    assert [row.stamp_ns for row in tail[1:3]] == tail.stamps_ns[1:3].tolist()
+    # Passes taken together (take() between two rows): one set of columns, in order.
+    halves = FixedLagRows(tail.stamps_ns[:5], tail.mu[:5], tail.rate[:5], tail.momentum[:5],
+                          tail.momentum_rate[:5], 'world'), \
+        FixedLagRows(tail.stamps_ns[5:], tail.mu[5:], tail.rate[5:], tail.momentum[5:],
+                     tail.momentum_rate[5:], 'world')
+    joined = FixedLagRows.joined(list(halves))
+    for name in ('stamps_ns', 'mu', 'rate', 'momentum', 'momentum_rate'):
+        assert np.array_equal(getattr(joined, name), getattr(tail, name))
+    # A stamp that is no ROS Time: no columns (the per-message encoder says why).
+    early = FixedLagRows(np.array([-1]), tail.mu[:1], tail.rate[:1], tail.momentum[:1],
+                         tail.momentum_rate[:1], 'world')
+    assert early.records() is None
+
+
+def test_a_pass_in_slices_gives_the_bits_of_a_whole_pass(monkeypatch):
+    # A pass runs SLICE_STEPS backward steps per appended step, each slice starting from
+    # the smoothed mean the one before left: the rows must be those of one whole pass,
+    # bit for bit, also when the buffer is compacted or grown while a pass is under way.
+    def rows(slice_steps):
+        monkeypatch.setattr(fixed_lag, 'SLICE_STEPS', slice_steps)
+        moved = []
+        allocate = FixedLagSmoother._allocate
+
+        def watched(self, capacity):
+            moved.append(getattr(self, '_pass', None) is not None)
+            allocate(self, capacity)
+
+        monkeypatch.setattr(FixedLagSmoother, '_allocate', watched)
+        estimator, _, emitted = _run(0.5)
+        return emitted, estimator.fixed_lag.passes, sum(moved)
+
+    whole, passes, _ = rows(10 ** 9)
+    sliced, sliced_passes, moved_mid_pass = rows(7)
+    assert passes == sliced_passes > 15 and moved_mid_pass >= 1
+    assert len(whole) == len(sliced) > 500
+    late = 0
+    for (out_a, a), (out_b, b) in zip(whole, sliced):
+        assert a.stamp_ns == b.stamp_ns and out_b >= out_a
+        late += out_b > out_a
+        for name in ('mu', 'rate'):
+            assert getattr(a, name).tobytes() == getattr(b, name).tobytes()
+        assert cdr.encode_wrench_stamped(a.momentum_rate) == \
+            cdr.encode_wrench_stamped(b.momentum_rate)
+    assert late > 0  # the slices did spread the passes
 
 
 @pytest.mark.parametrize('lag', [0.1, 0.5])

@@ -207,8 +207,9 @@ class OutputChunk:
             if disturbance is not None:
                 output.disturbance = trusted_sample(wrench, stamp, world, disturbance[k, :3],
                                                     disturbance[k, 3:])
-            if fixed_lag:
-                output.fixed_lag = fixed_lag.get(k)
+            if fixed_lag and k in fixed_lag:
+                # (A pass's columns as the rows they hold: a list, as documented.)
+                output.fixed_lag = list(fixed_lag[k])
             if self.events and k in self.events:
                 output.events = event_samples(self.events[k], kernel.wrenches,
                                               self.mu.shape[1])
@@ -245,8 +246,8 @@ class OutputChunk:
         if self.mu_cov is not None:
             output.momentum_covariance = self.mu_cov[0]
             output.wrench_covariance = self.w_cov[0]
-        if self.fixed_lag:
-            output.fixed_lag = self.fixed_lag.get(0)
+        if self.fixed_lag and 0 in self.fixed_lag:
+            output.fixed_lag = list(self.fixed_lag[0])
         if self.events and 0 in self.events:
             output.events = event_samples(self.events[0], kernel.wrenches, self.mu.shape[1])
         return output
