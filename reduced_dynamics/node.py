@@ -401,11 +401,28 @@ class InputStats:
         return count
 
 
+class _Ready:
+    """A worker job whose messages are ready (the fixed-lag rows' encoded columns)."""
+
+    __slots__ = ('messages',)
+
+    def __init__(self, messages: Any) -> None:
+        self.messages = messages
+
+    def run(self) -> Any:
+        return self.messages
+
+
 class _PredictionWorker:
-    """Run deferred prediction jobs off the input path and publish their messages."""
+    """
+    Run deferred jobs off the input path and publish their messages (one thread, in order).
+
+    Prediction jobs (``keep``: the oldest skipped beyond it), and the fixed-lag rows a
+    backward pass emits (a second worker that keeps every job: nothing valid is lost).
+    """
 
     def __init__(self, publish: Callable[[Any], None], on_error: Callable[[str], None],
-                 keep: int = WORKER_QUEUE_KEEP) -> None:
+                 keep: int = WORKER_QUEUE_KEEP, name: str = 'predictions') -> None:
         self._jobs: queue.Queue = queue.Queue()
         self._publish = publish
         self._on_error = on_error
@@ -417,7 +434,7 @@ class _PredictionWorker:
         # interval for a running prediction to yield it.
         if sys.getswitchinterval() > GIL_SWITCH_INTERVAL:
             sys.setswitchinterval(GIL_SWITCH_INTERVAL)
-        self._thread = threading.Thread(target=self._run, name='predictions', daemon=True)
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
     def submit(self, job: Any) -> None:
@@ -448,7 +465,7 @@ class _PredictionWorker:
                 if messages is not None:
                     self._publish(messages)
             except Exception as error:  # noqa: B902 - a failed job must not end the worker
-                self._on_error(f'prediction failed: {type(error).__name__}: {error}')
+                self._on_error(f'{self._thread.name} failed: {type(error).__name__}: {error}')
             finally:
                 self.done += 1
                 self._jobs.task_done()
@@ -493,6 +510,8 @@ class _Shell:
         self._draining = False
         self._answer_path = self._answer_result = None
         self._worker: Optional[_PredictionWorker] = None
+        #: publishes the fixed-lag rows of a backward pass (hundreds of messages at once)
+        self._lagged_worker: Optional[_PredictionWorker] = None
         self._publish_lock = threading.Lock()  # publishers vs. the worker during deactivate
         self._last_status_ns: Optional[int] = None
         self._processed_at_status = 0
@@ -562,9 +581,10 @@ class _Shell:
         return self._worker.pending if self._worker else 0
 
     def wait_for_predictions(self) -> None:
-        """Block until every prediction started so far is published."""
-        if self._worker is not None:
-            self._worker.wait_idle()
+        """Block until every prediction started so far, and every fixed-lag row, is published."""
+        for worker in (self._worker, self._lagged_worker):
+            if worker is not None:
+                worker.wait_idle()
 
     # --- parameters -------------------------------------------------------------------
     def _value(self, name: str) -> Any:
@@ -826,6 +846,8 @@ class _Shell:
         self._publish_payload()
         self._warn_unknown_overrides(qos=True)
         self._worker = _PredictionWorker(self._publish_prediction, self._on_worker_error)
+        self._lagged_worker = _PredictionWorker(self._publish_lagged, self._on_worker_error,
+                                                keep=sys.maxsize, name='fixed-lag rows')
         self._shell_active = True
         self._restart_watchdog()
 
@@ -843,6 +865,9 @@ class _Shell:
         if self._worker is not None:
             self._worker.stop()
             self._worker = None
+        if self._lagged_worker is not None:
+            self._lagged_worker.stop()  # what the last passes emitted goes out first
+            self._lagged_worker = None
         if self._payload_service is not None:
             self.destroy_service(self._payload_service)
             self.destroy_publisher(self._payload_publisher)
@@ -1159,21 +1184,36 @@ class _Shell:
         """
         Publish fixed-lag rows (a pass's FixedLagRows, or a list of FixedLagRow).
 
-        A pass's rows go out topic by topic from their columns (one encoding per topic,
-        the bytes of the per-message encoder); other rows message by message.
+        A pass's rows are encoded topic by topic from their columns (the bytes of the
+        per-message encoder) and published by the fixed-lag worker thread: a pass emits
+        a quarter second of rows at once, whose publication in the input callback was
+        its largest latency spike (docs/fixed_lag.md, "Latency in the node"). The
+        rows are already a lag late; each topic keeps its order. Other rows go out here,
+        message by message.
         """
         publishers, encoders = self._publishers_by_topic, self._encoders
         records = rows.records() \
             if self._fixed_lag_columns and isinstance(rows, FixedLagRows) else None
         if records is not None:
-            for topic in FIXED_LAG_TOPICS:
-                publish = publishers[topic.name].publish
-                for data in split(records[topic.field]):
-                    publish(data)
+            if self._lagged_worker is not None:
+                self._lagged_worker.submit(_Ready(records))
+            else:
+                self._publish_lagged(records)
             return
         for row in rows:
             for topic in FIXED_LAG_TOPICS:
                 publishers[topic.name].publish(encoders[topic.name](getattr(row, topic.field)))
+
+    def _publish_lagged(self, records: dict[str, np.ndarray]) -> None:
+        """Publish a pass's fixed-lag messages (:meth:`_publish_fixed_lag`; worker thread)."""
+        with self._publish_lock:
+            publishers = self._publishers_by_topic
+            if not publishers:
+                return  # deactivated meanwhile
+            for topic in FIXED_LAG_TOPICS:
+                publish = publishers[topic.name].publish
+                for data in split(records[topic.field]):
+                    publish(data)
 
     def _publish_prediction(self, messages: Any) -> None:
         """Publish a finished prediction (worker thread), stamped with its start sample."""
