@@ -120,6 +120,8 @@ class Settings:
     node_warmup: float = 1.0
     #: window of each rate of the sustained-rate sweep of section node [s]
     node_sweep_seconds: float = 2.0
+    #: section node, in-process callbacks: the timed window after 2.1 s of input [s]
+    node_callback_seconds: float = 6.0
     #: the simulated window of section payload [s]
     payload_seconds: float = 20.0
     #: bags of section fleet and the length of each (1 kHz, simulated)
@@ -143,7 +145,8 @@ class Settings:
                    dg_steps=(0.05, 0.025), replay_seconds=3.0, memory_short_seconds=5.0,
                    memory_long_seconds=20.0, scaling_samples=200, scaling_evaluations=60,
                    planned_bag_seconds=20.0, node_seconds=2.0, step_test_samples=2200,
-                   node_warmup=1.0, node_sweep_seconds=1.0, payload_seconds=6.0,
+                   node_warmup=1.0, node_sweep_seconds=1.0, node_callback_seconds=2.0,
+                   payload_seconds=6.0,
                    fleet_bag_seconds=1.0, soak_seconds=30.0, soak_retained_warmup=5000,
                    soak_retained_samples=10_000, soak_short_bag_seconds=20.0,
                    soak_bag_seconds=60.0, quick=True)
@@ -1480,9 +1483,51 @@ def bench_node(report: Report, settings: Settings, workdir: str,
                 f'<= {P99_TARGET_MS:g} ms' if targeted else '',
                 (lambda _r, met=met: met) if targeted else None,
                 note='that base sample sent -> ~/momentum received: what the node adds'))
+    bench_node_callbacks(report, settings, env, details)
     if sweep:
         bench_node_sweep(report, settings, workdir, env, sweep, details)
     report.details['node'] = details
+
+
+#: The in-process callback rows: the node at its default smoothing_lag, and without it.
+CALLBACK_LAGS = (0.5, 0.0)
+
+
+def node_callback_times(env: dict, seconds: float, smoothing_lag: float) -> list:
+    """Return the node's odometry callback durations [s] (node_bench ``callbacks``)."""
+    done = subprocess.run(
+        [sys.executable, '-m', 'reduced_dynamics.node_bench', 'callbacks', '--seconds',
+         str(seconds), '--warmup', '2.1', '--smoothing-lag', str(smoothing_lag)],
+        env=env, check=True, capture_output=True, text=True)
+    return json.loads(done.stdout.strip().splitlines()[-1])['odometry_callback_s']
+
+
+def bench_node_callbacks(report: Report, settings: Settings, env: dict,
+                         details: dict) -> None:
+    """
+    The node's odometry callbacks in-process (1 kHz joints + 200 Hz odometry, real-time pace).
+
+    Each odometry sample releases the rows that waited for it: its callback is what the
+    node adds after the bracketing base sample, without DDS. At the default
+    smoothing_lag and without it (the baseline), alternating processes, ``repeats`` each.
+    """
+    times: dict[float, list] = {lag: [] for lag in CALLBACK_LAGS}
+    for _ in range(settings.repeats):
+        for lag in CALLBACK_LAGS:
+            times[lag].append(1e3 * np.asarray(node_callback_times(
+                env, settings.node_callback_seconds, lag)))
+    details['callbacks_ms'] = {str(lag): [t.tolist() for t in runs] for lag, runs in times.items()}
+    lagged, plain = times[CALLBACK_LAGS[0]], times[CALLBACK_LAGS[1]]
+    for name, q in (('p50', 50), ('p99', 99)):
+        values = [float(np.percentile(t, q)) for t in lagged]
+        base = [float(np.percentile(t, q)) for t in plain]
+        report.add(make_figure(
+            'node', f'in-process, joints 1 kHz + odom 200 Hz: odometry callback {name}', 'ms',
+            values, 'the same, smoothing_lag 0', base, [v / b for v, b in zip(values, base)],
+            note=f'the node in one process (node_bench callbacks), smoothing_lag '
+                 f'{CALLBACK_LAGS[0]:g} (default); {settings.node_callback_seconds:g} s after '
+                 '2.1 s of input: the rows an odometry sample releases, processed and '
+                 'published (what the node adds after the bracketing base sample, no DDS)'))
 
 
 def bench_node_sweep(report: Report, settings: Settings, workdir: str, env: dict,

@@ -27,7 +27,12 @@ The ROS 2 processes of ``reduced-dynamics bench --sections node`` (real DDS).
   message, the stamp and the receive time;
 * ``soak-publish`` and ``soak-probe``: the same for ``--sections soak``, one
   long window to the node alone; the probe keeps its records in a growing
-  int64 array (16 B an output) and writes them as ``.npy``.
+  int64 array (16 B an output) and writes them as ``.npy``;
+* ``callbacks``: the node in this process, without DDS in between: the publisher's
+  messages (serialised) handed to its input callbacks at their real-time pace, each
+  callback timed; prints the odometry callbacks' durations as JSON. An odometry sample
+  releases the rows waiting for it, so its callback is the latency the node adds after
+  the bracketing base sample, without the transport's share.
 
 The orchestration (processes, statistics) is ROS-free, in
 :func:`reduced_dynamics.bench.bench_node`. Besides the node shell this is the
@@ -374,6 +379,49 @@ def soak_publish(args: argparse.Namespace) -> int:
     return 0
 
 
+def callbacks(args: argparse.Namespace) -> int:
+    """Time the node's odometry callbacks in-process (see the module docstring)."""
+    rclpy = _rclpy()
+    from rclpy.serialization import serialize_message
+    from reduced_dynamics.node import ReducedDynamicsNode
+    rclpy.init(args=['--ros-args', '-p', 'prediction_rate:=0.0', '-p',
+                     f'smoothing_lag:={args.smoothing_lag}'])
+    node = ReducedDynamicsNode()
+    try:
+        inputs = _Inputs(node._estimator.robot)
+        joint_ns = int(round(1e9 / args.joint_rate))
+        every = max(1, int(round(args.joint_rate / args.base_rate)))
+        count = int(round((args.warmup + args.seconds) * args.joint_rate))
+        first = int(round(args.warmup * args.joint_rate))
+        stamp0 = time.time_ns()
+        clock = time.perf_counter
+        start = clock()
+        durations = []
+        for k in range(count):
+            # Real-time pace: the node idles between messages, as over DDS (its worker
+            # threads run then), and sleeps, not spins, while it waits.
+            wait = start + k * joint_ns * 1e-9 - clock()
+            if wait > 0.0:
+                time.sleep(wait)
+            stamp = stamp0 + k * joint_ns
+            data = serialize_message(inputs.joint_state(stamp, k * joint_ns * 1e-9))
+            node._on_joint_state(data, {'received_timestamp': stamp})
+            if k % every == 0:
+                # Odometry 0.3 ms after its joint state, as the publisher role sends it.
+                data = serialize_message(inputs.odometry(stamp + 300_000,
+                                                         k * joint_ns * 1e-9 + 3e-4))
+                began = clock()
+                node._on_odometry(data, {'received_timestamp': stamp + 300_000})
+                if k >= first:
+                    durations.append(clock() - began)
+        node.wait_for_predictions()
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    json.dump({'odometry_callback_s': durations}, sys.stdout)
+    return 0
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run one role (see the module docstring)."""
     parser = argparse.ArgumentParser(prog='python -m reduced_dynamics.node_bench')
@@ -406,6 +454,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument('--base-rate', type=float, default=200.0)
     p.add_argument('--discovery-timeout', type=float, default=60.0)
     p.set_defaults(func=soak_publish)
+    p = roles.add_parser('callbacks')
+    p.add_argument('--seconds', type=float, default=4.0)
+    p.add_argument('--warmup', type=float, default=2.0)
+    p.add_argument('--joint-rate', type=float, default=1000.0)
+    p.add_argument('--base-rate', type=float, default=200.0)
+    p.add_argument('--smoothing-lag', type=float, default=0.5)
+    p.set_defaults(func=callbacks)
     args = parser.parse_args(argv)
     return args.func(args)
 

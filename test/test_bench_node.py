@@ -68,7 +68,7 @@ def test_node_section_over_real_dds(tmp_path):
     # One configuration, one short window each for the relay and the node: the structure
     # and that messages flowed through both (no figure is asserted: machines are noisy).
     settings = bench.Settings(repeats=1, node_seconds=0.5, node_warmup=1.0,
-                              node_sweep_seconds=0.5, quick=True)
+                              node_sweep_seconds=0.5, node_callback_seconds=0.5, quick=True)
     report = bench.Report(bench.machine_info(), {})
     bench.bench_node(report, settings, str(tmp_path),
                      rates=(('joints 200 Hz + odom 100 Hz', 200.0, 100.0),), sweep=(50.0,))
@@ -77,7 +77,16 @@ def test_node_section_over_real_dds(tmp_path):
                      ('joint states delivered/s', 'drops', 'latency p50', 'latency p99',
                       'wait for the bracketing base sample, p99',
                       'latency p99 after the bracketing base sample')] + \
-        ['sustained joint-state rate without drops (odom 200 Hz)']
+        ['in-process, joints 1 kHz + odom 200 Hz: odometry callback p50',
+         'in-process, joints 1 kHz + odom 200 Hz: odometry callback p99',
+         'sustained joint-state rate without drops (odom 200 Hz)']
+    # The in-process callbacks: every odometry sample of the 0.5 s window (200 Hz) timed,
+    # at the default smoothing_lag and without it.
+    callbacks = report.details['node']['callbacks_ms']
+    assert set(callbacks) == {'0.5', '0.0'}
+    for runs in callbacks.values():
+        (times,) = runs
+        assert 95 <= len(times) <= 101 and all(t > 0.0 for t in times)
     sweep = report.details['node']['sweep_drops']
     assert set(sweep) == {'relay', 'node'} and all(list(d) == ['50.0'] for d in sweep.values())
     assert report.figures[-1].median in (0.0, 50.0)
@@ -112,6 +121,9 @@ def test_node_rows_carry_the_issue_19_targets(monkeypatch):
                             'base_stamps': [s + 500_000 for s in stamps]})
         return out, records
     monkeypatch.setattr(bench, 'run_node_phases', phases)
+    # The in-process callbacks: 4 ms once in 50 at the default lag, 2 ms otherwise.
+    monkeypatch.setattr(bench, 'node_callback_times', lambda env, seconds, lag: (
+        [0.002] * 49 + [0.004]) * 4 if lag else [0.002] * 200)
     report = bench.Report(bench.machine_info(), {})
     bench.bench_node(report, bench.Settings(repeats=1, quick=True), '/nonexistent')
     figures = {f.name: f for f in report.figures}
@@ -123,6 +135,11 @@ def test_node_rows_carry_the_issue_19_targets(monkeypatch):
     assert math.isclose(after.median, 2.5)  # 3 ms after the joint state, 2.5 after its base
     assert math.isclose(figures['joints 1 kHz + odom 200 Hz: wait for the bracketing base '
                                 'sample, p99'].median, 0.5)
+    callback = figures['in-process, joints 1 kHz + odom 200 Hz: odometry callback p99']
+    assert math.isclose(callback.median, 4.0) and math.isclose(callback.ratio, 2.0)
+    assert callback.target == '' and callback.baseline == 'the same, smoothing_lag 0'
+    assert math.isclose(figures['in-process, joints 1 kHz + odom 200 Hz: odometry callback '
+                                'p50'].median, 2.0)
     sustained = figures['sustained joint-state rate without drops (odom 200 Hz)']
     assert sustained.median == 2000.0 and sustained.baseline_median == 5000.0
     assert sustained.target == '>= 5000 Hz' and sustained.met is False
