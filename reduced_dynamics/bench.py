@@ -1505,7 +1505,7 @@ def node_callback_times(env: dict, seconds: float, smoothing_lag: float) -> list
 def bench_node_callbacks(report: Report, settings: Settings, env: dict,
                          details: dict) -> None:
     """
-    The node's odometry callbacks in-process (1 kHz joints + 200 Hz odometry, real-time pace).
+    Time the node's odometry callbacks in-process (1 kHz joints + 200 Hz odometry, real pace).
 
     Each odometry sample releases the rows that waited for it: its callback is what the
     node adds after the bracketing base sample, without DDS. At the default
