@@ -32,9 +32,9 @@ filter step (mean only, the gains cached). A pass longer than ``SLICE_STEPS`` is
 spread over the next filter steps, ``SLICE_STEPS`` backward steps each (the same
 arithmetic: the same bits), and its rows go out when it is done: a live estimator
 (the node) then pays no pass at once in one input callback. Its rows are kept
-as columns (:class:`FixedLagRows`), a row object only when read. Memory is the steps of that window
-(one d x d gain, two poses and two states a step; the buffer drops every step
-before the oldest waiting row). A restart step (no transition) makes the past
+as columns (:class:`FixedLagRows`), a row object only when read. Memory is the
+steps of that window (one d x d gain, two poses and two states a step; the buffer
+drops every step before the oldest waiting row). A restart step (no transition) makes the past
 independent of what follows: everything waiting is emitted at once. At lag 0
 each row is emitted at its own step (the causal estimate); with a lag beyond
 the run, :meth:`FixedLagSmoother.flush` at the end gives the full smoother.
@@ -62,7 +62,8 @@ INITIAL_CAPACITY = 256
 #: Backward steps a pass runs per filter step appended: a pass over more is spread over
 #: the next steps (the same arithmetic, so the same bits), and its rows go out when it
 #: reaches them. At 1 kHz and a 0.5 s lag a pass is ~750 steps (~1.3 ms at once, the
-#: node's largest latency spike after its rows' publication; docs/fixed_lag.md, "Cost").
+#: node's largest latency spike after its rows' publication; docs/fixed_lag.md,
+#: "Latency in the node").
 SLICE_STEPS = 32
 
 #: (smoothed pose 4 x 4, x, command held or None) -> the momentum rate (n,)
@@ -85,7 +86,8 @@ class FixedLagRows(Sequence):
 
     A pass emits a quarter second of rows at once (250 at 1 kHz, lag 0.5 s): built
     row by row as objects and encoded message by message they took ~5 ms of the node's
-    input callback, the largest spike in its latency (docs/fixed_lag.md, "Cost").
+    input callback, the largest spike in its latency (docs/fixed_lag.md, "Latency in
+    the node").
     Here a pass keeps its columns; the node encodes each topic's messages at once
     (:meth:`records`, the bytes of ``cdr.encode_wrench_stamped``), and a reader of the
     rows (replay, the tests) gets each row with the values and arrays it had before.
