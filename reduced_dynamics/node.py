@@ -1185,34 +1185,33 @@ class _Shell:
         Publish fixed-lag rows (a pass's FixedLagRows, or a list of FixedLagRow).
 
         A pass's rows are encoded topic by topic from their columns (the bytes of the
-        per-message encoder) and published by the fixed-lag worker thread: a pass emits
-        a quarter second of rows at once, whose publication in the input callback was
-        its largest latency spike (docs/fixed_lag.md, "Latency in the node"). The
-        rows are already a lag late; each topic keeps its order. Other rows go out here,
-        message by message.
+        per-message encoder; other rows message by message) and published by the
+        fixed-lag worker thread: a pass emits a quarter second of rows at once, whose
+        publication in the input callback was its largest latency spike
+        (docs/fixed_lag.md, "Latency in the node"). The rows are already a lag late;
+        every row goes through the one worker, so each topic keeps its order.
         """
-        publishers, encoders = self._publishers_by_topic, self._encoders
         records = rows.records() \
             if self._fixed_lag_columns and isinstance(rows, FixedLagRows) else None
-        if records is not None:
-            if self._lagged_worker is not None:
-                self._lagged_worker.submit(_Ready(records))
-            else:
-                self._publish_lagged(records)
-            return
-        for row in rows:
-            for topic in FIXED_LAG_TOPICS:
-                publishers[topic.name].publish(encoders[topic.name](getattr(row, topic.field)))
+        if records is None:
+            encoders = self._encoders
+            records = {topic.field: [encoders[topic.name](getattr(row, topic.field))
+                                     for row in rows] for topic in FIXED_LAG_TOPICS}
+        if self._lagged_worker is not None:
+            self._lagged_worker.submit(_Ready(records))
+        else:
+            self._publish_lagged(records)
 
-    def _publish_lagged(self, records: dict[str, np.ndarray]) -> None:
-        """Publish a pass's fixed-lag messages (:meth:`_publish_fixed_lag`; worker thread)."""
+    def _publish_lagged(self, records: dict[str, Any]) -> None:
+        """Publish fixed-lag messages, per topic field (K, size) uint8 rows or bytes (worker)."""
         with self._publish_lock:
             publishers = self._publishers_by_topic
             if not publishers:
                 return  # deactivated meanwhile
             for topic in FIXED_LAG_TOPICS:
                 publish = publishers[topic.name].publish
-                for data in split(records[topic.field]):
+                messages = records[topic.field]
+                for data in split(messages) if isinstance(messages, np.ndarray) else messages:
                     publish(data)
 
     def _publish_prediction(self, messages: Any) -> None:

@@ -307,6 +307,35 @@ def test_node_publishes_what_replay_fixed_lag_writes(tmp_path):
             assert mine == replayed, topic.name
 
 
+def test_node_publishes_columns_and_rows_through_its_worker_in_order():
+    # A pass's columns and a list of rows (the per-output path) go through the one
+    # fixed-lag worker: each topic gets the per-message encoder's bytes, in order.
+    try:
+        from ros_harness import real_ros, Ros
+    except ImportError:  # test/ imported as a package
+        from test.ros_harness import real_ros, Ros
+    from reduced_dynamics.node import ReducedDynamicsNode
+    from rclpy.parameter import Parameter
+    k = np.arange(6, dtype=float)[:, None]
+    rows = FixedLagRows(np.arange(6, dtype=np.int64) * 10 ** 6 + NS, np.tile(k, 6),
+                        -np.tile(k, 6), np.tile(k, 6) * 0.5, np.tile(k, 6) * -0.25, 'world')
+    with real_ros() as ros:
+        node = ReducedDynamicsNode(parameter_overrides=[
+            Parameter('urdf_path', value=str(paper_robot_urdf()))])
+        Ros.record_logs(node)
+        try:
+            node._publish_fixed_lag(FixedLagRows(*(getattr(rows, name)[:3] for name in (
+                'stamps_ns', 'mu', 'rate', 'momentum', 'momentum_rate')), 'world'))
+            node._publish_fixed_lag(rows[3:])  # a list of FixedLagRow, after the columns
+            node.wait_for_predictions()
+            published = {t.field: ros.published_raw(node.resolve_topic_name('~/' + t.name))
+                         for t in FIXED_LAG_TOPICS}
+        finally:
+            node.destroy_node()
+    for field, messages in published.items():
+        assert messages == [cdr.encode_wrench_stamped(getattr(row, field)) for row in rows]
+
+
 def test_changing_the_lag_at_run_time_starts_afresh_and_zero_stops_recording():
     estimator, outputs, emitted = _run(0.2)
     assert estimator.filter.record and estimator.filter.steps is estimator.fixed_lag
