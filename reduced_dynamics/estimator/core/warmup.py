@@ -82,6 +82,19 @@ def _warm_backward_pass(group: BaseGroup, flt: 'MomentumFilter', command: bool) 
         files.close()
 
 
+def _warm_fixed_lag(group: BaseGroup, flt: 'MomentumFilter', command: bool) -> None:
+    """Feed ``flt``'s steps to a fixed-lag smoother with a lag shorter than them (passes)."""
+    from reduced_dynamics.estimator.fixed_lag import FixedLagSmoother
+
+    def wrenches(covectors: np.ndarray) -> np.ndarray:
+        return covectors @ group.algebra_basis.T
+
+    lagged = FixedLagSmoother(group, 0.005, flt.dim, command, wrenches, 'world')
+    for step in flt.steps:
+        lagged.append(step)
+    lagged.flush()
+
+
 def warm_up() -> None:
     """Run each kernel on a tiny problem: SE(3) and a subgroup, poses and twists, a command."""
     from reduced_dynamics.estimator.filter import MomentumFilter
@@ -102,6 +115,10 @@ def warm_up() -> None:
         flt.step(45_000_000, lin, None, None, held)
         flt.wrench_significance()
         _warm_backward_pass(group, flt, command)
+        # The node's fixed-lag smoothing (its default smoothing_lag), and the twist a
+        # pose measurement's stamp noise averages (the filter's Python path).
+        _warm_fixed_lag(group, flt, command)
+        flt.twist(pin.SE3.Identity(), flt.x[:n], lin)
         flt._transition(pin.SE3.Identity(), flt.x, lin, 0.01,
                         np.zeros(n) if command else None)
         # The paths a gate reset and a detected step take.
@@ -129,6 +146,7 @@ def warm_up() -> None:
             test.update(h, np.eye(m), 0.1 * h.T, np.full(m, 1e-3))
     # The block test's kernels (core/blocks.py): measured momenta with and without the
     # centre of mass, every window covered.
+    from reduced_dynamics.estimator.block_pulse import locate
     from reduced_dynamics.estimator.multiscale import MomentumBlocks
     for n, d in ((6, 3), (3, 2), (3, 0)):
         blocks = MomentumBlocks(n, np.array([0.02, 0.04]))
@@ -139,6 +157,8 @@ def warm_up() -> None:
         blocks.update(15 * 10_000_000, None)
         blocks.update(15 * 10_000_000, 0)
         blocks.mean(0, 15 * 10_000_000)
+        # A detection's pulse fit (block_pulse.locate: its ramps and normal equations).
+        locate(blocks, 15 * 10_000_000, 0, None)
     # The multi-scale test's banks (core/bank_step.py): through its update, without a
     # measured twist (bank_step.update) and with one per update, centre of mass
     # included (bank_step.update_with_sample from the third on).
