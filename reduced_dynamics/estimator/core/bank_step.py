@@ -169,9 +169,12 @@ def update_with_sample(raw: np.ndarray, sample_mu: np.ndarray, sample_cov: np.nd
     except Exception:  # noqa: B902 numba catches no narrower class (a LinAlgError here)
         added = False
     block_end = k + 1 if added else k
+    # The blocks are active (True), as a runtime value: a literal True would compile
+    # update a second time, specialised on it (numba types a constant argument as a literal).
+    active = block_end >= 0
     best, value, block_best = update(
         stamps, mu_ring, cov_ring, start, end, lags, stamp_ns, floor_ns, has_floor, mu, cov,
-        rows, statistics, above, inflation, scratch, median, rate, learn, True,
+        rows, statistics, above, inflation, scratch, median, rate, learn, active,
         blocks_ready, info, score, s0, s1, s2, y0, t1, counts, common, block_stamps,
         block_end, block_lags, first, mass, linear, block_statistics, grid)
     return added, best, value, block_best
@@ -214,10 +217,12 @@ def update_with_twist(ad_inverse: np.ndarray, locked: np.ndarray, twist: np.ndar
     sample_mu, white, sample_common, centre, position_cov, _ = measured_momentum_se3(
         ad_inverse, locked, twist, connection_qd, twist_cov, joint_cov, pose_cov, structure,
         com_locked, rotation, translation, com_pose_cov)
+    # A position is present (True), as a runtime value (see update_with_sample's call).
+    with_positions = centre.shape[0] > 0
     result = update_with_sample(
         raw, sample_mu, white, last_mu, last_cov, divisor, excess, position_cov,
-        sample_common, sample_stamp, k, t, centre, True, stamps, mu_ring, cov_ring, start,
-        end, lags, stamp_ns, floor_ns, has_floor, mu, cov, rows, statistics, above,
+        sample_common, sample_stamp, k, t, centre, with_positions, stamps, mu_ring, cov_ring,
+        start, end, lags, stamp_ns, floor_ns, has_floor, mu, cov, rows, statistics, above,
         inflation, scratch, median, rate, learn, blocks_ready, info, score, s0, s1, s2, y0,
         t1, counts, common, block_stamps, block_lags, first, mass, linear, block_statistics,
         grid)

@@ -210,8 +210,9 @@ def backward_step(g_k: np.ndarray, x_k: np.ndarray, p_k: np.ndarray, transition:
                   pinv: np.ndarray, whole: bool) -> tuple:
     """Return :func:`step`'s smoothed (pose, x, P) as new arrays (the reference's signature)."""
     g, x, p = g_s.copy(), x_s.copy(), p_s.copy()
-    step(g_k, x_k, p_k, transition, pose_pred, x_pred, p_pred, g, x, p, basis, pinv, whole,
-         workspace(p_k.shape[0]))
+    # (Layout 'A', as backward_block calls step: one compiled step.)
+    step(g_k[::1], x_k[::1], p_k[::1], transition[::1], pose_pred[::1], x_pred[::1],
+         p_pred[::1], g, x, p, basis, pinv, whole, workspace(p_k.shape[0]))
     return g, x, p
 
 
@@ -243,11 +244,15 @@ def backward_block(restart: np.ndarray, transitions: np.ndarray, pose_pred: np.n
             x_s[:] = x[k]
             p_s[:, :] = p[k]
         elif last:
-            step(pose[k], x[k], p[k], after_transitions[0], after_pose_pred[0], after_x_pred[0],
-                 after_p_pred[0], g_s, x_s, p_s, basis, pinv, whole, work)
+            # ([::1]: every step call of any block sees layout 'A', one compiled step;
+            # the record fields of a block of several steps are strided, of one step not.)
+            step(pose[k][::1], x[k][::1], p[k][::1], after_transitions[0][::1],
+                 after_pose_pred[0][::1], after_x_pred[0][::1], after_p_pred[0][::1], g_s, x_s,
+                 p_s, basis, pinv, whole, work)
         else:
-            step(pose[k], x[k], p[k], transitions[k + 1], pose_pred[k + 1], x_pred[k + 1],
-                 p_pred[k + 1], g_s, x_s, p_s, basis, pinv, whole, work)
+            step(pose[k][::1], x[k][::1], p[k][::1], transitions[k + 1][::1],
+                 pose_pred[k + 1][::1], x_pred[k + 1][::1], p_pred[k + 1][::1], g_s, x_s, p_s,
+                 basis, pinv, whole, work)
         pose_out[k] = g_s
         x_out[k] = x_s
         p_out[k] = p_s
