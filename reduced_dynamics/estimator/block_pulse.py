@@ -100,8 +100,10 @@ def locate(bank: Any, stamp_ns: int, window: int, floor_ns: Optional[int],
     sums = position_rows(bank, index, previous, times, starts, ends, block, rhs_block)
     normal, rhs = work(bank, (len(starts), size, size), (len(starts), size))
     empty = np.zeros((0, 0))
+    # (The sums contiguous, as the empty arrays are: one compiled pulse_normals.)
     blocks.pulse_normals(block, rhs_block, cross, square, score_j,
-                         *(sums if sums is not None else (empty,) * 4), bank.linear,
+                         *(tuple(map(np.ascontiguousarray, sums)) if sums is not None
+                           else (empty,) * 4), bank.linear,
                          bank.mass, bank.mass ** 2, sums is not None, normal, rhs)
     # The GLR of J with (mu0, c0) a nuisance: J^T S J, S the Schur complement;
     # the nuisance block, the same in every fit, is inverted once (numpy's inv per

@@ -52,13 +52,6 @@ def _shift(array: np.ndarray, expired: int, count: int) -> None:
 
 
 @njit(cache=True)
-def _part(state: np.ndarray, ints: np.ndarray, index: int, size: int) -> np.ndarray:
-    """Return the float buffer's array ``index`` (FLOAT_ARRAYS' order) as 1-d, ``size`` long."""
-    start = ints[OFFSETS + index]
-    return state[start:start + size]
-
-
-@njit(cache=True)
 def test_views(state: np.ndarray, ints: np.ndarray) -> tuple:
     """
     Return the step test's arrays as views of its buffers (step_test.state_shapes).
@@ -68,22 +61,25 @@ def test_views(state: np.ndarray, ints: np.ndarray) -> tuple:
     """
     n, dim, cap = ints[SIZE_N], ints[SIZE_DIM], ints[SIZE_CAPACITY]
     slots, top = POSE_STEP_HYPOTHESES, 2 * n
-    return (_part(state, ints, 0, 7), ints[ONSETS:ONSETS + cap],
-            _part(state, ints, 1, cap * dim * n).reshape((cap, dim, n)),
-            _part(state, ints, 2, cap * n).reshape((cap, n)),
-            _part(state, ints, 3, cap * n * n).reshape((cap, n, n)),
-            _part(state, ints, 4, cap * n * n).reshape((cap, n, n)),
-            _part(state, ints, 5, cap * n).reshape((cap, n)),
-            _part(state, ints, 6, dim * dim).reshape((dim, dim)),
-            _part(state, ints, 7, dim * dim).reshape((dim, dim)),
-            _part(state, ints, 8, dim),
-            _part(state, ints, 9, dim * n).reshape((dim, n)),
-            _part(state, ints, 10, dim * dim).reshape((dim, dim)),
-            _part(state, ints, 11, slots * dim * dim).reshape((slots, dim, dim)),
-            _part(state, ints, 12, slots * top * dim).reshape((slots, top, dim)),
-            _part(state, ints, 13, slots * top * top).reshape((slots, top, top)),
-            _part(state, ints, 14, slots * dim * top).reshape((slots, dim, top)),
-            _part(state, ints, 15, slots * top).reshape((slots, top)),
+    # The float buffer's arrays (FLOAT_ARRAYS' order) start at at[i]. (Sliced here: a
+    # helper taking i would compile once per literal i.)
+    at = ints[OFFSETS:ONSETS]
+    return (state[at[0]:at[0] + 7], ints[ONSETS:ONSETS + cap],
+            state[at[1]:at[1] + cap * dim * n].reshape((cap, dim, n)),
+            state[at[2]:at[2] + cap * n].reshape((cap, n)),
+            state[at[3]:at[3] + cap * n * n].reshape((cap, n, n)),
+            state[at[4]:at[4] + cap * n * n].reshape((cap, n, n)),
+            state[at[5]:at[5] + cap * n].reshape((cap, n)),
+            state[at[6]:at[6] + dim * dim].reshape((dim, dim)),
+            state[at[7]:at[7] + dim * dim].reshape((dim, dim)),
+            state[at[8]:at[8] + dim],
+            state[at[9]:at[9] + dim * n].reshape((dim, n)),
+            state[at[10]:at[10] + dim * dim].reshape((dim, dim)),
+            state[at[11]:at[11] + slots * dim * dim].reshape((slots, dim, dim)),
+            state[at[12]:at[12] + slots * top * dim].reshape((slots, top, dim)),
+            state[at[13]:at[13] + slots * top * top].reshape((slots, top, top)),
+            state[at[14]:at[14] + slots * dim * top].reshape((slots, dim, top)),
+            state[at[15]:at[15] + slots * top].reshape((slots, top)),
             ints[ONSETS + cap:ONSETS + cap + slots])
 
 

@@ -261,7 +261,9 @@ def backward_block(restart: np.ndarray, transitions: np.ndarray, pose_pred: np.n
 @njit(cache=True)
 def smoother_gain(p: np.ndarray, transition: np.ndarray, p_pred: np.ndarray) -> np.ndarray:
     """Return the gain C_k of :func:`step` (step k's P, step k + 1's Phi and P^-)."""
-    return np.ascontiguousarray(gain_t_into(p, transition, p_pred, workspace(p.shape[0])).T)
+    # (Layout 'A', as step calls gain_t_into: one compiled gain_t_into.)
+    return np.ascontiguousarray(gain_t_into(p[::1], transition[::1], p_pred[::1],
+                                            workspace(p.shape[0])).T)
 
 
 @njit(cache=True)
