@@ -40,7 +40,7 @@ if TYPE_CHECKING:  # (imported at run time by warm_up: the filter imports these 
 
 #: Seconds after which :func:`compiling_notice` says what is going on: loading the
 #: cached kernels takes 1.4-2.4 s of CPU here (more under load); compiling them
-#: after an install ~3.5 min (README).
+#: after an install ~3 min (README).
 NOTICE_AFTER_S = 10.0
 #: What it says then.
 COMPILING_NOTICE = ('the compiled filter kernels are still loading: the first run after '
