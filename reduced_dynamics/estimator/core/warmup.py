@@ -87,7 +87,8 @@ def _warm_fixed_lag(group: BaseGroup, flt: 'MomentumFilter', command: bool) -> N
     from reduced_dynamics.estimator.fixed_lag import FixedLagSmoother
 
     def wrenches(covectors: np.ndarray) -> np.ndarray:
-        return covectors @ group.algebra_basis.T
+        # BaseGroup.dual_to_wrench of each row (S+^T c).
+        return covectors @ group.algebra_pinv
 
     lagged = FixedLagSmoother(group, 0.005, flt.dim, command, wrenches, 'world')
     for step in flt.steps:
