@@ -60,9 +60,19 @@ def case_payload(name: str) -> Payload:
     return Payload.parse(ACCEPTANCE_CASES[name][0])
 
 
-@pytest.fixture(scope='module')
+#: The tests reading :func:`bags` run in one pytest-xdist worker, so the bags are simulated
+#: once: spread over two workers, CI simulated them twice (~25 s each).
+ONE_WORKER = pytest.mark.xdist_group('payload_bags')
+
+
+@pytest.fixture(scope='session')
 def bags(tmp_path_factory):
-    """20 s of arm motion per case and seed, realistic sensors, the truth holding the payload."""
+    """
+    20 s of arm motion per case and seed, realistic sensors, the truth holding the payload.
+
+    Session scope: a module-scoped fixture is torn down whenever pytest-xdist runs another
+    module's test between two of this group's.
+    """
     root = tmp_path_factory.mktemp('payload')
     out = {}
     for name in ACCEPTANCE_CASES:
@@ -122,6 +132,7 @@ def test_log_cholesky_round_trip():
     assert np.allclose(back, theta, rtol=1e-12, atol=1e-12)
 
 
+@ONE_WORKER
 @pytest.mark.parametrize('name', ['paper', 'tree', 'planar'])
 def test_identification_accuracy(bags, name):
     """Issue 22 acceptance on every seed: mass 3 %, CoM 5 mm, inertias 15 %, within 3 sigma."""
@@ -139,6 +150,7 @@ def test_identification_accuracy(bags, name):
             assert estimate.blind == []
 
 
+@ONE_WORKER
 def test_short_window_reports_weak_inertia(bags):
     """A 5 s window: the principal inertias' 3 sigma exceeds 15 %, and the report says so."""
     robot = case_robot('paper')
@@ -151,6 +163,7 @@ def test_short_window_reports_weak_inertia(bags):
     assert errors['covered'], errors
 
 
+@ONE_WORKER
 def test_identified_payload_restores_momentum_conservation(bags):
     """The mu spread and false drift wrench: wrong model >> identified <= 2 x true model."""
     robot = case_robot('paper')
@@ -221,6 +234,7 @@ def test_cli_simulate_payload_and_identify(tmp_path, capsys):
     assert main(['simulate', '-o', str(tmp_path / 'x'), '--payload', 'forearm,1,2']) == 2
 
 
+@ONE_WORKER
 def test_replay_with_payload_file(bags, tmp_path):
     """Replay with --payload: the robot gains the payload (mu spread falls to the true model's)."""
     truth = case_payload('paper')
