@@ -21,8 +21,8 @@ import struct
 
 import numpy as np
 import pytest
-from scipy.stats import chi2
 
+from reduced_dynamics.chi_square import chi2
 from reduced_dynamics.params import defaults, load_params_file
 from reduced_dynamics.replay import replay, ReplayOptions
 from reduced_dynamics.resources import config_path
@@ -241,7 +241,7 @@ def test_nees_on_the_simulated_bags_within_the_chi_square_bound(bag):
         error_mu, error_w = output.mu - true_mu, rate - w_truth[held, axes]
         nees_mu.append(error_mu @ np.linalg.solve(output.momentum_covariance, error_mu))
         nees_w.append(error_w @ np.linalg.solve(output.wrench_covariance, error_w))
-    bound = chi2.ppf(0.95, robot.n)
+    bound = chi2.isf(0.05, robot.n)  # the 95 % quantile (scipy.stats's import: 3.3 s)
     inside_mu = np.mean(np.array(nees_mu) <= bound)
     inside_w = np.mean(np.array(nees_w) <= bound)
     # Measured (inside mu, w; mean NEES mu, w): paper_realistic 0.989, 0.987 (4.4, 1.8 for
