@@ -216,13 +216,16 @@ def savitzky_golay_inner(values: np.ndarray, window: int, order: int) -> np.ndar
     if window % 2 == 0 or not 0 <= order < window:
         raise ValueError(f'the Savitzky-Golay window must be odd and longer than the '
                          f'order: window {window}, order {order}')
+    values = np.asarray(values, dtype=float)
+    if values.shape[0] <= 2 * window:
+        raise ValueError(f'{values.shape[0]} samples: the Savitzky-Golay smoothing keeps '
+                         f'none with {window} cut at each end')
     half = window // 2
     # Offsets scaled to [-1, 1] (a better conditioned fit; the value at the centre, the
     # polynomial's constant term, is the same): row 0 of pinv(A) gives it.
     offsets = np.arange(-half, half + 1, dtype=float) / max(half, 1)
     design = offsets[:, None] ** np.arange(order + 1)
     coefficients = np.linalg.pinv(design)[0]
-    values = np.asarray(values, dtype=float)
     inner = values[window - half:values.shape[0] - window + half]
     out = np.zeros((values.shape[0] - 2 * window,) + values.shape[1:])
     for k, coefficient in enumerate(coefficients):

@@ -98,6 +98,8 @@ def test_smoothing_is_scipys_savitzky_golay_inside_the_series(window, order):
 def test_a_window_the_smoothing_cannot_take_is_refused(window, order):
     with pytest.raises(ValueError, match='window must be odd and longer than the order'):
         savitzky_golay_inner(np.zeros((500, 3)), window, order)
+    with pytest.raises(ValueError, match='keeps none with 61 cut at each end'):
+        savitzky_golay_inner(np.zeros((122, 3)), 61, 3)
 
 
 def test_correlate_does_not_import_scipy_signal():
