@@ -87,8 +87,7 @@ def _warm_fixed_lag(group: BaseGroup, flt: 'MomentumFilter', command: bool) -> N
     from reduced_dynamics.estimator.fixed_lag import FixedLagSmoother
 
     def wrenches(covectors: np.ndarray) -> np.ndarray:
-        # BaseGroup.dual_to_wrench of each row (S+^T c).
-        return covectors @ group.algebra_pinv
+        return group.dual_to_wrench(covectors.T).T  # each row lifted (K x n -> K x 6)
 
     lagged = FixedLagSmoother(group, 0.005, flt.dim, command, wrenches, 'world')
     for step in flt.steps:
