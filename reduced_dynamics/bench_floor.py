@@ -25,17 +25,21 @@ step test's bank full), each as a multiple of one ``crba``:
   streaming path) and per row of a 1 000-row chunk (batched);
 * ``filter step``: ``kernels.propagate_update`` (propagation + iterated update of
   the 18-state filter, structured: docs/structured_step.md) run in a compiled loop,
-  i.e. without the interpreter, the same called from Python, and the dense step it
-  replaced (``core/reference.py``) on the same arguments, side by side, and a
-  row's whole compiled call (``step_row.filter_step``, with the step test's share)
-  called from Python as the filter calls it;
+  i.e. without the interpreter, the same called from Python, and a row's whole
+  compiled call (``step_row.filter_step``, with the step test's share) called from
+  Python as the filter calls it;
 * ``step test``: the wrench-step test's compiled kernels (``absorb`` +
   ``evaluate`` over a full bank of onsets, one call: ``absorb_evaluate``), in a
   compiled loop;
 * ``smoother step``: one step of the smoother's backward pass
-  (``core/smoother.backward_step``, structured) and the dense step it replaced
-  (``core/smoother_reference.py``), on two recorded steps, in compiled loops (a
-  smoothed replay pays it once per filter step, after the bag is read).
+  (``core/smoother.backward_step``, structured), on two recorded steps, in a
+  compiled loop (a smoothed replay pays it once per filter step, after the bag is
+  read).
+
+The dense steps these replaced (``core/reference.py``, ``core/smoother_reference.py``)
+are no longer timed here: they are plain numpy test oracles now, not compiled (their
+compilation cost every fresh CI run ~80 s of CPU); their side-by-side figures are in
+docs/structured_step.md and docs/performance.md.
 
 Their sum is the floor of a sample of the current algorithm; with the rosbags
 decode of the same two messages it bounds the replay ratio.
@@ -50,7 +54,7 @@ from numba import njit
 import numpy as np
 
 from reduced_dynamics.estimator import step_kernels
-from reduced_dynamics.estimator.core import kernels, reference, smoother, smoother_reference
+from reduced_dynamics.estimator.core import kernels, smoother
 
 #: Steady state: the step test's bank is full after 2 s of 1 kHz samples.
 WARMUP_SAMPLES = 2100
@@ -137,13 +141,6 @@ def _loop_propagate_update(count: int, args: tuple) -> int:
 
 
 @njit(cache=True)
-def _loop_reference_propagate_update(count: int, args: tuple) -> int:
-    for _ in range(count):
-        reference.propagate_update(*args)
-    return count
-
-
-@njit(cache=True)
 def _loop_absorb_evaluate(count: int, args: tuple) -> int:
     for _ in range(count):
         step_kernels.absorb_evaluate(*args)
@@ -157,23 +154,14 @@ def _loop_backward_step(count: int, args: tuple) -> int:
     return count
 
 
-@njit(cache=True)
-def _loop_reference_backward_step(count: int, args: tuple) -> int:
-    for _ in range(count):
-        smoother_reference.backward_step(*args)
-    return count
-
-
 #: A compiled ``loop(count, args)`` per timed kernel. One function each, in numba's disk
 #: cache: a loop closed over the kernel (not cacheable) was compiled in every process that
-#: ran the floor, ~34 s of CPU (measured, the five loops), twice in a CI run. Like every
+#: ran the floor, ~34 s of CPU (measured, five loops then), twice in a CI run. Like every
 #: cached kernel calling another module's, a loop keeps the kernel's code of when it was
 #: compiled: after changing a kernel, clear the cache (docs/filter_row.md).
 _LOOPS: dict = {kernels.propagate_update: _loop_propagate_update,
-                reference.propagate_update: _loop_reference_propagate_update,
                 step_kernels.absorb_evaluate: _loop_absorb_evaluate,
-                smoother.backward_step: _loop_backward_step,
-                smoother_reference.backward_step: _loop_reference_backward_step}
+                smoother.backward_step: _loop_backward_step}
 
 
 def _seconds_per_call(run: Callable[[], Any], calls: int) -> float:
@@ -196,9 +184,9 @@ def measure_floor(robot, calls: int = 2000) -> dict:
     Return seconds per sample of each floor part (see the module docstring), and crba's.
 
     Keys: ``crba``, ``mechanics_streaming``, ``mechanics_batched``,
-    ``filter_step_compiled``, ``filter_step_called``, ``filter_step_reference``,
+    ``filter_step_compiled``, ``filter_step_called``,
     ``row_step_called`` (``step_row.filter_step``, a row's one compiled call),
-    ``step_test_compiled``, ``smoother_step`` and ``smoother_step_reference``,
+    ``step_test_compiled``, ``smoother_step``,
     ``floor_streaming`` and ``floor_batched`` (the sums with the compiled parts).
     """
     from reduced_dynamics.bench import time_crba
@@ -216,7 +204,6 @@ def measure_floor(robot, calls: int = 2000) -> dict:
     out['filter_step_compiled'] = _looped(kernels.propagate_update, step, calls)
     out['filter_step_called'] = _seconds_per_call(lambda: kernels.propagate_update(*step),
                                                   calls)
-    out['filter_step_reference'] = _looped(reference.propagate_update, step, calls)
     # The whole compiled call of a row (the filter step and the step test's share) as
     # the filter makes it, dispatch included; repeated on one state (the bank's arrays
     # change in place, as in step_test_compiled).
@@ -226,7 +213,6 @@ def measure_floor(robot, calls: int = 2000) -> dict:
                                         captured['absorb_evaluate'], calls)
     backward = _smoother_args(robot)
     out['smoother_step'] = _looped(smoother.backward_step, backward, calls)
-    out['smoother_step_reference'] = _looped(smoother_reference.backward_step, backward, calls)
     compiled = out['filter_step_compiled'] + out['step_test_compiled']
     out['floor_streaming'] = out['mechanics_streaming'] + compiled
     out['floor_batched'] = out['mechanics_batched'] + compiled
@@ -242,8 +228,6 @@ FLOOR_ROWS = (
      'as above, filter_inputs over a 1 000-row chunk'),
     ('filter_step_compiled', 'update floor: compiled filter step alone',
      'kernels.propagate_update (propagation + iterated update, structured), compiled loop'),
-    ('filter_step_reference', 'update floor: the dense filter step it replaced',
-     'core/reference.py (main 6a526f4\'s algebra) on the same arguments, compiled loop'),
     ('filter_step_called', 'update floor: compiled filter step called from Python',
      'the same call with numba dispatch (arguments in, 18 results out)'),
     ('row_step_called', 'update floor: a row\'s compiled call from Python (filter + step test)',
@@ -256,9 +240,7 @@ FLOOR_ROWS = (
     ('mechanics_batched', 'update floor: mechanics per row of a 1 000-row chunk',
      'UpdateKernel.filter_inputs, 1 000 rows'),
     ('smoother_step', 'smoother backward step (structured), per filter step',
-     'core/smoother.backward_step on two recorded steps, compiled loop (not in the floor)'),
-    ('smoother_step_reference', 'smoother backward step: the dense step it replaced',
-     'core/smoother_reference.py (main 3a3a89e\'s algebra), same arguments, compiled loop'))
+     'core/smoother.backward_step on two recorded steps, compiled loop (not in the floor)'))
 
 
 def bench_floor(report: Any, robot, settings: Any) -> None:

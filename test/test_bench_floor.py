@@ -75,8 +75,8 @@ def test_the_capture_leaves_the_multi_scale_test_out(monkeypatch) -> None:
     assert calls == [] and captured['absorb_evaluate'][13] >= 10
 
 
-def test_the_smoother_rows_time_a_recorded_step_both_ways() -> None:
-    """Two recorded steps (a transition between them); the two steps agree on them."""
+def test_the_smoother_row_times_a_recorded_step_the_dense_step_agrees_on() -> None:
+    """Two recorded steps (a transition between them); the dense reference agrees on them."""
     import numpy as np
     from reduced_dynamics.estimator.core import smoother, smoother_reference
     robot = load_robot()
@@ -87,4 +87,5 @@ def test_the_smoother_rows_time_a_recorded_step_both_ways() -> None:
     for a, b in zip(got, want):
         assert np.allclose(a, b, rtol=0.0, atol=1e-9 * np.abs(b).max())
     rows = {key for key, *_ in bench_floor.FLOOR_ROWS}
-    assert {'smoother_step', 'smoother_step_reference'} <= rows
+    # The dense references are numpy test oracles, not compiled: no row times them.
+    assert 'smoother_step' in rows and not any('reference' in key for key in rows)

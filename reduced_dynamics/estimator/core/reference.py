@@ -19,12 +19,17 @@ The filter step of main 6a526f4, dense: the reference of the structured kernels.
 transition and of H (docs/estimator_core.md, "The structured step"); this module keeps
 the dense algebra they replaced (the third-order transition with dense blocks, two
 re-linearisations, LU solves, the Joseph form), operation for operation as it was, so
-that a test can pin the new kernels against it (test/test_structured_step.py) and the
-bench can time both side by side (bench_floor.py). Not used by the filter.
+that a test can pin the new kernels against it (test/test_structured_step.py). Not used
+by the filter.
+
+Plain numpy, not compiled: a test oracle runs a few hundred times, and compiling it
+(with the bench's loop over it) cost ~70 s of CPU in every fresh CI run, more than
+the tests that call it. The compiled helpers it shares with the filter (Lie group,
+measurement model) stay compiled. Its results differ from the compiled dense step's
+by rounding only, far inside the 1e-9 the structured step is held to.
 """
 
 import numpy as np
-from numba import njit
 
 from reduced_dynamics.estimator.core.kernels import (
     _GAUSS_NODES, _GAUSS_WEIGHTS, converged, covariance_health, form, pose_noise, propagate_mean,
@@ -36,7 +41,6 @@ from reduced_dynamics.estimator.core.lie import adjoint, compose, group_exp, gro
 ITERATIONS = 2
 
 
-@njit(cache=True)
 def transition(g: np.ndarray, x: np.ndarray, locked: np.ndarray, inverse_locked: np.ndarray,
                connection_qd: np.ndarray, joint_cov: np.ndarray, dt: float,
                jerk_var: np.ndarray, basis: np.ndarray, pinv: np.ndarray, whole: bool,
@@ -97,7 +101,6 @@ def transition(g: np.ndarray, x: np.ndarray, locked: np.ndarray, inverse_locked:
     return phi, q
 
 
-@njit(cache=True)
 def _chain_product(phi: np.ndarray, p: np.ndarray, dt: float) -> np.ndarray:
     """
     Return Phi P Phi^T for the 3n transition, whose lower block rows are [0 1 dt; 0 0 1].
@@ -117,7 +120,6 @@ def _chain_product(phi: np.ndarray, p: np.ndarray, dt: float) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
 def propagate(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
               inverse_locked: np.ndarray, connection_qd: np.ndarray, joint_cov: np.ndarray,
               dt: float, u: np.ndarray, commanded: bool, jerk_var: np.ndarray,
@@ -140,7 +142,6 @@ def propagate(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
     return g1, x1, symmetric(p1), phi
 
 
-@njit(cache=True)
 def gain_of(p: np.ndarray, h: np.ndarray, r: np.ndarray) -> np.ndarray:
     """Return K = P H^T S^-1 with S = H P H^T + R symmetrised."""
     ph = p @ h.T
@@ -148,7 +149,6 @@ def gain_of(p: np.ndarray, h: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.linalg.solve(s, ph.T).T.copy()
 
 
-@njit(cache=True)
 def innovation(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
                measured: np.ndarray, with_twist: bool, inverse_locked: np.ndarray,
                connection_qd: np.ndarray, joint_cov: np.ndarray, r_pose: np.ndarray,
@@ -192,7 +192,6 @@ def innovation(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
     return h, nu, r, s, solved, nis, logdet
 
 
-@njit(cache=True)
 def correct(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
             measured: np.ndarray, with_twist: bool, h: np.ndarray, nu: np.ndarray,
             r: np.ndarray, gain: np.ndarray, inverse_locked: np.ndarray,
@@ -240,7 +239,6 @@ def correct(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
     return g1, x1, symmetric(p1), h, s, gain
 
 
-@njit(cache=True)
 def update(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
            measured: np.ndarray, with_twist: bool, inverse_locked: np.ndarray,
            connection_qd: np.ndarray, joint_cov: np.ndarray, pose_var: np.ndarray,
@@ -258,7 +256,6 @@ def update(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
                         gate, basis, pinv, whole, form_rows)
 
 
-@njit(cache=True)
 def update_noise(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
                  measured: np.ndarray, with_twist: bool, inverse_locked: np.ndarray,
                  connection_qd: np.ndarray, joint_cov: np.ndarray, r_pose: np.ndarray,
@@ -283,7 +280,6 @@ def update_noise(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
     return True, nis, logdet, nu, r, g1, x1, p1, h1, s1, gain1
 
 
-@njit(cache=True)
 def propagate_update(g: np.ndarray, x: np.ndarray, p: np.ndarray, locked: np.ndarray,
                      step_inverse: np.ndarray, step_connection_qd: np.ndarray,
                      step_joint_cov: np.ndarray, dt: float, jerk_var: np.ndarray,

@@ -18,29 +18,27 @@ The smoother's backward step of main 3a3a89e, dense: the reference of core/smoot
 ``C = P Phi^T (P^-)^-1`` by an LU solve (a pseudo-inverse if P^- is exactly
 singular) and ``P^s = P + C (P^s_{k+1} - P^-) C^T`` by two dense products,
 operation for operation as it was, so that a test can pin the structured step
-against it (test/test_structured_smoother.py) and the bench can time both side by
-side (bench_floor.py). :func:`backward_block` has the signature of
-:func:`~.smoother.backward_block`. Not used by the smoother.
+against it (test/test_structured_smoother.py). :func:`backward_block` has the
+signature of :func:`~.smoother.backward_block`. Not used by the smoother.
+
+Plain numpy, not compiled (a test oracle: see core/reference.py).
 """
 
 import numpy as np
-from numba import njit
 
 from reduced_dynamics.estimator.core.kernels import symmetric
 from reduced_dynamics.estimator.core.lie import compose, group_exp, group_log, inverse
 
 
-@njit(cache=True)
 def gain(p: np.ndarray, transition: np.ndarray, p_pred: np.ndarray) -> np.ndarray:
     """Return C = P Phi^T (P^-)^-1 (a least-squares solve if P^- is singular)."""
     cross = p @ transition.T
     try:
         return np.linalg.solve(p_pred, cross.T).T.copy()
-    except Exception:  # exactly singular (numba raises a plain exception type)
+    except np.linalg.LinAlgError:  # exactly singular
         return cross @ np.linalg.pinv(p_pred)
 
 
-@njit(cache=True)
 def backward_step(g_k: np.ndarray, x_k: np.ndarray, p_k: np.ndarray, transition: np.ndarray,
                   pose_pred: np.ndarray, x_pred: np.ndarray, p_pred: np.ndarray,
                   g_s: np.ndarray, x_s: np.ndarray, p_s: np.ndarray, basis: np.ndarray,
@@ -61,7 +59,6 @@ def backward_step(g_k: np.ndarray, x_k: np.ndarray, p_k: np.ndarray, transition:
             symmetric(p_k + c @ (p_s - p_pred) @ c.T))
 
 
-@njit(cache=True)
 def backward_block(restart: np.ndarray, transitions: np.ndarray, pose_pred: np.ndarray,
                    x_pred: np.ndarray, p_pred: np.ndarray, pose: np.ndarray, x: np.ndarray,
                    p: np.ndarray, after: bool, after_restart: np.ndarray,
