@@ -48,6 +48,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Optional
 import faulthandler
+import functools
 import json
 import math
 import os
@@ -64,6 +65,9 @@ from reduced_dynamics.messages.samples import BaseStateSample, JointStateSample
 from reduced_dynamics.robot.model import load_robot
 from sim_samples import feed_stream
 
+#: One pytest-xdist worker runs this module: the clean runs (_scales, CLEAN_RUNS) it
+#: compares against are then computed once, not once per worker.
+pytestmark = pytest.mark.xdist_group('fuzz_inputs')
 DATA = os.path.join(os.path.dirname(__file__), 'data')
 NS = 1_000_000_000
 #: Samples per stream in a window (0.8 s at 200 Hz), and the windows' first samples
@@ -130,8 +134,14 @@ def _filtered(output):
             'rate': join((output.momentum_rate.force, output.momentum_rate.torque))}
 
 
-def _scales():
-    """Return the largest value of each filtered output over the clean bag."""
+@functools.lru_cache(maxsize=None)
+def _scales() -> dict:
+    """
+    Return the largest value of each filtered output over the clean bag (computed once).
+
+    At first use, not at import: computed at import it replayed the bag in every
+    pytest-xdist worker's collection, each compiling the kernels it met at the same time.
+    """
     estimator = Estimator(ROBOT, CONFIG)
     stream = [s for pair in zip(JOINTS, BASES) for s in pair]
     outputs = estimator.add_samples(stream).outputs() + estimator.flush()
@@ -140,7 +150,6 @@ def _scales():
     return {name: max(np.abs(row[name]).max() for row in rows) for name in rows[0]}
 
 
-SCALES = _scales()
 CLEAN_RUNS: dict = {}
 
 
@@ -527,7 +536,7 @@ def check(case, batched, values=True):
             elif min(since) >= TRANSIENT_S * NS:
                 for name in mine:
                     error = np.abs(mine[name] - theirs[name]).max()
-                    assert error <= RELATIVE * SCALES[name], (name, error, SCALES[name])
+                    assert error <= RELATIVE * _scales()[name], (name, error, _scales()[name])
                 transients += 1
             else:
                 continue
