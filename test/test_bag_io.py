@@ -33,6 +33,7 @@ from rosbags.typesys import get_types_from_msg, get_typestore, Stores
 import yaml
 
 from reduced_dynamics.bag import BagError, BagWriter, open_bag, QOS_LATCHED
+from reduced_dynamics.bag.playback import definition_problems
 from reduced_dynamics.messages import (
     base_state_to_odometry,
     base_state_to_pose_stamped,
@@ -65,6 +66,7 @@ from reduced_dynamics.messages import (
     wrench_to_ros,
     WrenchSample,
 )
+from reduced_dynamics.messages.typestore import jazzy_typestore
 
 T0 = 1_700_000_000 * NS_PER_S
 DT = 10_000_000  # 100 Hz
@@ -474,6 +476,40 @@ def test_custom_topic_ignored_with_fresh_typestore(tmp_path: Path) -> None:
         # The bag is self-describing, so the custom topic is readable on request too.
         values = [m.msg.values for m in bag.messages(['/custom'])]
         assert len(values) == N and list(values[3]) == [0.0, 1.0, 2.0]
+
+
+def test_readers_share_one_jazzy_store_and_a_custom_type_stays_in_its_reader(
+        full_bag: Path, tmp_path: Path) -> None:
+    """Readers, writers and RosbagsTypes share one store; a bag's own type never enters it."""
+    shared = jazzy_typestore()
+    assert RosbagsTypes().typestore is shared
+    with open_bag(full_bag) as first, open_bag(full_bag) as second:
+        assert first.typestore is second.typestore is shared
+        assert sum(1 for _ in first.messages(['/joint_states'])) == N
+        generated = shared.cache['sensor_msgs/msg/JointState']
+        assert sum(1 for _ in second.messages(['/joint_states'])) == N
+        # The second reader decoded with the first one's generated functions.
+        assert shared.cache['sensor_msgs/msg/JointState'] is generated
+    store = custom_typestore()
+    custom = store.types[CUSTOM_MSG]
+    path = tmp_path / 'custom'
+    write_full_bag(path, typestore=store, extra={'/custom': CUSTOM_MSG},
+                   extra_factory=lambda i: custom(label='x', values=np.arange(i * 1.0), count=i))
+    with open_bag(path) as bag:
+        odom = bag.typestore_for('/odom', 'nav_msgs/msg/Odometry')
+        assert odom is shared  # resolved before the bag's own type is needed
+        values = [m.msg.values for m in bag.messages(['/custom', '/odom'])
+                  if m.topic == '/custom']
+        assert len(values) == N and list(values[2]) == [0.0, 1.0]
+        # Registering made the reader's store its own, and the topics resolved before
+        # follow it: a Jazzy-defined topic is still "the reader's typestore".
+        assert bag.typestore is not shared and CUSTOM_MSG in bag.typestore.fielddefs
+        assert bag.typestore_for('/odom', 'nav_msgs/msg/Odometry') is bag.typestore
+        assert definition_problems(bag, {'/odom': 'nav_msgs/msg/Odometry',
+                                         '/custom': CUSTOM_MSG}) == {}
+    assert CUSTOM_MSG not in shared.fielddefs and CUSTOM_MSG not in shared.types
+    with BagWriter(tmp_path / 'plain', {'/odom': 'nav_msgs/msg/Odometry'}) as writer:
+        assert writer.typestore is shared
 
 
 def test_same_name_different_definition_uses_embedded_definition(tmp_path: Path) -> None:

@@ -45,6 +45,8 @@ from rosbags.typesys import (
 
 from reduced_dynamics.bag.damage import Damage, TolerantReader
 from reduced_dynamics.bag.errors import BagError, one_line
+from reduced_dynamics.messages.typestore import (is_shared, jazzy_typestore,
+                                                 private_jazzy_typestore)
 
 _LOG = logging.getLogger(__name__)
 
@@ -151,7 +153,7 @@ class BagReader:
         self._closed_damage: list[Damage] = []
         self.path = _check_path(Path(path))
         self.strict = strict
-        self.typestore = get_typestore(Stores.ROS2_JAZZY) if typestore is None else typestore
+        self.typestore = jazzy_typestore() if typestore is None else typestore
         self.skipped: dict[str, int] = {}
         self.skip_details: dict[str, str] = {}
         self._stores: dict[tuple[str, str], Any] = {}
@@ -346,6 +348,16 @@ class BagReader:
             self._embedded_stores[conn.msgtype] = store
         return store
 
+    def _registrable_store(self) -> Any:
+        """Return ``typestore``, made this reader's own first if it is the shared one."""
+        if is_shared(self.typestore):
+            shared, self.typestore = self.typestore, private_jazzy_typestore()
+            # Topics resolved before deserialize alike in either store; they follow it so
+            # that ``typestore_for`` stays ``typestore`` for every Jazzy-defined topic.
+            self._stores = {key: self.typestore if store is shared else store
+                            for key, store in self._stores.items()}
+        return self.typestore
+
     def _store_for(self, conn: Connection) -> Any:
         """Return the typestore able to deserialize ``conn`` (BagError if none)."""
         store = self._stores.get((conn.topic, conn.msgtype))
@@ -369,7 +381,8 @@ class BagReader:
                         ' typestore and the bag embeds no definition for it')
                 typs = _parse_definition(conn)
                 try:
-                    self.typestore.register(typs)
+                    store = self._registrable_store()
+                    store.register(typs)
                 except TypesysError:
                     store = self._embedded_store(conn, typs)
         except BagError:

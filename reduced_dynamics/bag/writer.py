@@ -47,9 +47,9 @@ from rosbags.interfaces import (
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionMode
 from rosbags.rosbag2.storage_mcap import McapWriter, PendingChunk
-from rosbags.typesys import get_typestore, Stores
 
 from reduced_dynamics.bag.errors import BagError, one_line
+from reduced_dynamics.messages.typestore import jazzy_typestore
 
 PathLike = Union[str, 'os.PathLike[str]']
 
@@ -273,14 +273,14 @@ class BagWriter:
         """
         Prepare a writer for ``topics`` (``{topic: 'pkg/msg/Type'}``).
 
-        ``typestore`` must know every type (default: a fresh Jazzy store);
-        register custom types in it before constructing the writer.  ``qos``
+        ``typestore`` must know every type (default: the process's shared Jazzy store,
+        which holds no custom type: pass a store of your own with them registered).  ``qos``
         overrides the offered QoS recorded per topic (see :func:`default_qos`).
         An existing ``path`` raises BagError unless ``overwrite`` is True, in
         which case only a directory holding nothing but bag files is removed.
         """
         self.path = Path(path)
-        self.typestore = get_typestore(Stores.ROS2_JAZZY) if typestore is None else typestore
+        self.typestore = jazzy_typestore() if typestore is None else typestore
         if storage not in _STORAGES:
             raise BagError(f'unknown storage {storage!r}; expected one of {sorted(_STORAGES)}')
         if version not in (8, 9):

@@ -570,8 +570,8 @@ _REFERENCE_HASHES: dict[str, str] = {}
 def _reference_hash(msgtype: str) -> str:
     """Return the RIHS01 hash of the ROS 2 Jazzy definition of ``msgtype``."""
     if not _REFERENCE_HASHES:
-        from rosbags.typesys import get_typestore, Stores
-        store = get_typestore(Stores.ROS2_JAZZY)
+        from reduced_dynamics.messages.typestore import jazzy_typestore
+        store = jazzy_typestore()
         for name in (*ENCODERS, *DECODERS):
             _REFERENCE_HASHES[name] = store.hash_rihs01(name)
     return _REFERENCE_HASHES[msgtype]

@@ -98,13 +98,13 @@ def _check_byte(value: int) -> int:
 
 
 class RosbagsTypes(MessageTypes):
-    """Classes from a rosbags typestore (default: a fresh ROS 2 Jazzy store)."""
+    """Classes from a rosbags typestore (default: the process's shared ROS 2 Jazzy store)."""
 
     def __init__(self, typestore: Optional[Any] = None) -> None:
         """Wrap ``typestore`` (a ``rosbags.typesys.store.Typestore``)."""
         if typestore is None:
-            from rosbags.typesys import get_typestore, Stores
-            typestore = get_typestore(Stores.ROS2_JAZZY)
+            from reduced_dynamics.messages.typestore import jazzy_typestore
+            typestore = jazzy_typestore()
         super().__init__()
         self.typestore = typestore
 
