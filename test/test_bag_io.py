@@ -510,6 +510,12 @@ def test_readers_share_one_jazzy_store_and_a_custom_type_stays_in_its_reader(
     assert CUSTOM_MSG not in shared.fielddefs and CUSTOM_MSG not in shared.types
     with BagWriter(tmp_path / 'plain', {'/odom': 'nav_msgs/msg/Odometry'}) as writer:
         assert writer.typestore is shared
+    # The connection records what rosbags makes from a fresh store (cached per process).
+    fresh = get_typestore(Stores.ROS2_JAZZY)
+    with RosbagsReader(tmp_path / 'plain') as plain:
+        (conn,) = plain.connections
+    assert conn.msgdef.data == fresh.generate_msgdef('nav_msgs/msg/Odometry', ros_version=2)[0]
+    assert conn.digest == fresh.hash_rihs01('nav_msgs/msg/Odometry')
 
 
 def test_same_name_different_definition_uses_embedded_definition(tmp_path: Path) -> None:

@@ -46,7 +46,7 @@ from rosbags.typesys import (
 from reduced_dynamics.bag.damage import Damage, TolerantReader
 from reduced_dynamics.bag.errors import BagError, one_line
 from reduced_dynamics.messages.typestore import (is_shared, jazzy_typestore,
-                                                 private_jazzy_typestore)
+                                                 private_jazzy_typestore, rihs01)
 
 _LOG = logging.getLogger(__name__)
 
@@ -371,7 +371,7 @@ class BagReader:
         store = self.typestore
         try:
             if known and has_def and conn.digest.startswith('RIHS01_'):
-                if self.typestore.hash_rihs01(conn.msgtype) != conn.digest:
+                if rihs01(self.typestore, conn.msgtype) != conn.digest:
                     # Same name, different definition (other distro): trust the bag.
                     store = self._embedded_store(conn, _parse_definition(conn))
             elif not known:

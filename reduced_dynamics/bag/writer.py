@@ -49,7 +49,7 @@ from rosbags.rosbag2.enums import CompressionMode
 from rosbags.rosbag2.storage_mcap import McapWriter, PendingChunk
 
 from reduced_dynamics.bag.errors import BagError, one_line
-from reduced_dynamics.messages.typestore import jazzy_typestore
+from reduced_dynamics.messages.typestore import definition, jazzy_typestore
 
 PathLike = Union[str, 'os.PathLike[str]']
 
@@ -322,8 +322,9 @@ class BagWriter:
             raise BagError(f'cannot create bag {self.path}: {one_line(exc)}') from exc
         try:
             for topic, msgtype in self.topics.items():
+                msgdef, rihs01 = definition(self.typestore, msgtype)
                 self._connections[topic] = writer.add_connection(
-                    topic, msgtype, typestore=self.typestore,
+                    topic, msgtype, msgdef=msgdef, rihs01=rihs01,
                     offered_qos_profiles=[self._qos[topic]])
         except Exception as exc:
             writer.abort()

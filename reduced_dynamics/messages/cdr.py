@@ -58,6 +58,7 @@ from reduced_dynamics.messages.samples import (
     WrenchSample,
 )
 from reduced_dynamics.messages.stamps import NS_PER_S
+from reduced_dynamics.messages.typestore import jazzy_hash, rihs01
 
 Buffer = Union[bytes, bytearray, memoryview]
 
@@ -564,19 +565,6 @@ DECODERS: dict[str, Callable[..., Any]] = {
     'geometry_msgs/msg/PoseWithCovarianceStamped': decode_pose_with_covariance_stamped,
 }
 
-_REFERENCE_HASHES: dict[str, str] = {}
-
-
-def _reference_hash(msgtype: str) -> str:
-    """Return the RIHS01 hash of the ROS 2 Jazzy definition of ``msgtype``."""
-    if not _REFERENCE_HASHES:
-        from reduced_dynamics.messages.typestore import jazzy_typestore
-        store = jazzy_typestore()
-        for name in (*ENCODERS, *DECODERS):
-            _REFERENCE_HASHES[name] = store.hash_rihs01(name)
-    return _REFERENCE_HASHES[msgtype]
-
-
 def fast_path_applies(typestore: Optional[Any], msgtype: str) -> bool:
     """
     Tell whether the fixed layouts here match ``typestore``'s ``msgtype``.
@@ -593,6 +581,6 @@ def fast_path_applies(typestore: Optional[Any], msgtype: str) -> bool:
     try:
         if getattr(typestore, 'max_sequence_length', 2**32 - 1) < 2**32 - 1:
             return False  # the store rejects long sequences the decoders would accept
-        return typestore.hash_rihs01(msgtype) == _reference_hash(msgtype)
+        return rihs01(typestore, msgtype) == jazzy_hash(msgtype)
     except Exception:  # noqa: B902 - unknown or unhashable definition: no fast path
         return False

@@ -46,6 +46,36 @@ def private_jazzy_typestore() -> Any:
     return get_typestore(Stores.ROS2_JAZZY)
 
 
+@functools.lru_cache(maxsize=None)
+def jazzy_hash(msgtype: str) -> str:
+    """Return the RIHS01 hash of ROS 2 Jazzy's ``msgtype`` (made once per process)."""
+    return jazzy_typestore().hash_rihs01(msgtype)
+
+
+@functools.lru_cache(maxsize=None)
+def _jazzy_definition_text(msgtype: str) -> str:
+    msgdef, _ = jazzy_typestore().generate_msgdef(msgtype, ros_version=2)
+    return msgdef
+
+
+def rihs01(typestore: Any, msgtype: str) -> str:
+    """Return the RIHS01 hash of ``msgtype`` in ``typestore`` (cached for the shared one)."""
+    return jazzy_hash(msgtype) if is_shared(typestore) else typestore.hash_rihs01(msgtype)
+
+
+def definition(typestore: Any, msgtype: str) -> tuple[str, str]:
+    """
+    Return ``msgtype``'s definition text and RIHS01 hash in ``typestore``.
+
+    What a bag records per connection; rosbags makes both anew at each call, so for
+    the shared store they are made once per process and type.
+    """
+    if is_shared(typestore):
+        return _jazzy_definition_text(msgtype), jazzy_hash(msgtype)
+    msgdef, _ = typestore.generate_msgdef(msgtype, ros_version=2)
+    return msgdef, typestore.hash_rihs01(msgtype)
+
+
 def is_shared(typestore: Any) -> bool:
     """Tell whether ``typestore`` is :func:`jazzy_typestore`'s shared store."""
     return jazzy_typestore.cache_info().currsize > 0 and typestore is jazzy_typestore()
