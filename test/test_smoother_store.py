@@ -158,6 +158,50 @@ print(min(before) > 0, before == [len(k.signatures) for k in kernels])
     assert fresh_process_words(code) == ['True', 'True']
 
 
+def test_blocks_of_one_step_compile_nothing_new_and_smooth_the_same() -> None:
+    """
+    Blocks of one step compile nothing after warm_up and smooth to the same bits.
+
+    A fresh process: a store whose blocks hold one step (and one output) smooths with the
+    kernels warm_up loaded, to the bits of one block of all the steps.
+    """
+    from filter_helpers import fresh_process_words
+    code = """
+import numpy as np
+from reduced_dynamics.estimator.core.warmup import warm_up
+warm_up()
+import pinocchio as pin
+from reduced_dynamics.estimator.core import smoother
+from reduced_dynamics.estimator.core.state import Linearisation, NoiseModel
+from reduced_dynamics.estimator.filter import MomentumFilter
+from reduced_dynamics.estimator.smoother import SmootherFiles, smooth_rows, StepStore
+from reduced_dynamics.geometry.lie_group import SUBGROUPS
+kernels = (smoother.backward_block, smoother.row_fields)
+before = [len(k.signatures) for k in kernels]
+group = SUBGROUPS['SE(3)']
+locked = np.diag(np.linspace(2.0, 3.0, 6))
+lin = Linearisation(locked, np.linalg.inv(locked), np.full(6, 0.01), np.eye(6) * 1e-6)
+flt = MomentumFilter(group, NoiseModel(), 1e-6, record=True)
+for k in range(9):  # odometry at every other row: blocks of 2 hold one output
+    pose = group.exp(np.full(6, 1e-3 * k)) if k % 2 == 0 else None
+    flt.step(k * 10_000_000, lin, pose, np.full(6, 1e-3) if k % 4 == 0 else None)
+rows = []
+for block in (2, None):  # 9 steps in blocks of 2: the newest block holds one
+    files = SmootherFiles()
+    store = StepStore(files, 6, flt.dim, False, block=block)
+    for step in flt.steps:
+        store.append(step)
+    smoothed = smooth_rows(group, store, files, flt._form_rows)
+    rows.append(np.concatenate(list(smoothed.blocks())))
+    smoothed.close()
+    store.close()
+    files.close()
+print(min(before) > 0, before == [len(k.signatures) for k in kernels],
+      len(flt.steps) == 9 and len(rows[0]) > 4, rows[0].tobytes() == rows[1].tobytes())
+"""
+    assert fresh_process_words(code) == ['True'] * 4
+
+
 def test_warm_up_goes_on_without_a_temporary_directory(monkeypatch) -> None:
     """No writable temporary directory (a node's read-only disk): that warm-up is skipped."""
     from reduced_dynamics.estimator.core import envelope, warmup
