@@ -1140,6 +1140,38 @@ def bench_replay(report: Report, robot, settings: Settings, workdir: str) -> Non
                            'ratio <= 1.2 (flat)', lambda r: r <= 1.2, note))
 
 
+def bench_typestore(report: Report, settings: Settings) -> None:
+    """
+    Section 3: a bag's message types in a fresh rosbags typestore, against the shared one.
+
+    The work a replay's reader and writer did per bag before stop 41 (each made its own
+    Jazzy store): rosbags' 14 generated functions per type, and the definition text and
+    hash each output connection records.
+    """
+    from reduced_dynamics.messages.typestore import (definition, jazzy_typestore,
+                                                     private_jazzy_typestore)
+    from reduced_dynamics.topics import EVENTS_TOPIC, FIXED_LAG_TOPICS, OUTPUT_TOPICS
+    outputs = {t.msgtype for t in (*OUTPUT_TOPICS, *FIXED_LAG_TOPICS, EVENTS_TOPIC)}
+    types = sorted(outputs | {'sensor_msgs/msg/JointState', 'nav_msgs/msg/Odometry'})
+
+    def cpu_ms(store: Any) -> float:
+        start = time.process_time()
+        for msgtype in types:
+            store.get_msgdef(msgtype)
+            definition(store, msgtype)
+        return 1e3 * (time.process_time() - start)
+    cpu_ms(jazzy_typestore())  # steady state: the shared store's first bag is behind it
+    fresh, shared = [], []
+    for _ in range(max(settings.repeats, 3)):
+        fresh.append(cpu_ms(private_jazzy_typestore()))
+        shared.append(cpu_ms(jazzy_typestore()))
+    report.add(make_figure('replay', "a bag's message types, shared typestore", 'ms CPU',
+                           shared, 'a fresh typestore per bag', fresh,
+                           [a / b for a, b in zip(shared, fresh)],
+                           note=f'{len(types)} types: the inputs and every output topic; '
+                                'the fixed cost per bag stop 41 removed'))
+
+
 # --------------------------------------------------------------------------- fleet
 def _fleet_seconds(jobs: list, out: str, workers: int, backend: str) -> float:
     """Run a fleet into a fresh ``out``; return its wall time (every bag must replay)."""
@@ -1630,6 +1662,7 @@ def run_bench(settings: Settings, sections: Sequence[str] = SECTIONS,
         say('replay...')
         with _workdir() as workdir:
             bench_replay(report, robot, settings, workdir)
+        bench_typestore(report, settings)
     if 'scaling' in sections:
         say('scaling...')
         bench_scaling(report, settings)

@@ -86,6 +86,9 @@ def test_bench_sections_tiny(tiny_report, tmp_path):
     assert any(n.startswith('reduced dop853') for n in names)
     assert any(n.startswith('reduced discrete_gradient') for n in names)
     assert 'replay throughput (prediction off)' in names
+    typestore = [f for f in report.figures
+                 if f.name == "a bag's message types, shared typestore"]
+    assert typestore and typestore[0].baseline_median > 0.0 and typestore[0].ratio > 0.0
     assert 'update cost exponent' in names
     assert any(n.startswith('base motion for a 10 s plan') for n in names)
     assert any(n.startswith('replay with defaults, paper_thruster') for n in names)
