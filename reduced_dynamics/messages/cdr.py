@@ -565,6 +565,7 @@ DECODERS: dict[str, Callable[..., Any]] = {
     'geometry_msgs/msg/PoseWithCovarianceStamped': decode_pose_with_covariance_stamped,
 }
 
+
 def fast_path_applies(typestore: Optional[Any], msgtype: str) -> bool:
     """
     Tell whether the fixed layouts here match ``typestore``'s ``msgtype``.
