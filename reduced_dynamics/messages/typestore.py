@@ -33,17 +33,14 @@ import functools
 from typing import Any
 
 
-@functools.lru_cache(maxsize=None)
-def jazzy_typestore() -> Any:
-    """Return the process's shared ROS 2 Jazzy typestore (do not ``register`` in it)."""
-    from rosbags.typesys import get_typestore, Stores
-    return get_typestore(Stores.ROS2_JAZZY)
-
-
 def private_jazzy_typestore() -> Any:
     """Return a new ROS 2 Jazzy typestore of the caller's own (free to ``register`` in)."""
     from rosbags.typesys import get_typestore, Stores
     return get_typestore(Stores.ROS2_JAZZY)
+
+
+#: The process's shared ROS 2 Jazzy typestore (do not ``register`` in it).
+jazzy_typestore = functools.lru_cache(maxsize=None)(private_jazzy_typestore)
 
 
 @functools.lru_cache(maxsize=None)
@@ -52,10 +49,13 @@ def jazzy_hash(msgtype: str) -> str:
     return jazzy_typestore().hash_rihs01(msgtype)
 
 
+def _definition_text(typestore: Any, msgtype: str) -> str:
+    return typestore.generate_msgdef(msgtype, ros_version=2)[0]
+
+
 @functools.lru_cache(maxsize=None)
 def _jazzy_definition_text(msgtype: str) -> str:
-    msgdef, _ = jazzy_typestore().generate_msgdef(msgtype, ros_version=2)
-    return msgdef
+    return _definition_text(jazzy_typestore(), msgtype)
 
 
 def rihs01(typestore: Any, msgtype: str) -> str:
@@ -70,10 +70,9 @@ def definition(typestore: Any, msgtype: str) -> tuple[str, str]:
     What a bag records per connection; rosbags makes both anew at each call, so for
     the shared store they are made once per process and type.
     """
-    if is_shared(typestore):
-        return _jazzy_definition_text(msgtype), jazzy_hash(msgtype)
-    msgdef, _ = typestore.generate_msgdef(msgtype, ros_version=2)
-    return msgdef, typestore.hash_rihs01(msgtype)
+    text = (_jazzy_definition_text(msgtype) if is_shared(typestore)
+            else _definition_text(typestore, msgtype))
+    return text, rihs01(typestore, msgtype)
 
 
 def is_shared(typestore: Any) -> bool:
