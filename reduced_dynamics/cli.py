@@ -114,6 +114,8 @@ LAZY_COMMANDS = {
     'correlate': ('correlate', 'correlation and gain of the wrench estimate with a thruster '
                                'command, per axis'),
     'play': ('player_node', 'publish a bag over DDS with rclpy, as ros2 bag play does'),
+    'compile': ('compile_kernels', 'compile the kernels ahead of the first run, on every '
+                                   'core (once after an install; later runs load them)'),
 }
 
 

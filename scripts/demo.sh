@@ -44,6 +44,9 @@ if ! "$PYTHON" -c 'import reduced_dynamics.cli, pinocchio, rosbags, mcap, matplo
 fi
 rd() { "$PYTHON" -m reduced_dynamics.cli "$@"; }
 
+step "compile: the kernels, a process per CPU (once after an install; later runs load them)"
+rd compile
+
 step "validate: reduced model against full dynamics (1 s per momentum class)"
 rd validate --duration 1
 

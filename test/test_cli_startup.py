@@ -92,7 +92,7 @@ def _required(name: str) -> list[str]:
     return {'simulate': ['-o', 'x'], 'replay': ['bag', '-o', 'x'],
             'predict': ['--trajectory', 'x'], 'tune': ['bag', '-o', 'x'],
             'bench': [], 'replay-many': ['bag', '-o', 'x'],
-            'identify': ['bag', '--link', 'l'], 'correlate': ['out'],
+            'identify': ['bag', '--link', 'l'], 'correlate': ['out'], 'compile': [],
             'play': ['bag']}[name]
 
 

@@ -25,7 +25,7 @@ that takes long: the first run after an install compiles for minutes, in silence
 
 import contextlib
 import threading
-from typing import Callable, Iterator, TYPE_CHECKING
+from typing import Callable, Iterable, Iterator, TYPE_CHECKING
 
 import numpy as np
 import pinocchio as pin
@@ -45,7 +45,8 @@ NOTICE_AFTER_S = 10.0
 #: What it says then.
 COMPILING_NOTICE = ('the compiled filter kernels are still loading: the first run after '
                     'an install or an upgrade compiles them (minutes of CPU, once; later '
-                    'runs load them from the cache in seconds)')
+                    'runs load them from the cache in seconds; `reduced-dynamics compile` '
+                    'does it ahead, on every core)')
 
 
 @contextlib.contextmanager
@@ -95,8 +96,8 @@ def _warm_fixed_lag(group: BaseGroup, flt: 'MomentumFilter', command: bool) -> N
     lagged.flush()
 
 
-def warm_up() -> None:
-    """Run each kernel on a tiny problem: SE(3) and a subgroup, poses and twists, a command."""
+def _warm_filters() -> None:
+    """Run the filter's step, update and smoothers: SE(3) and a subgroup, a command."""
     from reduced_dynamics.estimator.filter import MomentumFilter
     for name, command in (('SE(3)', False), ('SE(2)', False), ('SE(2)', True)):
         group = SUBGROUPS[name]
@@ -129,6 +130,10 @@ def warm_up() -> None:
                         lin.connection_qd, flt._basis, flt._pinv, flt._whole, flt._form_rows)
         kernels.compensate(flt._g, flt.x, flt.p, np.zeros(flt.dim), np.zeros_like(flt.p),
                            flt._basis, flt._whole)
+
+
+def _warm_step_test() -> None:
+    """Run the wrench step test's kernels."""
     # The wrench step test's kernels (estimator/step_kernels.py): a few onsets opened,
     # folded, absorbed and evaluated (twist and pose-only measurement sizes).
     from reduced_dynamics.estimator.step_test import WrenchStepTest
@@ -144,6 +149,10 @@ def warm_up() -> None:
             h = np.zeros((m, dim))
             h[:, :m] = np.eye(m)
             test.update(h, np.eye(m), 0.1 * h.T, np.full(m, 1e-3))
+
+
+def _warm_event_tests() -> None:
+    """Run the block test, the multi-scale banks and the measured momenta they take."""
     # The block test's kernels (core/blocks.py): measured momenta with and without the
     # centre of mass, every window covered.
     from reduced_dynamics.estimator.block_pulse import locate
@@ -204,6 +213,10 @@ def warm_up() -> None:
     impulse.measured_momentum_se3(pose.actionInverse, eye, np.ones(6), np.ones(6), eye, eye,
                                   p[:6, :6], SUBGROUPS['SE(3)'].structure_constants, eye,
                                   pose.rotation, pose.translation, eye)
+
+
+def _warm_inputs() -> None:
+    """Run the filter's inputs from mass matrices and the re-timer's window fit."""
     # The filter's inputs from a chunk's mass matrices (core/inputs.py).
     from reduced_dynamics.estimator.core import inputs
     inputs.connection_terms(np.tile(np.eye(8), (2, 1, 1)), 6, np.zeros((2, 2)), 1e-4)
@@ -220,3 +233,20 @@ def warm_up() -> None:
     index, stamp = envelope.window_arrays([(0, 0), (1, 10), (2, 21)])
     found, n1, s1, slope = envelope.lower_line(index, stamp)
     envelope.scan(index, stamp, n1, s1, slope, 1e9, 0.05)
+
+
+#: warm_up's parts by name, each a set of kernels of its own (numba compiles a kernel's
+#: callees into it, so two parts share only small helpers): ``reduced-dynamics compile``
+#: runs them in processes of their own at once (reduced_dynamics/compile_kernels.py).
+PARTS: dict[str, Callable[[], None]] = {
+    'filter': _warm_filters,
+    'step test': _warm_step_test,
+    'event tests': _warm_event_tests,
+    'inputs': _warm_inputs,
+}
+
+
+def warm_up(parts: Iterable[str] = tuple(PARTS)) -> None:
+    """Run each kernel on a tiny problem: SE(3) and a subgroup, poses and twists, a command."""
+    for name in parts:
+        PARTS[name]()
