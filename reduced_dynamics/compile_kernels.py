@@ -51,8 +51,6 @@ class PartResult(NamedTuple):
 def run_part(name: str) -> PartResult:
     """Run one part's kernels in this process; count the kernels numba compiled for it."""
     from numba.core import event
-    from reduced_dynamics.blas_threads import limit_blas_threads
-    limit_blas_threads()  # a spawned worker is an entry point of its own
     compiled = [0]
     depth = [0]
 
@@ -76,6 +74,12 @@ def run_part(name: str) -> PartResult:
             from reduced_dynamics.estimator.core.warmup import warm_up
             warm_up([name])
     return PartResult(name, time.process_time() - started, compiled[0])
+
+
+def _start_worker() -> None:
+    """Start a pool worker as the CLI starts: one BLAS thread (an entry point of its own)."""
+    from reduced_dynamics.blas_threads import limit_blas_threads
+    limit_blas_threads()
 
 
 def part_names() -> list[str]:
@@ -109,7 +113,8 @@ def compile_kernels(jobs: int, parts: Optional[Iterable[str]] = None) -> list[Pa
         return [run_part(name) for name in names]
     results = []
     context = multiprocessing.get_context('spawn')
-    with ProcessPoolExecutor(max_workers=min(jobs, len(names)), mp_context=context) as pool:
+    with ProcessPoolExecutor(max_workers=min(jobs, len(names)), mp_context=context,
+                             initializer=_start_worker) as pool:
         futures = [pool.submit(run_part, name) for name in names]
         for future in as_completed(futures):
             results.append(future.result())
