@@ -77,11 +77,11 @@ def test_stores_stay_bounded_over_many_horizons_with_predictions_on():
     # Predictions 10 per second over the default 2 s horizon (none during the events the
     # detector finds in this motion): up to 21 open at a time, ~3.5 x FINISHED_KEEP in
     # the run, 12 horizons of 1 kHz samples. (60 s, 30 horizons, took 45 s of CPU, most
-    # in the predictions; a store that grows by one per prediction or per sample outgrows
-    # the slack by the second checkpoint either way: checked by hand, docs/parallel_tests.md.)
+    # in the predictions. A store growing by one per prediction, or one per sample, fails
+    # the 24 s run too: checked by hand, docs/parallel_tests.md, "Stop 43".)
     # The bench's motion is not momentum-consistent (arbitrary kinematics): the multi-scale
     # test rightly sees a lasting wrench from 1.2 s on, and predictions pause during events.
-    # Off here, so that predictions run for the whole minute.
+    # Off here, so that predictions run for the whole run.
     config = EstimatorConfig(prediction_rate=10.0, event_false_alarm_rate=0.0)
     estimator = Estimator(load_robot(), config, use_odometry=True, defer_predictions=True)
     messages = _messages(SECONDS)
