@@ -81,7 +81,7 @@ def test_stores_stay_bounded_over_many_horizons_with_predictions_on():
     # the 24 s run too: checked by hand, docs/parallel_tests.md, "Stop 43".)
     # The bench's motion is not momentum-consistent (arbitrary kinematics): the multi-scale
     # test rightly sees a lasting wrench from 1.2 s on, and predictions pause during events.
-    # Off here, so that predictions run for the whole run.
+    # Off here, so that predictions run throughout.
     config = EstimatorConfig(prediction_rate=10.0, event_false_alarm_rate=0.0)
     estimator = Estimator(load_robot(), config, use_odometry=True, defer_predictions=True)
     messages = _messages(SECONDS)
