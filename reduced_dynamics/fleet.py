@@ -56,7 +56,7 @@ OUTPUT_BAG = 'bag'
 #: Largest exit status: the number of failed bags, capped below the shell's 126+.
 EXIT_CAP = 125
 #: Replay options that are the fleet's to set, not a bag's (per-bag outputs).
-_FLEET_OWNED = {'bag', 'output', 'summary_json', 'overwrite', 'quiet', 'plots'}
+_FLEET_OWNED = {'bag', 'output', 'summary_json', 'overwrite', 'quiet', 'plots', 'causal_output'}
 #: Options beside ReplayOptions' fields that turn into the robot or the parameters.
 _ROBOT_AND_PARAMS = {'urdf', 'base_joint', 'gravity', 'params', 'cyclic_joints',
                      'prediction_mode', 'no_smooth'}

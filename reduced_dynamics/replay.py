@@ -100,6 +100,9 @@ class ReplayOptions:
     #: fixed-interval (RTS) smoothing of the filter's estimates; False: exactly the
     #: causal outputs the node publishes (memory then stays flat in the bag's length)
     smooth: bool = True
+    #: with ``smooth``: also write the causal outputs (what ``smooth=False`` writes, the
+    #: same messages) into this bag, from the same pass over the input
+    causal_out: Optional[str] = None
     #: rows at the base samples, the shape held from the latest joint state (at zero
     #: without any): a jointed robot without a JointState topic is refused otherwise
     base_driven: bool = False
@@ -323,8 +326,20 @@ def replay(bag_path: str, out_path: str, robot: RobotModel,
     With one BLAS thread (:mod:`reduced_dynamics.blas_threads`; the caller's counts
     are restored after it): the outputs do not depend on the machine's thread count.
     """
+    options = options or ReplayOptions()
+    _check_causal_out(out_path, options)
     with limited_blas_threads():
-        return _replay(bag_path, out_path, robot, options or ReplayOptions())
+        return _replay(bag_path, out_path, robot, options)
+
+
+def _check_causal_out(out_path: str, options: ReplayOptions) -> None:
+    """Raise ValueError when ``options.causal_out`` cannot be written beside ``out_path``."""
+    if options.causal_out is None:
+        return
+    if not options.smooth:
+        raise ValueError('without smoothing the output bag holds the causal outputs already')
+    if os.path.abspath(options.causal_out) == os.path.abspath(out_path):
+        raise ValueError(f'{options.causal_out} is the output bag itself')
 
 
 def _replay(bag_path: str, out_path: str, robot: RobotModel,
@@ -407,9 +422,14 @@ def _replay(bag_path: str, out_path: str, robot: RobotModel,
         # them, minutes): said if it takes long, and only when progress is shown.
         notice = contextlib.nullcontext() if options.progress is None else compiling_notice(
             functools.partial(_say, options.progress))
+        causal_bag = contextlib.nullcontext() if options.causal_out is None else \
+            BagWriter(options.causal_out, out_topics, overwrite=options.overwrite)
         with BagWriter(out_path, out_topics, overwrite=options.overwrite) as writer, \
-                notice as compiling:
+                causal_bag as causal, notice as compiling:
             write = writer.write_raw
+            # What is causal whatever the smoothing (events, fixed-lag rows) goes to both bags.
+            write_causal = write if causal is None else _both(write, causal.write_raw)
+            causal_rows = None if causal is None else RowWriter(causal, encoders)
             spool = None
             if options.smooth:
                 # The smoother's steps and the causal messages wait on disk, beside the
@@ -425,7 +445,7 @@ def _replay(bag_path: str, out_path: str, robot: RobotModel,
                 # (not spooled: smoothing does not change them).
                 for row in rows:
                     for name, topic, encode in lagged:
-                        write(topic, record_ns, encode(getattr(row, name)))
+                        write_causal(topic, record_ns, encode(getattr(row, name)))
 
             rows_out = RowWriter(writer, encoders)
 
@@ -436,13 +456,14 @@ def _replay(bag_path: str, out_path: str, robot: RobotModel,
                 for chunk in chunks:
                     for k in sorted(chunk.events or ()):
                         for event in chunk.row_events(k) or ():
-                            write(events_topic, int(chunk.stamps_ns[k]), encode_event(event))
+                            write_causal(events_topic, int(chunk.stamps_ns[k]),
+                                         encode_event(event))
                 last = next((int(c.stamps_ns[-1]) for c in reversed(chunks) if len(c)), None)
                 if last is not None:
                     last_event_ns[0] = last
                 if final:
                     for event in estimator.finish_events():
-                        write(events_topic, last_event_ns[0], encode_event(event))
+                        write_causal(events_topic, last_event_ns[0], encode_event(event))
                 if lagged:
                     for chunk in chunks:
                         for k in sorted(chunk.fixed_lag or ()):
@@ -457,6 +478,8 @@ def _replay(bag_path: str, out_path: str, robot: RobotModel,
                 if spool is not None:
                     for chunk in chunks:
                         rows_out.hold_chunk(spool, chunk)
+                        if causal_rows is not None:
+                            causal_rows.write_chunk(chunk)
                         if options.plots_dir:
                             shape = chunk.qbar if chunk.cyclic is None else chunk.cyclic.qhat
                             for k, stamp in enumerate(chunk.stamps_ns.tolist()):
@@ -529,6 +552,8 @@ def _replay(bag_path: str, out_path: str, robot: RobotModel,
     summary = estimator.summary()
     summary.update({'input_bag': str(bag_path), 'output_bag': str(out_path),
                     'smoothed': options.smooth,
+                    **({'causal_output_bag': str(options.causal_out)}
+                       if options.causal_out is not None else {}),
                     'robot': robot.model.name, 'robot_source': options.robot_source,
                     'joint_states_topic': joint_topic,
                     'base_topic': base_topic, 'trajectory_topic': trajectory_topic,
@@ -554,6 +579,14 @@ def _replay(bag_path: str, out_path: str, robot: RobotModel,
                                   for a, b in marks['pulses']],
             'pulse_topic': marks['pulse_topic']}
     return summary
+
+
+def _both(first: Callable, second: Callable) -> Callable:
+    """Return a ``write(topic, stamp_ns, data)`` that writes with ``first``, then ``second``."""
+    def write(topic: str, stamp_ns: int, data: Any) -> None:
+        first(topic, stamp_ns, data)
+        second(topic, stamp_ns, data)
+    return write
 
 
 def _say(stream: TextIO, text: str) -> None:
@@ -686,6 +719,9 @@ def format_summary(summary: dict[str, Any]) -> str:
              + (f' from {summary["robot_source"]}' if summary.get('robot_source') else '')
              + f', {summary["seconds"]:.2f} s, '
              f'{summary["samples_per_second"] or 0:.0f} samples/s)']
+    if summary.get('causal_output_bag'):
+        lines.append(f'causal outputs (as --no-smooth writes them): '
+                     f'{summary["causal_output_bag"]}')
     lines.append(f'inputs: joint states {summary["joint_states_topic"]}, base '
                  f'{summary["base_topic"]}' + (' (base-driven)' if summary['base_driven']
                                                else ''))
@@ -773,7 +809,8 @@ def _run(args: argparse.Namespace) -> int:
                             commanded_wrench_topic=args.commanded_wrench_topic,
                             start=args.start, end=args.end, plots_dir=args.plots,
                             overwrite=args.overwrite, strict=args.strict,
-                            smooth=not args.no_smooth, base_driven=args.base_driven,
+                            smooth=not args.no_smooth, causal_out=args.causal_output,
+                            base_driven=args.base_driven,
                             fixed_lag=args.fixed_lag, thruster_map=args.thruster_map,
                             robot_source=robot_source(params, args.urdf),
                             progress=None if args.quiet else sys.stderr)
@@ -782,17 +819,27 @@ def _run(args: argparse.Namespace) -> int:
     except ValueError as error:
         print(f'reduced-dynamics replay: error: --fixed-lag: {error}', file=sys.stderr)
         return 2
-    existed = os.path.exists(args.output)
-    if existed and not args.overwrite:
-        # Before reading the bag; the library's own message names its Python argument.
-        print(f'reduced-dynamics replay: error: output {args.output} exists already '
-              '(pass --overwrite to replace it)', file=sys.stderr)
-        return 2
+    if args.causal_output is not None:
+        try:
+            _check_causal_out(args.output, options)
+        except ValueError as error:
+            print(f'reduced-dynamics replay: error: --causal-output: {error}', file=sys.stderr)
+            return 2
+    existed = {path: os.path.exists(path) for path in (args.output, args.causal_output)
+               if path is not None}
+    for path, exists in existed.items():
+        if exists and not args.overwrite:
+            # Before reading the bag; the library's own message names its Python argument.
+            print(f'reduced-dynamics replay: error: output {path} exists already '
+                  '(pass --overwrite to replace it)', file=sys.stderr)
+            return 2
     try:
         summary = replay(args.bag, args.output, robot, options)
     except BagError as error:
-        if options.strict and not existed and os.path.isdir(args.output):
-            shutil.rmtree(args.output, ignore_errors=True)  # no half-written output
+        if options.strict:
+            for path, exists in existed.items():
+                if not exists and os.path.isdir(path):
+                    shutil.rmtree(path, ignore_errors=True)  # no half-written output
         print(f'reduced-dynamics replay: error: {error}', file=sys.stderr)
         return 2
     print(format_summary(summary))
@@ -853,6 +900,9 @@ def register_command(commands: Any) -> None:
     parser.add_argument('--no-smooth', action='store_true',
                         help='write the causal filter\'s estimates, exactly what the node '
                              'publishes (default: fixed-interval RTS smoothing over the bag)')
+    parser.add_argument('--causal-output', metavar='DIR',
+                        help='also write the causal estimates (what --no-smooth writes) into '
+                             'the bag DIR, from the same pass: both in one replay')
     parser.add_argument('--fixed-lag', type=float, default=0.0, metavar='S',
                         help='also write the node\'s fixed-lag smoothed topics '
                              '(momentum_smoothed, drift/momentum_rate_smoothed) at a lag of S '

@@ -91,10 +91,11 @@ def test_smoothing_beats_the_causal_filter_on_momentum(tmp_path):
     robot = load_robot(str(config_path('robots/freeflyer.urdf')))
     truth = wrench_series(DATA / 'freeflyer_realistic', '/ground_truth/momentum')
     errors = []
+    # One pass writes both (causal_out: the bag replay --no-smooth writes).
+    replay(str(DATA / 'freeflyer_realistic'), str(tmp_path / 'outTrue'), robot,
+           ReplayOptions(base_pose_topic='/base_pose', causal_out=str(tmp_path / 'outFalse')))
     for smooth in (False, True):
         out = tmp_path / f'out{smooth}'
-        replay(str(DATA / 'freeflyer_realistic'), str(out), robot,
-               ReplayOptions(base_pose_topic='/base_pose', smooth=smooth))
         mu = wrench_series(out, '/reduced_dynamics/momentum')
         index = np.searchsorted(truth[:, 0], mu[:, 0])
         keep = (index < len(truth)) & (mu[:, 0] - mu[0, 0] > 1e9)  # after 1 s
@@ -139,13 +140,15 @@ def test_real_freeflyer2_bags_correlate_with_the_commanded_thrust(tmp_path, path
     robot = load_robot(str(config_path('robots/freeflyer.urdf')))
     bag = str(path)
     figures = {}
+    # One pass writes both (causal_out: the bag replay --no-smooth writes).
+    summary = replay(bag, str(tmp_path / 'outTrue'), robot, ReplayOptions(
+        params=defaults(), base_pose_topic='/vrpn_mocap/robot/pose',
+        causal_out=str(tmp_path / 'outFalse')))
+    assert summary['processed'] >= 6000
     for smooth in (False, True):
         out = str(tmp_path / f'out{smooth}')
-        summary = replay(bag, out, robot, ReplayOptions(
-            params=defaults(), base_pose_topic='/vrpn_mocap/robot/pose', smooth=smooth))
         figures[smooth] = thrust_correlation(bag, out)
         assert np.all(momentum_spread(out) <= SPREAD_BOUND)
-        assert summary['processed'] >= 6000
     causal, smoothed = figures[False], figures[True]
     # Measured (docs/real_data.md): causal 0.831/0.724/0.753 and 0.733/0.755/0.913, smoothed
     # 0.907/0.891/0.969 and 0.761/0.781/0.956 (pose_position_noise 0.5 mm; with 1 mm the
@@ -186,14 +189,16 @@ def test_command_twin_of_a_real_bag_correlates_near_one(tmp_path, path):
     assert 1e-4 <= figures.angle_noise <= 3e-4
     assert figures.poses >= 6000
     correlations = {}
+    # One pass writes both (causal_out: the bag replay --no-smooth writes).
+    summary = replay(twin, str(tmp_path / 'outTrue'), robot, ReplayOptions(
+        params=defaults(), base_pose_topic='/vrpn_mocap/robot/pose',
+        causal_out=str(tmp_path / 'outFalse')))
+    # The twin's body is pushed (by the command, not given to the filter here): the
+    # multi-scale test flags those pushes as events; no wrench step is taken.
+    assert summary['filter']['steps_taken'] == 0
     for smooth in (False, True):
-        out = str(tmp_path / f'out{smooth}')
-        summary = replay(twin, out, robot, ReplayOptions(
-            params=defaults(), base_pose_topic='/vrpn_mocap/robot/pose', smooth=smooth))
-        # The twin's body is pushed (by the command, not given to the filter here): the
-        # multi-scale test flags those pushes as events; no wrench step is taken.
-        assert summary['filter']['steps_taken'] == 0
-        correlations[smooth] = thrust_correlation(bag, out, poses_bag=twin)
+        correlations[smooth] = thrust_correlation(bag, str(tmp_path / f'out{smooth}'),
+                                                  poses_bag=twin)
     # Measured smoothed 0.995/0.994/0.993 and 0.998/0.998/0.997; causal 0.922/0.916/0.826
     # and 0.991/0.985/0.975 (the trajectory bag's 8 Hz commands switch whole thrusters).
     assert min(correlations[True][:3]) >= 0.99

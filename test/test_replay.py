@@ -14,6 +14,7 @@
 
 """Bag replay end to end: shipped and generated bags in, output bags read independently."""
 
+import json
 import os
 import shutil
 
@@ -302,3 +303,50 @@ def test_replay_base_joint_auto_follows_the_urdf_world_joint(tmp_path) -> None:
     robot = load_robot_from_params(defaults, str(config_path('robots/freeflyer.urdf')))
     assert robot.base_joint_type == 'planar'
     assert load_robot_from_params(defaults).base_joint_type == 'floating'
+
+
+def _bag_contents(path):
+    """Return a bag's topics and every message (topic, record time, bytes) in read order."""
+    with open_bag(path) as reader:
+        topics = reader.topics()
+        return topics, [(m.topic, m.timestamp_ns, bytes(m.data))
+                        for m in reader.raw_messages(list(topics))]
+
+
+def test_causal_output_of_a_smoothed_replay_is_the_no_smooth_replay(tmp_path, capsys):
+    """``--causal-output``: from one pass, the smoothed bag and ``--no-smooth``'s bag, bytewise."""
+    bag = os.path.join(DATA, 'paper_thruster')
+    common = ['replay', bag, '--quiet', '--fixed-lag', '0.5']
+    assert main([*common, '-o', str(tmp_path / 'causal'), '--no-smooth']) == 0
+    assert main([*common, '-o', str(tmp_path / 'smoothed')]) == 0
+    capsys.readouterr()
+    summary = tmp_path / 'summary.json'
+    assert main([*common, '-o', str(tmp_path / 'both'), '--causal-output',
+                 str(tmp_path / 'both_causal'), '--summary-json', str(summary)]) == 0
+    assert f'causal outputs (as --no-smooth writes them): {tmp_path / "both_causal"}' \
+        in capsys.readouterr().out
+    topics, causal = _bag_contents(tmp_path / 'causal')
+    # Events and fixed-lag rows (written as they happen, smoothed or not) are in both bags.
+    written = {topic for topic, _, _ in causal}
+    assert resolved_name(EVENTS_TOPIC) in written and '/reduced_dynamics/momentum_smoothed' \
+        in written
+    assert _bag_contents(tmp_path / 'both_causal') == (topics, causal)
+    assert _bag_contents(tmp_path / 'both') == _bag_contents(tmp_path / 'smoothed')
+    assert json.loads(summary.read_text())['causal_output_bag'] == str(tmp_path / 'both_causal')
+
+
+def test_causal_output_refusals_name_the_flag(tmp_path, capsys):
+    bag = os.path.join(DATA, 'paper_constant')
+    out, causal = str(tmp_path / 'out'), str(tmp_path / 'causal')
+    assert main(['replay', bag, '-o', out, '--quiet', '--no-smooth',
+                 '--causal-output', causal]) == 2
+    assert 'error: --causal-output: without smoothing the output bag holds the causal ' \
+        'outputs already' in capsys.readouterr().err
+    assert main(['replay', bag, '-o', out, '--quiet', '--causal-output', out]) == 2
+    assert f'error: --causal-output: {out} is the output bag itself' in capsys.readouterr().err
+    os.mkdir(causal)
+    assert main(['replay', bag, '-o', out, '--quiet', '--causal-output', causal]) == 2
+    assert f'error: output {causal} exists already' in capsys.readouterr().err
+    assert not os.path.exists(out)
+    with pytest.raises(ValueError, match='without smoothing'):
+        replay(bag, out, load_robot(), ReplayOptions(smooth=False, causal_out=causal))
