@@ -321,47 +321,53 @@ def test_local_pool_and_dask_give_identical_outputs_whatever_the_workers(tmp_pat
     _compare(reference, _fleet(tmp_path, manifest, 'dask', 2), 'dask 2')
 
 
-#: The tests that start a local Ray cluster run in one pytest-xdist worker, one at a time.
+#: The tests on a local Ray cluster run in one pytest-xdist worker, one after the other.
 ONE_RAY_CLUSTER = pytest.mark.xdist_group('ray_cluster')
 
 
-@ONE_RAY_CLUSTER
-def test_ray_local_cluster_replays_three_shipped_bags_identically(tmp_path):
+@pytest.fixture(scope='class')
+def ray():
     """
-    A local Ray cluster (``ray.init()`` on this machine) replays three shipped bags.
+    Return the ray module with a local cluster of 2 CPUs running (shut down after the class).
 
-    Skipped, with the reason, only where Ray is not installed or cannot start.
+    Skipped, with the reason, only where Ray is not installed or cannot start. One cluster
+    for the class's tests: a start and a shutdown cost ~16 s of CPU here (measured).
     """
     ray = pytest.importorskip('ray', reason='ray is not installed (pip install .[fleet])')
-    manifest = str(_manifest(tmp_path))
-    reference = _fleet(tmp_path, manifest, 'local', 1)
     try:
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     except Exception as error:  # noqa: B902 (whatever stops Ray is the reason to skip)
         pytest.skip(f'a local Ray cluster cannot start on this machine: {error}')
-    try:
-        assert ray.cluster_resources().get('CPU') == 2
-        _compare(reference, _fleet(tmp_path, manifest, 'ray', 2), 'ray 2')
-    finally:
-        ray.shutdown()
+    yield ray
+    ray.shutdown()
 
 
 @ONE_RAY_CLUSTER
-def test_bench_fleet_section_tiny():
-    """The bench's fleet figures: ratios of the same run's 1-worker, 2-worker and Ray runs."""
-    from reduced_dynamics import bench
-    settings = bench.Settings(repeats=1, fleet_bags=2, fleet_bag_seconds=0.3, quick=True)
-    report = bench.run_bench(settings, ['fleet'])
-    figures = {f.name: f for f in report.figures}
-    assert {f.section for f in report.figures} == {'fleet'}
-    two = figures['replay-many, local pool, 2 workers']
-    assert two.unit == 'bags/s' and two.ratio == two.median / two.baseline_median
-    assert two.target == 'ratio >= 1.7'
-    ray_figure = figures.get('replay-many, Ray on this machine, 2 CPUs')
-    if ray_figure is None:
-        assert 'Ray unavailable' in figures['replay-many, local pool, 1 worker'].note
-    else:
+class TestOnALocalRayCluster:
+    """Tests on one local Ray cluster (``ray.init()`` on this machine), started once for them."""
+
+    def test_ray_local_cluster_replays_three_shipped_bags_identically(self, tmp_path, ray):
+        """Three shipped bags on the local Ray cluster: the local pool's outputs."""
+        manifest = str(_manifest(tmp_path))
+        reference = _fleet(tmp_path, manifest, 'local', 1)
+        assert ray.cluster_resources().get('CPU') == 2
+        _compare(reference, _fleet(tmp_path, manifest, 'ray', 2), 'ray 2')
+        assert ray.is_initialized()  # replay-many left the cluster it found running
+
+    def test_bench_fleet_section_tiny(self, ray):
+        """The bench's fleet figures: ratios of the same run's 1-worker, 2-worker, Ray runs."""
+        from reduced_dynamics import bench
+        settings = bench.Settings(repeats=1, fleet_bags=2, fleet_bag_seconds=0.3, quick=True)
+        report = bench.run_bench(settings, ['fleet'])
+        figures = {f.name: f for f in report.figures}
+        assert {f.section for f in report.figures} == {'fleet'}
+        two = figures['replay-many, local pool, 2 workers']
+        assert two.unit == 'bags/s' and two.ratio == two.median / two.baseline_median
+        assert two.target == 'ratio >= 1.7'
+        ray_figure = figures['replay-many, Ray on this machine, 2 CPUs']
         assert ray_figure.baseline_median == two.median and ray_figure.ratio > 0
+        assert '2 Ray CPUs, a running cluster' in ray_figure.note
+        assert ray.is_initialized()  # the bench left the cluster it found running
 
 
 def _dies_on_paper_constant(job):
