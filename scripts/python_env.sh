@@ -61,30 +61,6 @@ if [ -n "$rd_base_ld" ]; then
   export LD_LIBRARY_PATH="$rd_base_ld${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 fi
 
-# rd_pip_install ARGS...: `pip install ARGS` into $PYTHON's environment, by uv (from PyPI)
-# unless RD_INSTALLER=pip. Measured on this project's 2-core VM with empty caches: the test
-# extras (252 distributions) in 14 s with uv, 103 s with pip, the same distributions and
-# versions. pip's settings uv does not read are passed on (index, find-links, CA file);
-# pip is the fallback when uv cannot be installed or fails.
-rd_pip_install() {
-  if [ "${RD_INSTALLER:-uv}" = uv ]; then
-    if "$PYTHON" -m uv --version >/dev/null 2>&1 || "$PYTHON" -m pip install -q "uv>=0.4"; then
-      local uv_args=(-q --python "$PYTHON")
-      local index
-      index="${PIP_INDEX_URL:-$("$PYTHON" -m pip config get global.index-url 2>/dev/null || true)}"
-      [ -z "$index" ] || uv_args+=(--index-url "$index")
-      local links
-      for links in ${PIP_FIND_LINKS:-}; do
-        [ ! -e "$links" ] || uv_args+=(--find-links "$links")
-      done
-      if (if [ -n "${PIP_CERT:-}" ] && [ -z "${SSL_CERT_FILE:-}" ]; then
-            export SSL_CERT_FILE="$PIP_CERT"
-          fi
-          "$PYTHON" -m uv pip install "${uv_args[@]}" "$@"); then
-        return 0
-      fi
-      echo "WARNING: uv pip install failed; installing with pip instead" >&2
-    fi
-  fi
-  "$PYTHON" -m pip install -q "$@"
-}
+# rd_pip_install ARGS...: scripts/pip_install.sh (uv, or pip).
+# shellcheck source=scripts/pip_install.sh
+source "$REPO_ROOT/scripts/pip_install.sh"

@@ -124,7 +124,8 @@ def test_apt_get_update_only_for_a_package_the_lists_do_not_know(tmp_path):
 
 
 @pytest.mark.parametrize('script', ['scripts/test.sh', 'scripts/python_env.sh',
-                                    'scripts/demo.sh', 'scripts/check_readme_install.sh'])
+                                    'scripts/pip_install.sh', 'scripts/demo.sh',
+                                    'scripts/check_readme_install.sh'])
 def test_the_other_scripts_reach_apt_only_through_system_packages(script):
     code = [line for line in (REPO / script).read_text().splitlines()
             if not line.lstrip().startswith('#')]
