@@ -1217,15 +1217,15 @@ def bench_fleet(report: Report, robot, settings: Settings, workdir: str) -> None
     # Other processes on the machine take cores the 2 workers would use: say how busy it was.
     load = os.getloadavg()[0]
     try:
+        cluster = '' if ray is None else \
+            f'; {ray.cluster_resources().get("CPU", 0):g} Ray CPUs, ' + (
+                'ray.init before the repeats' if started_here else 'a running cluster')
         for _ in range(settings.repeats):
             # Alternating the configurations spreads the machine's drift over all three.
             runs['1'].append(_fleet_seconds(jobs, out, 1, 'local'))
             runs['2'].append(_fleet_seconds(jobs, out, 2, 'local'))
             if ray is not None:
                 runs['ray'].append(_fleet_seconds(jobs, out, 2, 'ray'))
-        cluster = '' if ray is None else \
-            f'; {ray.cluster_resources().get("CPU", 0):g} Ray CPUs, ' + (
-                'ray.init before the repeats' if started_here else 'a running cluster')
     finally:
         if started_here:
             ray.shutdown()

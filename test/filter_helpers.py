@@ -15,7 +15,7 @@
 """
 Helpers shared by the filter tests.
 
-Wrench series from a bag, group error-state arithmetic, a random linearisation.
+A bag's messages and wrench series, group error-state arithmetic, a random linearisation.
 """
 
 import numpy as np
@@ -62,6 +62,14 @@ def fresh_process_words(code: str) -> list[str]:
     env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get('PYTHONPATH', ''))
     return subprocess.run([sys.executable, '-c', code], env=env, capture_output=True,
                           text=True, check=True, timeout=600).stdout.split()
+
+
+def bag_contents(path) -> tuple[dict, list[tuple[str, int, bytes]]]:
+    """Return a bag's topics and every message (topic, record time, bytes) in read order."""
+    with open_bag(path) as reader:
+        topics = reader.topics()
+        return topics, [(m.topic, m.timestamp_ns, bytes(m.data))
+                        for m in reader.raw_messages(list(topics))]
 
 
 def wrench_series(path, topic: str) -> np.ndarray:

@@ -33,6 +33,8 @@ from reduced_dynamics.robot.model import load_robot
 from reduced_dynamics.simulator import simulate_bag, SimulationOptions, ThrusterPulse
 from reduced_dynamics.topics import active_topics, EVENTS_TOPIC, resolved_name
 
+from filter_helpers import bag_contents
+
 DATA = os.path.join(os.path.dirname(__file__), 'data')
 
 
@@ -305,14 +307,6 @@ def test_replay_base_joint_auto_follows_the_urdf_world_joint(tmp_path) -> None:
     assert load_robot_from_params(defaults).base_joint_type == 'floating'
 
 
-def _bag_contents(path):
-    """Return a bag's topics and every message (topic, record time, bytes) in read order."""
-    with open_bag(path) as reader:
-        topics = reader.topics()
-        return topics, [(m.topic, m.timestamp_ns, bytes(m.data))
-                        for m in reader.raw_messages(list(topics))]
-
-
 def test_causal_output_of_a_smoothed_replay_is_the_no_smooth_replay(tmp_path, capsys):
     """``--causal-output``: from one pass, the smoothed bag and ``--no-smooth``'s bag, bytewise."""
     bag = os.path.join(DATA, 'paper_thruster')
@@ -325,13 +319,13 @@ def test_causal_output_of_a_smoothed_replay_is_the_no_smooth_replay(tmp_path, ca
                  str(tmp_path / 'both_causal'), '--summary-json', str(summary)]) == 0
     assert f'causal outputs (as --no-smooth writes them): {tmp_path / "both_causal"}' \
         in capsys.readouterr().out
-    topics, causal = _bag_contents(tmp_path / 'causal')
+    topics, causal = bag_contents(tmp_path / 'causal')
     # Events and fixed-lag rows (written as they happen, smoothed or not) are in both bags.
     written = {topic for topic, _, _ in causal}
     assert resolved_name(EVENTS_TOPIC) in written and '/reduced_dynamics/momentum_smoothed' \
         in written
-    assert _bag_contents(tmp_path / 'both_causal') == (topics, causal)
-    assert _bag_contents(tmp_path / 'both') == _bag_contents(tmp_path / 'smoothed')
+    assert bag_contents(tmp_path / 'both_causal') == (topics, causal)
+    assert bag_contents(tmp_path / 'both') == bag_contents(tmp_path / 'smoothed')
     assert json.loads(summary.read_text())['causal_output_bag'] == str(tmp_path / 'both_causal')
 
 

@@ -30,6 +30,8 @@ from reduced_dynamics.bag import BagWriter, open_bag
 from reduced_dynamics.cli import main
 from reduced_dynamics.estimator.stamps import ACCEPTED, StampGate
 
+from filter_helpers import bag_contents
+
 REPO = Path(__file__).resolve().parent.parent
 DATA = REPO / 'test' / 'data'
 THRUSTER = DATA / 'paper_thruster'
@@ -48,9 +50,7 @@ def _convert(source: Path, path: Path, storage: str = 'sqlite3', edit=None) -> P
 
 
 def _messages(path: Path) -> list[tuple[str, int, bytes]]:
-    with open_bag(path) as bag:
-        return [(m.topic, m.timestamp_ns, bytes(m.data))
-                for m in bag.raw_messages(list(bag.topics()))]
+    return bag_contents(path)[1]
 
 
 @pytest.fixture(scope='module')
