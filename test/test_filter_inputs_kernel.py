@@ -87,7 +87,7 @@ def test_chunk_terms_and_drift_energy_equal_the_stacked_numpy_calls() -> None:
                 bases[:, 3:7] /= np.linalg.norm(bases[:, 3:7], axis=1)[:, None]
                 pi = rng.standard_normal((count, n))
                 _, inverse, connection_qd, _, pbar, rotation = inputs.chunk_terms(
-                    mass, n, qbar_dot, bases[:, 3:7], 1e-4, m >= 4)
+                    mass, n, qbar_dot, np.ascontiguousarray(bases[:, 3:7]), 1e-4, m >= 4)
                 expected = _numpy_chunk(mass, n, qbar_dot, connection_qd, inverse, pi)
                 if m < 4:
                     pbar = expected[0]  # the kernel leaves thin products to numpy

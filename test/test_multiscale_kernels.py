@@ -83,22 +83,27 @@ def test_the_compiled_window_statistics_equal_the_numpy_ones_to_rounding() -> No
         assert compared > 1000
 
 
-def test_window_changes_marks_the_windows_the_floor_leaves_uncovered() -> None:
+def test_the_filtered_bank_marks_the_windows_the_floor_leaves_uncovered() -> None:
     """Rows of the windows reaching back before the floor, or before the data, are -1."""
-    from reduced_dynamics.estimator.core import impulse
+    from reduced_dynamics.estimator.core.bank_windows import filtered_bank
     stamps = np.arange(0, 1_000_000_000, 10_000_000, dtype=np.int64)
     mu_ring = np.arange(len(stamps), dtype=float)[:, None] * np.ones(3)
     cov_ring = np.tile(np.eye(3), (len(stamps), 1, 1))
     lags = np.array([50_000_000, 300_000_000, 2_000_000_000])
-    now = int(stamps[-1])
-    rows, d, solved = impulse.window_changes(stamps, mu_ring, cov_ring, 0, len(stamps), lags,
-                                             now, 0, False, mu_ring[-1], np.eye(3))
-    assert rows.tolist() == [94, 69, -1]
-    np.testing.assert_array_equal(d, [[5.0] * 3, [30.0] * 3])
-    np.testing.assert_array_equal(solved, d / 2.0)
-    rows, d, _ = impulse.window_changes(stamps, mu_ring, cov_ring, 0, len(stamps), lags,
-                                        now, now - 100_000_000, True, mu_ring[-1], np.eye(3))
-    assert rows.tolist() == [94, -1, -1] and d.shape == (1, 3)
+    now, last = int(stamps[-1]), len(stamps) - 1
+    # C-contiguous arrays, as bank_step.update passes them (the variant it compiled).
+    rows, raw = np.zeros(3, dtype=np.int64), np.zeros(3)
+    work, y, d = np.zeros((3, 3)), np.zeros(3), np.zeros(3)
+    # The bank stores the sample first (here the last row again, the same values).
+    covered = filtered_bank(stamps, mu_ring, cov_ring, 0, last, lags, now, 0, False,
+                            mu_ring[-1].copy(), np.eye(3), rows, raw, work, y, d)
+    assert covered == 2 and rows.tolist() == [94, 69, -1]
+    # d_L = 5 and 30 on each axis, V_L = 2 I: T_L = 3 d^2 / 2; an uncovered window 0.
+    np.testing.assert_allclose(raw, [37.5, 1350.0, 0.0], rtol=1e-14, atol=0.0)
+    covered = filtered_bank(stamps, mu_ring, cov_ring, 0, last, lags, now,
+                            now - 100_000_000, True, mu_ring[-1].copy(), np.eye(3), rows, raw,
+                            work, y, d)
+    assert covered == 1 and rows.tolist() == [94, -1, -1]
 
 
 class NumpyBlocks(MomentumBlocks):

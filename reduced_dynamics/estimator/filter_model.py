@@ -157,14 +157,14 @@ class FilterModel:
         return f
 
     def twist_jacobian(self, g: pin.SE3, mu: np.ndarray, lin: Linearisation) -> np.ndarray:
-        """Return H of the twist measurement (n x 3n)."""
+        """Return H of the twist measurement (n x 3n): [H1, H2, 0], the update's blocks."""
         x = np.zeros(self.dim - self.n)
         x[:self.n] = mu
-        h, _ = kernels.twist_measurement(_homogeneous(g), x, _homogeneous(g), np.zeros(self.n),
-                                         lin.locked_inverse, lin.connection_qd, self.dim,
-                                         self._basis, self._pinv, self._whole,
-                                         self._form_rows)
-        return h[self.n:]
+        pose = _homogeneous(g)
+        h1, h2, _ = kernels._twist_blocks(pose, x, pose, np.zeros(self.n),
+                                          lin.locked_inverse, lin.connection_qd, self._basis,
+                                          self._pinv, self._whole, self._form_rows)
+        return np.concatenate((h1, h2, np.zeros((self.n, self.dim - 2 * self.n))), axis=1)
 
     def wrench_density(self, g: pin.SE3, locked: np.ndarray) -> np.ndarray:
         """Return the spectral density of w_dot: Ad_{g^-1}^T I diag(s^2) I Ad_{g^-1}."""

@@ -70,8 +70,9 @@ def filtered_bank(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray,
     Store the sample at ring row ``end``; write each window's row and raw T_L.
 
     Returns the windows covered, or -1 when a V_L is not positive definite (then
-    every raw T_L is 0: :func:`.impulse.window_changes` raised there). Rows and
-    coverage as :func:`.impulse.window_changes`.
+    every raw T_L is 0). Window L's row is the newest stored sample at or before
+    t - L; it is covered (else -1) when that sample is at or after the floor (the
+    last event's end; the ring's first sample without one).
     """
     stamps[end] = stamp_ns
     mu_ring[end] = mu

@@ -30,56 +30,6 @@ from numba import njit
 
 
 @njit(cache=True)
-def window_changes(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray,
-                   start: int, end: int, lags: np.ndarray, stamp_ns: int, floor_ns: int,
-                   has_floor: bool, mu: np.ndarray,
-                   cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """
-    Return each window's ring row (-1: not covered), d_L and V_L^-1 d_L (covered rows).
-
-    A window is covered when a stored sample lies at or before t - L and at or after
-    the floor (the last event's end; the ring's first sample without one).
-    """
-    count = lags.shape[0]
-    n = mu.shape[0]
-    rows = np.full(count, -1, dtype=np.int64)
-    first = stamps[start]
-    lowest = max(floor_ns, first) if has_floor else first
-    covered = 0
-    for w in range(count):
-        # The newest sample at or before t - L: the window is at least L long.
-        index = np.searchsorted(stamps[start:end], stamp_ns - lags[w], 'right') - 1
-        at = stamps[start + index] if index >= 0 else stamps[start]
-        if index >= 0 and at >= lowest:
-            rows[w] = start + index
-            covered += 1
-    d = np.empty((covered, n))
-    solved = np.empty((covered, n))
-    k = 0
-    for w in range(count):
-        row = rows[w]
-        if row < 0:
-            continue
-        d[k] = mu - mu_ring[row]
-        solved[k] = np.linalg.solve(cov + cov_ring[row], d[k])
-        k += 1
-    return rows, d, solved
-
-
-@njit(cache=True)
-def store_window_changes(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray,
-                         start: int, end: int, lags: np.ndarray, stamp_ns: int,
-                         floor_ns: int, has_floor: bool, mu: np.ndarray,
-                         cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Store the sample at ring row ``end`` (room made), then :func:`window_changes`."""
-    stamps[end] = stamp_ns
-    mu_ring[end] = mu
-    cov_ring[end] = cov
-    return window_changes(stamps, mu_ring, cov_ring, start, end + 1, lags, stamp_ns,
-                          floor_ns, has_floor, mu, cov)
-
-
-@njit(cache=True)
 def calibrated_best(rows: np.ndarray, products: np.ndarray, statistics: np.ndarray,
                     above: np.ndarray, inflation: np.ndarray, median: float, rate: float,
                     learn: bool) -> tuple[int, float]:

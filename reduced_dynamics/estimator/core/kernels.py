@@ -57,7 +57,7 @@ from reduced_dynamics.estimator.core.transition import (  # noqa: F401 (re-expor
     transition, transition_commanded, twist)
 from reduced_dynamics.estimator.core.update import (  # noqa: F401 (re-exported)
     CONVERGED, ITERATIONS, _corrected, _dense_h, _twist_blocks, converged, correct, innovation,
-    pose_noise, twist_measurement, update, update_noise)
+    pose_noise, update, update_noise)
 
 
 @njit(cache=True)

@@ -33,12 +33,37 @@ import numpy as np
 
 from reduced_dynamics.estimator.core.kernels import (
     _GAUSS_NODES, _GAUSS_WEIGHTS, converged, covariance_health, form, pose_noise, propagate_mean,
-    significance, symmetric, transition_commanded, twist, twist_measurement)
+    significance, symmetric, transition_commanded, twist)
 from reduced_dynamics.estimator.core.lie import adjoint, compose, group_exp, group_log, inverse
 
 #: Re-linearisations of an update with a twist, as on main 6a526f4 (at most: the
 #: structured step's convergence stop, kernels.converged, applies here too).
 ITERATIONS = 2
+
+
+def twist_measurement(g: np.ndarray, x: np.ndarray, pose: np.ndarray, measured: np.ndarray,
+                      inverse_locked: np.ndarray, connection_qd: np.ndarray, dim: int,
+                      basis: np.ndarray, pinv: np.ndarray, whole: bool,
+                      form_rows: np.ndarray) -> tuple:
+    """
+    Return H (2n x dim) and the innovation of a pose and a body twist at (g, x).
+
+    The dense measurement model the structured update (core/update.py ``_twist_blocks``)
+    replaced; plain numpy around the compiled Lie helpers, as the rest of this module.
+    """
+    n = inverse_locked.shape[0]
+    residual = group_log(compose(inverse(g), pose), pinv, whole)
+    ad_t = adjoint(g, basis, pinv, whole).T
+    pi = ad_t @ x[:n]
+    h = np.zeros((2 * n, dim))
+    for i in range(n):
+        h[i, i] = 1.0
+    h[n:, :n] = -inverse_locked @ form(form_rows, pi)
+    h[n:, n:2 * n] = inverse_locked @ ad_t
+    nu = np.empty(2 * n)
+    nu[:n] = residual
+    nu[n:] = measured - (inverse_locked @ pi - connection_qd)
+    return h, nu
 
 
 def transition(g: np.ndarray, x: np.ndarray, locked: np.ndarray, inverse_locked: np.ndarray,

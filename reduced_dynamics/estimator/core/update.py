@@ -27,7 +27,7 @@ from numba import njit
 
 from reduced_dynamics.estimator.core.factor import _downdate, _factor
 from reduced_dynamics.estimator.core.lie import adjoint, compose, group_exp, group_log, inverse
-from reduced_dynamics.estimator.core.products import _form, _mat_vec, _mul, form
+from reduced_dynamics.estimator.core.products import _form, _mat_vec, _mul
 
 #: Re-linearisations of an update with a twist (iterated EKF). The twist is bilinear in
 #: (delta_g, delta_mu), so each re-linearisation moves the estimate by a second-order term:
@@ -43,27 +43,6 @@ ITERATIONS = 2
 #: i.e. rounding), and stopping skips a re-linearisation (~4 x crba) that changes nothing
 #: a figure can see. Larger moves (fast rotation, a transient) iterate as before.
 CONVERGED = 1e-6
-
-
-@njit(cache=True)
-def twist_measurement(g: np.ndarray, x: np.ndarray, pose: np.ndarray, measured: np.ndarray,
-                      inverse_locked: np.ndarray, connection_qd: np.ndarray, dim: int,
-                      basis: np.ndarray, pinv: np.ndarray, whole: bool,
-                      form_rows: np.ndarray) -> tuple:
-    """Return H (2n x dim) and the innovation of a pose and a body twist at (g, x)."""
-    n = inverse_locked.shape[0]
-    residual = group_log(compose(inverse(g), pose), pinv, whole)
-    ad_t = adjoint(g, basis, pinv, whole).T
-    pi = ad_t @ x[:n]
-    h = np.zeros((2 * n, dim))
-    for i in range(n):
-        h[i, i] = 1.0
-    h[n:, :n] = -inverse_locked @ form(form_rows, pi)
-    h[n:, n:2 * n] = inverse_locked @ ad_t
-    nu = np.empty(2 * n)
-    nu[:n] = residual
-    nu[n:] = measured - (inverse_locked @ pi - connection_qd)
-    return h, nu
 
 
 @njit(cache=True)
@@ -86,7 +65,7 @@ def _twist_blocks(g: np.ndarray, x: np.ndarray, pose: np.ndarray, measured: np.n
     """
     Return (H1, H2, nu) of a pose and a body twist at (g, x): H = [[1, 0, 0], [H1, H2, 0]].
 
-    H1 = -I^-1 W(pi), H2 = I^-1 Ad_g^T (:func:`twist_measurement`'s blocks).
+    H1 = -I^-1 W(pi), H2 = I^-1 Ad_g^T (the dense H of the reference, core/reference.py).
     """
     n = inverse_locked.shape[0]
     residual = group_log(compose(inverse(g), pose), pinv, whole)
@@ -129,8 +108,8 @@ def innovation(g: np.ndarray, x: np.ndarray, p: np.ndarray, pose: np.ndarray,
     """
     Return (H, nu, R, S, K, NIS, log det S, L^-1 H P) of a measurement.
 
-    A pose alone has H = [1 0 0]; with a twist the H and innovation of
-    :func:`twist_measurement`, and R holds the joint-velocity noise through A. One
+    A pose alone has H = [1 0 0]; with a twist H = [[1, 0, 0], [H1, H2, 0]] and the
+    innovation of :func:`_twist_blocks`, and R holds the joint-velocity noise through A. One
     Cholesky factorisation of S gives the gain, the NIS and log det S; H enters by
     its blocks (its w columns are zero, its pose rows select).
     """
