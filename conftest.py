@@ -14,8 +14,10 @@
 
 """Pytest root: its folder goes first on sys.path, so tests import this checkout's package."""
 
+import json
 import os
 import platform
+import time
 
 
 def pin_blas_kernels() -> str:
@@ -66,8 +68,57 @@ def xdist_domain_id() -> str:
     return str(1 + (int(run, 16) + int(worker[2:])) % DOMAINS)
 
 
+class CompileLog:
+    """
+    Which kernels numba compiles during which test: ``RD_COMPILE_LOG=PATH`` (opt-in).
+
+    Each pytest process (xdist workers too) appends one JSON line per top-level compile
+    to ``PATH``: the test (its setup, call and teardown), the kernel, its signature and
+    the CPU seconds it took with its callees. A kernel the package's warm-up also
+    compiles should load from the cache in a test; one that compiles there is a layout
+    or a function only the test uses (docs/parallel_tests.md, "Stop 45").
+    """
+
+    def __init__(self, path: str) -> None:
+        """Listen to numba's compile events; write them to ``path``."""
+        from numba.core import event
+        self.path, self.test, self.started = path, '', []
+        log = self
+
+        class _Listener(event.Listener):
+            def on_start(self, ev: event.Event) -> None:
+                log.started.append(time.process_time())
+
+            def on_end(self, ev: event.Event) -> None:
+                cpu = time.process_time() - log.started.pop()
+                if not log.started:  # a callee's compile is inside its caller's
+                    log.write(ev.data.get('dispatcher'), ev.data.get('args'), cpu)
+
+        event.register('numba:compile', _Listener())
+
+    def write(self, dispatcher, args, cpu: float) -> None:
+        """Append one compile to the log."""
+        function = getattr(dispatcher, 'py_func', None)
+        record = {'test': self.test, 'cpu_s': round(cpu, 3), 'signature': str(args),
+                  'kernel': f'{getattr(function, "__module__", "?")}.'
+                            f'{getattr(function, "__qualname__", dispatcher)}'}
+        with open(self.path, 'a') as out:
+            out.write(json.dumps(record) + '\n')
+
+    def pytest_runtest_logstart(self, nodeid: str, location) -> None:
+        """Attribute what follows to this test."""
+        self.test = nodeid
+
+
 def pytest_configure(config) -> None:
-    """In an xdist worker: this worker's ROS domain for rclpy, the tests and the bench."""
+    """
+    In an xdist worker: this worker's ROS domain for rclpy, the tests and the bench.
+
+    With ``RD_COMPILE_LOG`` set: :class:`CompileLog` in this process.
+    """
+    if os.environ.get('RD_COMPILE_LOG'):
+        config.pluginmanager.register(CompileLog(os.environ['RD_COMPILE_LOG']),
+                                      'rd_compile_log')
     domain = xdist_domain_id()
     if domain:
         # ros_harness takes RD_TEST_DOMAIN_ID; bench.node_domain_id RD_BENCH_DOMAIN_ID; a
