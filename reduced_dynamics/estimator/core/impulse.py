@@ -13,14 +13,17 @@
 # limitations under the License.
 
 """
-The multi-scale impulse test's per-update arithmetic, compiled (numba).
+The multi-scale impulse test's smaller kernels, compiled (numba).
 
 :class:`~reduced_dynamics.estimator.multiscale.MultiScaleTest` compares the
 filtered momentum with its value one window ago, for every window of its bank
-(``d_L = mu(t) - mu(t - L)``, ``V_L = P_mu(t) + P_mu(t - L)``). In numpy that was
-~15 calls on arrays of a dozen rows per update; here it is one call. The same
-LAPACK solve per window and the same elementwise expressions in the same order:
-the statistics are those of the numpy code bit for bit (test_multiscale_kernels.py).
+(``d_L = mu(t) - mu(t - L)``, ``V_L = P_mu(t) + P_mu(t - L)``: core/bank_windows.py,
+in core/bank_step.py's one call per update). Here: the null calibration of the
+statistics (:func:`calibrate`, and :func:`calibrated_best`, the rule the bank's
+call applies inline), and the measured momentum of a twist with its covariance and
+the centre of mass (:func:`twist_momentum`, :func:`measured_momentum_se3`) that the
+block test takes; the same elementwise expressions in the same order as the numpy
+code they replaced (test_multiscale_kernels.py, test_row_kernels.py).
 """
 
 import math
