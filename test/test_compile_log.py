@@ -46,6 +46,8 @@ def test_the_log_names_each_compile_and_the_test_it_ran_in(tmp_path) -> None:
     (tmp_path / 'test_sample.py').write_text(SAMPLE)
     log = tmp_path / 'compiles.jsonl'
     env = dict(os.environ, RD_COMPILE_LOG=str(log), PYTHONPATH=str(ROOT))
+    # Not this run's options: colcon test passes its pytest arguments (-n 2 ...) this way.
+    env.pop('PYTEST_ADDOPTS', None)
     # The root conftest as a plugin: the sample lies outside the checkout.
     proc = subprocess.run([sys.executable, '-m', 'pytest', '-q', '-p', 'conftest',
                            '-p', 'no:cacheprovider', '-p', 'no:xdist', str(tmp_path)],
