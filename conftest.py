@@ -17,7 +17,6 @@
 import json
 import os
 import platform
-import time
 
 
 def pin_blas_kernels() -> str:
@@ -80,21 +79,11 @@ class CompileLog:
     """
 
     def __init__(self, path: str) -> None:
-        """Listen to numba's compile events; write them to ``path``."""
+        """Listen to numba's top-level compiles; write them to ``path``."""
         from numba.core import event
-        self.path, self.test, self.started = path, '', []
-        log = self
-
-        class _Listener(event.Listener):
-            def on_start(self, ev: event.Event) -> None:
-                log.started.append(time.process_time())
-
-            def on_end(self, ev: event.Event) -> None:
-                cpu = time.process_time() - log.started.pop()
-                if not log.started:  # a callee's compile is inside its caller's
-                    log.write(ev.data.get('dispatcher'), ev.data.get('args'), cpu)
-
-        event.register('numba:compile', _Listener())
+        from reduced_dynamics.compile_kernels import top_level_compiles
+        self.path, self.test = path, ''
+        event.register('numba:compile', top_level_compiles(self.write))
 
     def write(self, dispatcher, args, cpu: float) -> None:
         """Append one compile to the log."""

@@ -30,7 +30,7 @@ from concurrent.futures import as_completed, ProcessPoolExecutor
 import multiprocessing
 import os
 import time
-from typing import Any, Iterable, NamedTuple, Optional
+from typing import Any, Callable, Iterable, NamedTuple, Optional
 
 #: CPU seconds each part took to compile alone from an empty cache (numba's LLVM level 1,
 #: this project's 2-core VM under load; docs/performance.md, "Stop 42").
@@ -48,32 +48,43 @@ class PartResult(NamedTuple):
     compiled: int
 
 
+def top_level_compiles(on_compile: Callable[[Any, Any, float], None]) -> Any:
+    """
+    Return a numba listener calling ``on_compile(dispatcher, args, cpu_s)`` per top-level compile.
+
+    A kernel's callees compile inside its own ``numba:compile`` event: only the
+    outermost event is reported, with the CPU seconds it took, callees included.
+    (Install it with ``numba.core.event.install_listener('numba:compile', ...)``.)
+    """
+    from numba.core import event
+    started: list[float] = []
+
+    class _TopLevel(event.Listener):
+        def on_start(self, ev: event.Event) -> None:
+            started.append(time.process_time())
+
+        def on_end(self, ev: event.Event) -> None:
+            cpu_s = time.process_time() - started.pop()
+            if not started:
+                on_compile(ev.data.get('dispatcher'), ev.data.get('args'), cpu_s)
+
+    return _TopLevel()
+
+
 def run_part(name: str) -> PartResult:
     """Run one part's kernels in this process; count the kernels numba compiled for it."""
     from numba.core import event
-    compiled = [0]
-    depth = [0]
-
-    class _Counter(event.Listener):
-        """Count top-level compilations (a kernel's callees compile inside its event)."""
-
-        def on_start(self, ev: event.Event) -> None:
-            depth[0] += 1
-
-        def on_end(self, ev: event.Event) -> None:
-            depth[0] -= 1
-            if depth[0] == 0:
-                compiled[0] += 1
-
+    compiled = []
+    listener = top_level_compiles(lambda dispatcher, args, cpu_s: compiled.append(dispatcher))
     started = time.process_time()
-    with event.install_listener('numba:compile', _Counter()):
+    with event.install_listener('numba:compile', listener):
         if name == 'prediction':
             from reduced_dynamics.reduction.lean_field import warm_up as warm_prediction
             warm_prediction()
         else:
             from reduced_dynamics.estimator.core.warmup import warm_up
             warm_up([name])
-    return PartResult(name, time.process_time() - started, compiled[0])
+    return PartResult(name, time.process_time() - started, len(compiled))
 
 
 def _start_worker() -> None:
