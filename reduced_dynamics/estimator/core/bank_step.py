@@ -43,7 +43,7 @@ from numba import njit
 from reduced_dynamics.estimator.core.bank_windows import (  # noqa: F401 (re-exported)
     block_window, filtered_bank, quadratic_form)
 from reduced_dynamics.estimator.core.blocks import add_sample
-from reduced_dynamics.estimator.core.impulse import measured_momentum_se3
+from reduced_dynamics.estimator.core.impulse import calibrated_best, measured_momentum_se3
 
 
 #: Evaluations of a block window per its length: window L is evaluated on a grid of
@@ -90,19 +90,8 @@ def update(stamps: np.ndarray, mu_ring: np.ndarray, cov_ring: np.ndarray, start:
                             scratch[13][0], scratch[13][1])
     best, value = -1, 0.0
     if covered > 0:
-        for w in range(count):
-            raw = statistics[w]
-            if learn and raw > 0.0:
-                above[0, w] += rate * ((1.0 if raw > median else 0.0) - above[0, w])
-            statistics[w] = raw / inflation[0, w]
-        k = 0
-        for w in range(count):
-            if rows[w] < 0:
-                continue
-            v = statistics[w]
-            if best < 0 or (not math.isnan(value) and (v > value or math.isnan(v))):
-                best, value = k, v
-            k += 1
+        best, value = calibrated_best(rows, statistics, above[0], inflation[0], median, rate,
+                                      learn)
     block_best = -1
     if not blocks_on:
         return best, value, block_best
