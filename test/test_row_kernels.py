@@ -192,8 +192,7 @@ def test_calibrated_best_equals_the_numpy_steps_it_replaces() -> None:
     """
     Covered windows, ties, NaN, learning on and off: statistics, above and the argmax.
 
-    ``calibrated_best`` is compiled into ``bank_step.update`` (register_jitable); here it
-    runs as Python, the same source and arithmetic (every event test runs it compiled).
+    In the layout ``bank_step.update`` passes (1-D C arrays): the kernel it links.
     """
     rng = np.random.default_rng(8)
     for trial in range(2000):

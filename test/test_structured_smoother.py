@@ -161,7 +161,7 @@ def test_every_shipped_bag_smooths_to_the_dense_steps_rows(tmp_path, monkeypatch
         structured.row_fields(
             np.ascontiguousarray(records['pose']), np.ascontiguousarray(records['x']),
             np.ascontiguousarray(records['p']), records['locked_inverse'],
-            records['command'] if steps.command else np.zeros((1, group.dim)),
+            records['command'] if steps.command else smoother.absent_command(group.dim),
             records['output'], steps.command, np.ascontiguousarray(group.algebra_basis),
             np.ascontiguousarray(group.algebra_pinv), group.is_whole, form_rows,
             filtered['mu'], filtered['pi'], filtered['rate'], filtered['drift'],

@@ -247,9 +247,7 @@ def smooth_rows(group: BaseGroup, steps: StepStore, files: SmootherFiles,
     carry = (np.zeros((4, 4)), np.zeros(dim - n), np.zeros((dim, dim)))
     size = steps.block
     out = (np.empty((size, 4, 4)), np.empty((size, dim - n)), np.empty((size, dim, dim)))
-    # Strided like the records' command field: row_fields then compiles one variant, not a
-    # second for a C-contiguous stand-in (~3-4 s of CPU each install). Never read.
-    no_command = np.zeros((2, 2 * n))[:, :n]
+    no_command = absent_command(n)
     after: Optional[np.ndarray] = None  # the first step of the block after (a copy)
     row = steps.outputs  # rows [row, outputs) are written
     for records in steps.blocks_backward():
@@ -282,6 +280,16 @@ def smooth_rows(group: BaseGroup, steps: StepStore, files: SmootherFiles,
         row -= chosen
         rows.write(row, block[:chosen])
     return rows
+
+
+def absent_command(n: int) -> np.ndarray:
+    """
+    Return what :func:`~.core.smoother.row_fields` is given for a filter without a command.
+
+    Never read, but strided like the records' ``command`` field, so that numba compiles one
+    variant of the kernel, not a second one for a C-contiguous stand-in.
+    """
+    return np.zeros((2, 2 * n))[:, :n]
 
 
 def strided(records: np.ndarray) -> np.ndarray:

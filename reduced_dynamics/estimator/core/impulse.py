@@ -20,7 +20,7 @@ filtered momentum with its value one window ago, for every window of its bank
 (``d_L = mu(t) - mu(t - L)``, ``V_L = P_mu(t) + P_mu(t - L)``: core/bank_windows.py,
 in core/bank_step.py's one call per update). Here: the null calibration of the
 statistics (:func:`calibrate`, and :func:`calibrated_best`, the rule the bank's
-call applies, compiled into it), and the measured momentum of a twist with its covariance and
+call applies), and the measured momentum of a twist with its covariance and
 the centre of mass (:func:`twist_momentum`, :func:`measured_momentum_se3`) that the
 block test takes; the same elementwise expressions in the same order as the numpy
 code they replaced (test_multiscale_kernels.py, test_row_kernels.py).
@@ -30,10 +30,9 @@ import math
 
 import numpy as np
 from numba import njit
-from numba.extending import register_jitable
 
 
-@register_jitable
+@njit(cache=True)
 def calibrated_best(rows: np.ndarray, statistics: np.ndarray, above: np.ndarray,
                     inflation: np.ndarray, median: float, rate: float,
                     learn: bool) -> tuple[int, float]:
@@ -44,8 +43,7 @@ def calibrated_best(rows: np.ndarray, statistics: np.ndarray, above: np.ndarray,
     T_L / ``inflation``, and ``learn`` first moves ``above`` towards T_L > ``median``
     where T_L > 0 (as :func:`calibrate`). Returns (its index among the covered windows,
     its value) as ``np.argmax`` picks it: the first largest, or the first NaN; (-1, 0.0)
-    when none is covered. Compiled into its caller (``bank_step.update``), not a kernel
-    of its own; called from Python it runs as Python, with the same arithmetic.
+    when none is covered. ``bank_step.update`` applies it to the filtered bank.
     """
     for w in range(rows.shape[0]):
         raw = statistics[w]
