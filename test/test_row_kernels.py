@@ -192,7 +192,7 @@ def test_calibrated_best_equals_the_numpy_steps_it_replaces() -> None:
     """
     Covered windows, ties, NaN, learning on and off: statistics, above and the argmax.
 
-    In the layout ``bank_step.update`` passes (1-D C arrays): the kernel it links.
+    The rule ``bank_step.update`` inlines, compiled here on its own from the same source.
     """
     rng = np.random.default_rng(8)
     for trial in range(2000):
