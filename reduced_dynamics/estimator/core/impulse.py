@@ -41,16 +41,12 @@ def calibrated_best(rows: np.ndarray, statistics: np.ndarray, above: np.ndarray,
 
     ``statistics``: T_L per window, 0 where not covered (``rows`` < 0); each becomes
     T_L / ``inflation``, and ``learn`` first moves ``above`` towards T_L > ``median``
-    where T_L > 0 (as :func:`calibrate`). Returns (its index among the covered windows,
+    where T_L > 0 (:func:`calibrate_into`). Returns (its index among the covered windows,
     its value) as ``np.argmax`` picks it: the first largest, or the first NaN; (-1, 0.0)
     when none is covered. ``bank_step.update`` applies it to the filtered bank, inlined
     (``inline='always'``: as cheap to compile as the copy of it that update held before).
     """
-    for w in range(rows.shape[0]):
-        raw = statistics[w]
-        if learn and raw > 0.0:
-            above[w] += rate * ((1.0 if raw > median else 0.0) - above[w])
-        statistics[w] = raw / inflation[w]
+    calibrate_into(statistics, statistics, above, inflation, median, rate, learn)
     best, value, k = -1, 0.0, 0
     for w in range(rows.shape[0]):
         if rows[w] < 0:
@@ -72,11 +68,19 @@ def calibrate(raw: np.ndarray, above: np.ndarray, inflation: np.ndarray, median:
     window, learnt where the window is covered (raw > 0) at ``rate`` per update.
     """
     out = np.empty_like(raw)
-    for w in range(raw.shape[0]):
-        if learn and raw[w] > 0.0:
-            above[w] += rate * ((1.0 if raw[w] > median else 0.0) - above[w])
-        out[w] = raw[w] / inflation[w]
+    calibrate_into(raw, out, above, inflation, median, rate, learn)
     return out
+
+
+@njit(cache=True, inline='always')
+def calibrate_into(raw: np.ndarray, out: np.ndarray, above: np.ndarray,
+                   inflation: np.ndarray, median: float, rate: float, learn: bool) -> None:
+    """Write :func:`calibrate`'s result into ``out`` (which may be ``raw`` itself)."""
+    for w in range(raw.shape[0]):
+        value = raw[w]
+        if learn and value > 0.0:
+            above[w] += rate * ((1.0 if value > median else 0.0) - above[w])
+        out[w] = value / inflation[w]
 
 
 @njit(cache=True)
